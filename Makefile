@@ -1,0 +1,28 @@
+# The two commands of the README. Both create .venv on first use.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+PORT ?= 8000
+
+.PHONY: demo test install services
+
+$(BIN)/navsim-lb: pyproject.toml constraints.txt
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -c constraints.txt -e ".[dev]"
+	touch $(BIN)/navsim-lb
+
+install: $(BIN)/navsim-lb
+
+## make demo: SQLite + embedded broker + one worker + API and web on $(PORT); Ctrl-C stops everything.
+demo: install
+	PORT=$(PORT) $(BIN)/navsim-lb demo
+
+## make test: everything CI runs (.ci/run calls exactly this).
+test: install services
+	$(BIN)/pytest -q -p no:cacheprovider
+	$(BIN)/navsim-lb regress
+
+## PostgreSQL and Redis must answer for the service tests; start them when they do not.
+services:
+	./.ci/services

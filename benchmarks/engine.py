@@ -1,0 +1,81 @@
+"""Engine speed and memory: cache building and warm-cache scoring on a synthetic split.
+
+Prints tokens per second per version for one process and for all cores, and the peak RSS.
+Usage: .venv/bin/python benchmarks/engine.py [--scenes 1000] [--seed 1] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from scorer.baselines import constant_velocity
+from scorer.evaluate import build_split_cache, score_tokens
+from scorer.scene import iter_scenes
+from scorer.synth import synthesize_split
+from scorer.versions import VERSIONS
+
+DATA = Path(__file__).parent / ".data"
+
+
+def _peak_rss_mib() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(own, children) / 1024
+
+
+def _score_part(args: tuple[Path, Path, dict, str, list[str]]) -> int:
+    split, cache_dir, predictions, version, tokens = args
+    return sum(r.valid for r in score_tokens(split, cache_dir, predictions, version, tokens))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--scenes", type=int, default=1000)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    args = parser.parse_args()
+
+    split = DATA / f"split_{args.scenes}_{args.seed}"
+    if not (split / "scenes").is_dir():
+        start = time.perf_counter()
+        synthesize_split(split, args.scenes, args.seed)
+        print(f"synth: {args.scenes} scenes in {time.perf_counter() - start:.1f} s")
+    predictions = {scene.token: constant_velocity(scene) for scene in iter_scenes(split)}
+    tokens = sorted(predictions)
+    print(f"split: {split} ({len(tokens)} tokens)")
+
+    for workers in sorted({1, args.workers}):
+        cache_dir = DATA / f"cache_{args.scenes}_{args.seed}_w{workers}"
+        shutil.rmtree(cache_dir, ignore_errors=True)
+        for version in VERSIONS:
+            start = time.perf_counter()
+            failures = build_split_cache(split, cache_dir, [version], workers=workers)
+            elapsed = time.perf_counter() - start
+            print(
+                f"cache {version}: {len(tokens) / elapsed:8.1f} scenes/s with {workers} process(es)"
+                f" ({elapsed:.1f} s, {len(failures)} failed)"
+            )
+
+    cache_dir = DATA / f"cache_{args.scenes}_{args.seed}_w1"
+    for version in VERSIONS:
+        start = time.perf_counter()
+        valid = sum(r.valid for r in score_tokens(split, cache_dir, predictions, version, tokens))
+        elapsed = time.perf_counter() - start
+        print(f"score {version}: {len(tokens) / elapsed:8.1f} tokens/s with 1 process ({valid} valid)")
+        parts = [tokens[i :: args.workers] for i in range(args.workers)]
+        start = time.perf_counter()
+        with ProcessPoolExecutor(args.workers) as pool:
+            valid = sum(pool.map(_score_part, [(split, cache_dir, predictions, version, part) for part in parts]))
+        elapsed = time.perf_counter() - start
+        print(f"score {version}: {len(tokens) / elapsed:8.1f} tokens/s with {args.workers} processes ({valid} valid)")
+    print(f"peak RSS: {_peak_rss_mib():.0f} MiB")
+
+
+if __name__ == "__main__":
+    main()

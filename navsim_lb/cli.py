@@ -1,0 +1,14 @@
+"""Entry point of `navsim-lb`: each room registers its own subcommands."""
+
+from __future__ import annotations
+
+import typer
+
+from scorer import cli as scorer_cli
+from scorer.openscene import cli as openscene_cli
+from server import cli as server_cli
+
+app = typer.Typer(help="NAVSIM Leaderboard: PDM Score engine, evaluation server and data tools.", no_args_is_help=True)
+scorer_cli.register(app)
+openscene_cli.register(app)
+server_cli.register(app)

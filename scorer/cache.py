@@ -1,0 +1,176 @@
+"""The per-scene metric cache: what scoring needs from a scene, built once and kept on disk.
+
+One `.npz` file per (metric version, token) holds numeric arrays only (loaded with
+`allow_pickle=False`, so a cache file can never execute code) and a JSON `meta` entry. A file is
+reused only while its key (scene file hash, engine version, metric version) matches; otherwise it is
+rebuilt. Every scene is built in isolation: PDM-Closed's collided-track list starts empty for each
+scene, unlike the devkit, whose planner instance carries it across the scenes of a worker batch.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import shapely
+
+from scorer import ENGINE_VERSION
+from scorer.drivable_map import DrivableMap, build_drivable_map
+from scorer.geometry import FloatArray
+from scorer.observation import Observation, observe_scene
+from scorer.pdm_closed import plan_reference
+from scorer.scene import EgoStatus, Scene
+from scorer.versions import MetricVersion
+
+
+@dataclass(frozen=True)
+class CacheKey:
+    """What a cache file was built from; any change invalidates it."""
+
+    scene_hash: str
+    engine_version: str
+    metric_version: str
+
+
+@dataclass(frozen=True, eq=False)
+class MetricCache:
+    """Everything the scorer needs about one token under one metric version (NAVSIM's MetricCache)."""
+
+    token: str
+    key: CacheKey
+    t0_us: int
+    ego: EgoStatus
+    trajectory: FloatArray  # (51, 3) PDM-Closed rear-axle poses at t0 + k * 0.1 s
+    centerline: FloatArray  # (n, 3)
+    route_lane_ids: tuple[str, ...]
+    route_roadblocks: tuple[str, ...]
+    idm_target_velocities: FloatArray
+    drivable_map: DrivableMap
+    observation: Observation
+
+
+def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, MetricCache]:
+    """Return the metric cache of `scene` for each version; observation and map are shared between them."""
+    drivable_map = build_drivable_map(scene)
+    observation = observe_scene(scene)
+    frame = scene.current_frame
+    caches = {}
+    for version in versions:
+        plan = plan_reference(scene, drivable_map, version.planner)
+        caches[version.name] = MetricCache(
+            token=scene.token,
+            key=CacheKey(scene.content_hash, ENGINE_VERSION, version.name),
+            t0_us=frame.timestamp_us,
+            ego=frame.ego,
+            trajectory=plan.trajectory,
+            centerline=plan.centerline,
+            route_lane_ids=tuple(plan.route_lane_ids),
+            route_roadblocks=tuple(plan.route_roadblocks),
+            idm_target_velocities=np.asarray(plan.idm_target_velocities, dtype=np.float64),
+            drivable_map=drivable_map,
+            observation=observation,
+        )
+    return caches
+
+
+def cache_path(cache_dir: Path, version: str, token: str) -> Path:
+    """Return where the cache of `token` under `version` is stored."""
+    return Path(cache_dir) / version / f"{token}.npz"
+
+
+def _pack_polygons(polygons: Iterable[shapely.Polygon]) -> tuple[FloatArray, np.ndarray]:
+    """Return the exterior coordinates of polygons and each polygon's coordinate count."""
+    polygons = np.asarray(list(polygons), dtype=object)
+    rings = shapely.get_exterior_ring(polygons)
+    return shapely.get_coordinates(rings), shapely.get_num_coordinates(rings).astype(np.int64)
+
+
+def _unpack_polygons(coords: FloatArray, counts: np.ndarray) -> np.ndarray:
+    ring_index = np.repeat(np.arange(len(counts)), counts)
+    rings = shapely.linearrings(coords, indices=ring_index) if len(counts) else np.empty(0, dtype=object)
+    return np.asarray(shapely.polygons(rings), dtype=object).reshape(len(counts))
+
+
+def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
+    """Write `cache` atomically (temporary file, then rename) and return its path."""
+    observation, drivable_map = cache.observation, cache.drivable_map
+    object_coords, object_counts = _pack_polygons(observation.polygons[observation.present])
+    map_coords, map_counts = _pack_polygons(drivable_map.polygons)
+    meta = {
+        "token": cache.token,
+        "key": asdict(cache.key),
+        "t0_us": cache.t0_us,
+        "ego": asdict(cache.ego),
+        "route_lane_ids": list(cache.route_lane_ids),
+        "route_roadblocks": list(cache.route_roadblocks),
+        "map_tokens": list(drivable_map.tokens),
+        "map_types": list(drivable_map.types),
+        "object_tokens": list(observation.tokens),
+        "object_types": list(observation.object_types),
+    }
+    path = cache_path(cache_dir, cache.key.metric_version, cache.token)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
+        np.savez(
+            handle,
+            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+            trajectory=cache.trajectory,
+            centerline=cache.centerline,
+            idm_target_velocities=cache.idm_target_velocities,
+            map_coords=map_coords,
+            map_counts=map_counts,
+            object_present=observation.present,
+            object_is_agent=observation.is_agent,
+            object_first_speed=observation.first_speed,
+            object_coords=object_coords,
+            object_counts=object_counts,
+        )
+    os.replace(handle.name, path)
+    return path
+
+
+def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> MetricCache | None:
+    """Return the stored cache of `token`, or None when it is missing or was built from other inputs."""
+    path = cache_path(cache_dir, version, token)
+    try:
+        with np.load(path, allow_pickle=False) as stored:
+            arrays = {name: stored[name] for name in stored.files}
+    except (OSError, ValueError, KeyError):
+        return None  # missing, truncated or foreign: rebuild
+    meta: dict[str, Any] = json.loads(arrays["meta"].tobytes())
+    key = CacheKey(**meta["key"])
+    if key != CacheKey(scene_hash, ENGINE_VERSION, version):
+        return None
+    present = arrays["object_present"]
+    polygons = np.full(present.shape, None, dtype=object)
+    polygons[present] = _unpack_polygons(arrays["object_coords"], arrays["object_counts"])
+    return MetricCache(
+        token=meta["token"],
+        key=key,
+        t0_us=meta["t0_us"],
+        ego=EgoStatus(**meta["ego"]),
+        trajectory=arrays["trajectory"],
+        centerline=arrays["centerline"],
+        route_lane_ids=tuple(meta["route_lane_ids"]),
+        route_roadblocks=tuple(meta["route_roadblocks"]),
+        idm_target_velocities=arrays["idm_target_velocities"],
+        drivable_map=DrivableMap(
+            tokens=tuple(meta["map_tokens"]),
+            types=tuple(meta["map_types"]),
+            polygons=_unpack_polygons(arrays["map_coords"], arrays["map_counts"]),
+        ),
+        observation=Observation(
+            tokens=tuple(meta["object_tokens"]),
+            object_types=tuple(meta["object_types"]),
+            is_agent=arrays["object_is_agent"],
+            first_speed=arrays["object_first_speed"],
+            present=present,
+            polygons=polygons,
+        ),
+    )

@@ -1,0 +1,176 @@
+"""Engine subcommands of `navsim-lb`: synth, baseline, cache, score, regress."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Callable
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from scorer.versions import VERSIONS
+
+console = Console(stderr=True)
+
+
+class BaselineKind(str, Enum):
+    constant_velocity = "constant-velocity"
+    human = "human"
+
+
+def default_cache_dir(split_dir: Path) -> Path:
+    """Return the cache directory of a split: $NAVSIM_LB_CACHE_DIR (default .navsim-lb/cache) / split name."""
+    root = Path(os.environ.get("NAVSIM_LB_CACHE_DIR", ".navsim-lb/cache"))
+    return root / Path(split_dir).resolve().name
+
+
+@contextmanager
+def progress_bar(description: str, total: int) -> Iterator[Callable[[int], None]]:
+    """Yield a callback advancing a rich progress bar by n items."""
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
+    with Progress(*columns, console=console, transient=False) as progress:
+        task = progress.add_task(description, total=total)
+        yield lambda n: progress.advance(task, n)
+
+
+def fail(message: str) -> typer.Exit:
+    console.print(f"[red]error:[/red] {message}")
+    return typer.Exit(code=2)
+
+
+def synth(
+    out: Annotated[Path, typer.Argument(help="directory of the new split (scenes/ is created inside)")],
+    scenes: Annotated[int, typer.Option(help="number of scenes")] = 200,
+    seed: Annotated[int, typer.Option(help="random seed; the same seed gives the same files")] = 0,
+) -> None:
+    """Generate a synthetic split that exercises every metric."""
+    from scorer.synth import synthesize_split
+
+    try:
+        with progress_bar("synthesising scenes", scenes) as advance:
+            tokens = synthesize_split(out, scenes, seed, progress=advance)
+    except FileExistsError as error:
+        raise fail(f"{error}; choose an empty directory") from None
+    console.print(f"wrote {len(tokens)} scenes to {out / 'scenes'}")
+
+
+def baseline(
+    kind: Annotated[BaselineKind, typer.Argument(help="which baseline agent")],
+    split: Annotated[Path, typer.Argument(help="split directory")],
+    out: Annotated[Path, typer.Option(help="submission JSON to write")],
+) -> None:
+    """Write the submission of a baseline agent (constant velocity or the recorded human) for a split."""
+    from scorer.baselines import baseline_submission
+    from scorer.submission import dump_submission_json
+
+    submission = baseline_submission(split, kind.value, kind.value)
+    out.write_bytes(dump_submission_json(submission))
+    console.print(f"wrote {len(submission.seeds[0])} trajectories to {out}")
+
+
+def cache(
+    split: Annotated[Path, typer.Argument(help="split directory")],
+    version: Annotated[str, typer.Option(help="v1.0, v1.1 or all")] = "all",
+    workers: Annotated[int, typer.Option(help="processes")] = 1,
+    cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
+) -> None:
+    """Build the metric cache of a split (missing or stale entries only)."""
+    from scorer.evaluate import build_split_cache
+    from scorer.scene import SceneFormatError, scene_paths
+
+    versions = list(VERSIONS) if version == "all" else [version]
+    if any(v not in VERSIONS for v in versions):
+        raise fail(f"unknown version {version!r}; use one of {', '.join(VERSIONS)} or all")
+    try:
+        total = len(scene_paths(split))
+    except SceneFormatError as error:
+        raise fail(str(error)) from None
+    with progress_bar(f"caching {', '.join(versions)}", total) as advance:
+        failures = build_split_cache(split, cache_dir or default_cache_dir(split), versions, workers, advance)
+    for name, error in failures.items():
+        console.print(f"[red]{name}[/red]: {error}")
+    console.print(f"cached {total - len(failures)} of {total} scenes")
+    if failures:
+        raise typer.Exit(code=1)
+
+
+def score(
+    split: Annotated[Path, typer.Argument(help="split directory")],
+    submission: Annotated[Path, typer.Argument(help="submission file (JSON or NAVSIM pickle)")],
+    version: Annotated[str, typer.Option(help="metric version: " + ", ".join(VERSIONS))] = "v1.1",
+    out: Annotated[Path | None, typer.Option(help="per-token CSV with an average row")] = None,
+    cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
+) -> None:
+    """Score a submission against a split and print the summary."""
+    from scorer.evaluate import score_tokens
+    from scorer.report import results_table, summary_rows
+    from scorer.scene import SceneFormatError, scene_paths
+    from scorer.submission import SubmissionError, load_submission, validate_submission
+
+    if version not in VERSIONS:
+        raise fail(f"unknown version {version!r}; use one of {', '.join(VERSIONS)}")
+    try:
+        tokens = list(scene_paths(split))
+        loaded = load_submission(submission.read_bytes(), submission.name)
+    except (SceneFormatError, OSError) as error:
+        raise fail(str(error)) from None
+    except SubmissionError as error:
+        raise fail(f"{submission}: {error}") from None
+    for problem in validate_submission(loaded, tokens):
+        console.print(f"[yellow]warning:[/yellow] {problem}")
+    results = []
+    with progress_bar(f"scoring {version}", len(tokens) * len(loaded.seeds)) as advance:
+        for index, predictions in enumerate(loaded.seeds):
+            seed = index if len(loaded.seeds) > 1 else None
+            results += score_tokens(split, cache_dir or default_cache_dir(split), predictions, version, tokens, seed, advance)
+    frame = results_table(results, VERSIONS[version])
+    if out is not None:
+        frame.to_csv(out)
+        console.print(f"wrote {out}")
+    table = Table(title=f"{loaded.metadata.method} on {split.name} ({version})")
+    rows = summary_rows(results, VERSIONS[version])
+    for column in rows[0]:
+        table.add_column(column)
+    for row in rows[1:]:
+        table.add_row(*row)
+    Console().print(table)
+
+
+def regress(
+    update: Annotated[bool, typer.Option(help="rewrite the golden files instead of comparing")] = False,
+) -> None:
+    """Compare the engine with the versioned golden results of the regression split (fails above 1e-9)."""
+    from scorer.regression import run_regression
+
+    changes = run_regression(update=update, progress=progress_bar)
+    if update:
+        console.print("golden results rewritten")
+        return
+    if not changes:
+        console.print("[green]no change[/green] against the golden results")
+        return
+    table = Table(title="changed results")
+    for column in ("version", "family", "token", "metric", "old", "new"):
+        table.add_column(column)
+    for change in changes:
+        table.add_row(*(str(value) for value in change))
+    Console().print(table)
+    raise typer.Exit(code=1)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the engine's subcommands to `app`."""
+    for command in (synth, baseline, cache, score, regress):
+        app.command()(command)

@@ -1,0 +1,163 @@
+"""The drivable-area map around the ego: the map polygons the scorer tests ego points against (spec 5).
+
+As `PDMDrivableMap.from_simulation` with nuPlan's `get_proximal_map_objects`: every roadblock,
+roadblock connector, intersection and car park whose polygon meets the axis-aligned square of
+half-side 100 m around the ego *box centre* (touching counts). The polygon list is, in this order: the
+roadblocks; the lanes of each of those roadblocks, then the lane connectors of each roadblock
+connector (connector polygons themselves are left out); the intersections; the car parks. Each layer
+keeps the order of the excerpt's layer list, as nuPlan's map tables do.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import numpy.typing as npt
+import shapely
+
+from scorer.geometry import FloatArray, ego_center
+from scorer.scene import Lane, Scene
+
+BoolArray = npt.NDArray[np.bool_]
+
+MAP_RADIUS = 100.0  # half-side of the proximity square, m
+ROADBLOCK = "ROADBLOCK"
+LANE = "LANE"
+LANE_CONNECTOR = "LANE_CONNECTOR"
+INTERSECTION = "INTERSECTION"
+CARPARK_AREA = "CARPARK_AREA"
+DRIVABLE_AREA = "DRIVABLE_AREA"  # never built (the devkit does not query it), but counted as drivable
+DRIVABLE_TYPES = (ROADBLOCK, INTERSECTION, DRIVABLE_AREA, CARPARK_AREA)
+LANE_TYPES = (LANE, LANE_CONNECTOR)
+
+
+@dataclass(frozen=True, eq=False)
+class DrivableMap:
+    """Map polygons with their map object ids and nuPlan layer names, in the devkit's order."""
+
+    tokens: tuple[str, ...]
+    types: tuple[str, ...]
+    polygons: npt.NDArray[np.object_]  # (m,) shapely Polygons
+
+    def of_types(self, types: Sequence[str]) -> BoolArray:
+        """Return the mask (m,) of polygons whose type is one of `types`."""
+        return np.array([kind in types for kind in self.types], dtype=bool)
+
+    @cached_property
+    def is_lane(self) -> BoolArray:
+        """Return the mask of lanes and lane connectors (they decide lanes and route, never drivability)."""
+        return self.of_types(LANE_TYPES)
+
+    @cached_property
+    def is_drivable(self) -> BoolArray:
+        """Return the mask of drivable polygons: roadblocks, intersections, car parks."""
+        return self.of_types(DRIVABLE_TYPES)
+
+    @cached_property
+    def is_intersection(self) -> BoolArray:
+        """Return the mask of intersections."""
+        return self.of_types([INTERSECTION])
+
+    def on_route(self, route_lane_ids: Collection[str]) -> BoolArray:
+        """Return the mask of lanes and lane connectors whose id is in `route_lane_ids`."""
+        route = set(route_lane_ids)
+        return self.is_lane & np.array([token in route for token in self.tokens], dtype=bool)
+
+    @cached_property
+    def prepared_polygons(self) -> npt.NDArray[np.object_]:
+        """Return the polygons, prepared for fast point-in-polygon tests (same results, GEOS caches indexes)."""
+        shapely.prepare(self.polygons)
+        return self.polygons
+
+    @cached_property
+    def bounds(self) -> FloatArray:
+        """Return the bounding boxes (m, 4) xmin, ymin, xmax, ymax."""
+        return shapely.bounds(self.polygons).reshape(-1, 4)
+
+
+@dataclass(frozen=True, eq=False)
+class MapBatch:
+    """The drivable-area maps of several scene tokens side by side, with each polygon's role for the scorer.
+
+    Polygon j of token b is entry start[b] + j.
+    """
+
+    polygons: npt.NDArray[np.object_]  # (M,) prepared
+    bounds: FloatArray  # (M, 4)
+    is_lane: BoolArray  # lane or lane connector
+    is_drivable: BoolArray  # roadblock, intersection, car park (lanes are not drivable polygons)
+    is_intersection: BoolArray
+    is_route: BoolArray  # a lane of the token's route
+    start: npt.NDArray[np.intp]  # (B,)
+    count: npt.NDArray[np.intp]  # (B,)
+
+    @classmethod
+    def of(cls, maps: Sequence[DrivableMap], route_lane_ids: Sequence[Collection[str]]) -> MapBatch:
+        """Return the batch of `maps`, each with its token's route lane ids."""
+        count = np.array([len(drivable_map.tokens) for drivable_map in maps], dtype=np.intp)
+
+        def joined(masks: list[BoolArray]) -> BoolArray:
+            return np.concatenate(masks).astype(bool)
+
+        return cls(
+            polygons=np.concatenate([drivable_map.prepared_polygons for drivable_map in maps]),
+            bounds=np.concatenate([drivable_map.bounds for drivable_map in maps]),
+            is_lane=joined([drivable_map.is_lane for drivable_map in maps]),
+            is_drivable=joined([drivable_map.is_drivable for drivable_map in maps]),
+            is_intersection=joined([drivable_map.is_intersection for drivable_map in maps]),
+            is_route=joined([m.on_route(route) for m, route in zip(maps, route_lane_ids)]),
+            start=np.cumsum(count) - count,
+            count=count,
+        )
+
+
+def proximal_mask(polygons: npt.ArrayLike, x: float, y: float, half_side: float) -> BoolArray:
+    """Return which polygons meet the axis-aligned square of `half_side` around (x, y); touching counts."""
+    square = shapely.box(x - half_side, y - half_side, x + half_side, y + half_side)
+    return np.asarray(shapely.intersects(np.asarray(polygons, dtype=object), square), dtype=bool)
+
+
+def _interior_edges(blocks: Sequence[str], edges: Sequence[Lane]) -> list[Lane]:
+    """Return the lanes (or lane connectors) of each block in turn, each block's in layer order."""
+    by_block: dict[str, list[Lane]] = {}
+    for edge in edges:
+        by_block.setdefault(edge.roadblock, []).append(edge)
+    return [edge for block in blocks for edge in by_block.get(block, [])]
+
+
+def build_drivable_map(scene: Scene) -> DrivableMap:
+    """Return the drivable-area map around the ego box centre of the current frame (spec 5)."""
+    ego = scene.current_frame.ego
+    center_x, center_y = (float(value) for value in ego_center(ego.x, ego.y, ego.heading))
+    excerpt = scene.map
+
+    def near(layer: Sequence[object]) -> list:
+        polygons = [item.polygon for item in layer]  # type: ignore[attr-defined]
+        if not polygons:
+            return []
+        return [
+            item for item, hit in zip(layer, proximal_mask(polygons, center_x, center_y, MAP_RADIUS)) if hit
+        ]
+
+    roadblocks = near(excerpt.roadblocks)
+    connectors = near(excerpt.roadblock_connectors)
+    lanes = _interior_edges([block.id for block in roadblocks], excerpt.lanes)
+    lane_connectors = _interior_edges([block.id for block in connectors], excerpt.lane_connectors)
+    layers = (
+        (ROADBLOCK, roadblocks),
+        (LANE, lanes),
+        (LANE_CONNECTOR, lane_connectors),
+        (INTERSECTION, near(excerpt.intersections)),
+        (CARPARK_AREA, near(excerpt.carpark_areas)),
+    )
+    items = [(kind, item) for kind, layer in layers for item in layer]
+    polygons = np.empty(len(items), dtype=object)
+    polygons[:] = [item.polygon for _, item in items]
+    return DrivableMap(
+        tokens=tuple(item.id for _, item in items),
+        types=tuple(kind for kind, _ in items),
+        polygons=polygons,
+    )

@@ -1,0 +1,207 @@
+"""Score submitted trajectories against a split: caches in, per-token results out (spec 1, 10).
+
+Unlike the devkit, one bad token never aborts the others: it becomes an invalid row with an error
+text. Summaries count such a token as 0 (the devkit's average row skips it) and report how many.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from scorer.cache import MetricCache, build_caches, load_cache, save_cache
+from scorer.geometry import FloatArray
+from scorer.pdm_scorer import score_proposals
+from scorer.scene import SceneFormatError, load_scene, scene_file_hash, scene_paths
+from scorer.simulation import simulate
+from scorer.trajectory import agent_reference, initial_state, pdm_reference
+from scorer.versions import METRIC_COLUMNS, MetricVersion, get_version
+
+POSES_SHAPE = (8, 3)
+CHUNK_SIZE = 256  # tokens per batched simulation; bounds memory on large splits
+
+
+@dataclass(frozen=True)
+class TokenResult:
+    """One row of the result table: the devkit's columns for one token (and seed)."""
+
+    token: str
+    seed: int | None
+    valid: bool
+    metrics: dict[str, float] = field(default_factory=dict)
+    error: str | None = None
+
+
+class TokenError(Exception):
+    """A token that cannot be scored; the message is safe to show to the submitting team."""
+
+
+def split_content_hash(split_dir: Path) -> str:
+    """Return a hash over (token, scene file hash) of the split in token order."""
+    digest = hashlib.sha256()
+    for token, path in scene_paths(split_dir).items():
+        digest.update(f"{token}:{scene_file_hash(path)}\n".encode())
+    return digest.hexdigest()
+
+
+def _build_and_save(path: Path, cache_dir: Path, version_names: Sequence[str]) -> dict[str, MetricCache]:
+    scene = load_scene(path)
+    caches = build_caches(scene, [get_version(name) for name in version_names])
+    for cache in caches.values():
+        save_cache(cache, cache_dir)
+    return caches
+
+
+def _load_or_build(path: Path, cache_dir: Path, version: str) -> MetricCache:
+    """Return the cache of one token, building it when missing or stale."""
+    cache = load_cache(cache_dir, version, path.name.split(".")[0], scene_file_hash(path))
+    if cache is not None:
+        return cache
+    try:
+        return _build_and_save(path, cache_dir, [version])[version]
+    except SceneFormatError as error:
+        raise TokenError(f"hidden scene is unreadable: {error}") from None
+
+
+def _build_missing(task: tuple[Path, Path, tuple[str, ...]]) -> tuple[str, str | None]:
+    path, cache_dir, versions = task
+    missing = [v for v in versions if load_cache(cache_dir, v, path.name.split(".")[0], scene_file_hash(path)) is None]
+    try:
+        if missing:
+            _build_and_save(path, cache_dir, missing)
+    except Exception as error:  # noqa: BLE001 - reported per token, the other scenes go on
+        return path.name, f"{type(error).__name__}: {error}"
+    return path.name, None
+
+
+def build_split_cache(
+    split_dir: Path,
+    cache_dir: Path,
+    versions: Sequence[str],
+    workers: int = 1,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, str]:
+    """Build every missing or stale cache of a split; return file name -> error of scenes that failed."""
+    tasks = [(path, Path(cache_dir), tuple(versions)) for path in scene_paths(split_dir).values()]
+    failures: dict[str, str] = {}
+    results: Iterator[tuple[str, str | None]]
+    if workers > 1:
+        executor = ProcessPoolExecutor(max_workers=workers)
+        results = executor.map(_build_missing, tasks, chunksize=8)
+    else:
+        executor = None
+        results = map(_build_missing, tasks)
+    try:
+        for name, error in results:
+            if error is not None:
+                failures[name] = error
+            if progress is not None:
+                progress(1)
+    finally:
+        if executor is not None:
+            executor.shutdown()
+    return failures
+
+
+def _checked_poses(poses: object) -> FloatArray:
+    array = np.asarray(poses, dtype=np.float64)
+    if array.shape != POSES_SHAPE:
+        raise TokenError(f"poses: expected shape {POSES_SHAPE}, got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise TokenError("poses: non-finite value")
+    return array
+
+
+def _row(token: str, seed: int | None, scores: object, index: int) -> TokenResult:
+    metrics = {column: float(getattr(scores, column)[index]) for column in METRIC_COLUMNS}
+    return TokenResult(token=token, seed=seed, valid=True, metrics=metrics)
+
+
+def score_caches(
+    caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion, seed: int | None = None
+) -> list[TokenResult]:
+    """Score one agent trajectory per cache; proposals of all tokens are simulated in one batch."""
+    if not caches:
+        return []
+    references = np.concatenate(
+        [
+            np.stack([pdm_reference(c.ego, c.t0_us, c.trajectory), agent_reference(c.ego, c.t0_us, p)])
+            for c, p in zip(caches, poses)
+        ]
+    )
+    initial = np.repeat(np.stack([initial_state(c.ego) for c in caches]), 2, axis=0)
+    try:
+        simulated = simulate(references, initial).reshape(len(caches), 2, *references.shape[1:])
+    except ValueError:
+        if len(caches) == 1:
+            raise
+        # One diverging trajectory must not fail its neighbours: score them one by one.
+        return [result for c, p in zip(caches, poses) for result in _score_one(c, p, version, seed)]
+    results = []
+    for cache, states in zip(caches, simulated):
+        scores = score_proposals(
+            states,
+            cache.observation,
+            cache.drivable_map,
+            cache.centerline[:, :2],
+            cache.route_lane_ids,
+            version.evaluation,
+        )
+        results.append(_row(cache.token, seed, scores, 1))
+    return results
+
+
+def _score_one(cache: MetricCache, poses: FloatArray, version: MetricVersion, seed: int | None) -> list[TokenResult]:
+    try:
+        return score_caches([cache], [poses], version, seed)
+    except ValueError as error:
+        return [TokenResult(cache.token, seed, False, error=f"scoring failed: {error}")]
+
+
+def score_tokens(
+    split_dir: Path,
+    cache_dir: Path,
+    predictions: Mapping[str, object],
+    version: str,
+    tokens: Sequence[str] | None = None,
+    seed: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> list[TokenResult]:
+    """Return one result per token (all tokens of the split by default), building whatever the cache lacks."""
+    metric_version = get_version(version)
+    paths = scene_paths(split_dir)
+    tokens = list(paths) if tokens is None else list(tokens)
+    results: list[TokenResult] = []
+    for start in range(0, len(tokens), CHUNK_SIZE):
+        ready: list[tuple[MetricCache, FloatArray]] = []
+        for token in tokens[start : start + CHUNK_SIZE]:
+            try:
+                if token not in paths:
+                    raise TokenError("token is not part of the split")
+                if token not in predictions:
+                    raise TokenError("no prediction for this token")
+                poses = _checked_poses(predictions[token])
+                ready.append((_load_or_build(paths[token], Path(cache_dir), version), poses))
+            except TokenError as error:
+                results.append(TokenResult(token, seed, False, error=str(error)))
+        results.extend(score_caches([c for c, _ in ready], [p for _, p in ready], metric_version, seed))
+        if progress is not None:
+            progress(min(CHUNK_SIZE, len(tokens) - start))
+    order = {token: index for index, token in enumerate(tokens)}
+    return sorted(results, key=lambda result: order[result.token])
+
+
+def summarize(results: Sequence[TokenResult]) -> dict[str, float]:
+    """Return the mean of every column over tokens, an unscored token counting 0, and the failed count."""
+    summary = {
+        column: float(np.mean([r.metrics.get(column, 0.0) for r in results])) if results else float("nan")
+        for column in METRIC_COLUMNS
+    }
+    summary["tokens"] = float(len(results))
+    summary["failed"] = float(sum(not r.valid for r in results))
+    return summary

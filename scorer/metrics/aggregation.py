@@ -1,0 +1,15 @@
+"""Aggregation of the metric rows into the PDM Score (spec 8)."""
+
+from __future__ import annotations
+
+from scorer.geometry import FloatArray
+
+
+def aggregate(multipliers: FloatArray, weighted: FloatArray, weights: FloatArray) -> FloatArray:
+    """Return score (...) = product of the multiplier rows (m, ...) x weighted mean of the rows (w, ...).
+
+    The rows are summed in order and divided by the weight sum afterwards, as the devkit does.
+    """
+    row_weights = weights.reshape(-1, *[1] * (weighted.ndim - 1))
+    weighted_mean = (weighted * row_weights).sum(axis=0) / weights.sum()
+    return multipliers.prod(axis=0) * weighted_mean

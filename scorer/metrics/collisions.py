@@ -1,0 +1,70 @@
+"""No at-fault collisions (NC), a multiplier in {0, 0.5, 1} (spec 7.1).
+
+Each contact at time index k (0..40, the initial state included) is classified as nuPlan's
+`get_collision_type` does, in this order: stopped ego, stopped track (any static object, or an agent
+whose first-appearance speed is at most 0.05 m/s), active rear (object behind), active front (the
+front bumper touches it), active lateral. Stopped-track and front collisions are at fault, lateral
+ones only while the ego straddles lanes or leaves the drivable area.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from scorer.geometry import FloatArray
+from scorer.metrics.contacts import (
+    BEHIND_ANGLE,
+    centroids,
+    counted_contacts,
+    find_contacts,
+    first_index,
+    no_contacts,
+    relative_angle,
+    segments_meet,
+)
+from scorer.metrics.ego_areas import EgoArea
+from scorer.metrics.ego_box import BoxPoint, ego_corners
+from scorer.observation import ObservationBatch
+from scorer.trajectory import StateIndex
+
+IntArray = npt.NDArray[np.intp]
+
+STOPPED_SPEED = 5e-2  # m/s, `get_collision_type` and `is_track_stopped` defaults (not the TTC threshold)
+AGENT_COLLISION = 0.0  # vehicles, pedestrians, bicycles
+OBJECT_COLLISION = 0.5  # static objects
+
+
+def no_at_fault_collisions(
+    states: FloatArray,
+    points: FloatArray,
+    areas: npt.NDArray[np.bool_],
+    row_token: IntArray,
+    observations: ObservationBatch,
+) -> tuple[FloatArray, IntArray]:
+    """Return NC (R,) and the time index of each row's first at-fault collision (-1 if none)."""
+    num_rows, num_steps = states.shape[:2]
+    contacts = find_contacts(ego_corners(points), np.arange(num_steps), row_token, observations)
+    if not len(contacts.row):
+        return no_contacts(num_rows)
+    row, step, obj = contacts.row, contacts.step, contacts.obj
+    state = states[row, step]
+
+    ego_stopped = np.hypot(state[:, StateIndex.VELOCITY_X], state[:, StateIndex.VELOCITY_Y]) <= STOPPED_SPEED
+    # nuPlan's `is_track_stopped`: anything that is not an Agent counts as stopped.
+    track_stopped = ~observations.is_agent[obj] | (observations.first_speed[obj] <= STOPPED_SPEED)
+    behind = relative_angle(state[:, : StateIndex.HEADING + 1], centroids(contacts.polygons)) > BEHIND_ANGLE
+    ego = points[row, step]
+    front = segments_meet(
+        ego[:, BoxPoint.FRONT_LEFT], ego[:, BoxPoint.FRONT_RIGHT], ego_corners(ego), contacts
+    )
+    ego_area = areas[row, step]
+    lateral_at_fault = ego_area[:, EgoArea.MULTIPLE_LANES] | ego_area[:, EgoArea.NON_DRIVABLE_AREA]
+    at_fault = ~ego_stopped & (track_stopped | (~behind & (front | lateral_at_fault)))
+
+    counted = counted_contacts(row, obj, step, at_fault)
+    # The devkit scores by type (nuPlan's AGENT_TYPES); in its observations that is exactly the agents.
+    severity = np.where(observations.is_agent[obj], AGENT_COLLISION, OBJECT_COLLISION)
+    scores = np.ones(num_rows)
+    np.minimum.at(scores, row[counted], severity[counted])
+    return scores, first_index(row, step, counted, num_rows)

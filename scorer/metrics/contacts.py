@@ -1,0 +1,136 @@
+"""Contacts between ego boxes and observed objects, and the ignore-lists NC and TTC share (spec 7.1, 7.5).
+
+The devkit walks time in order and keeps, per proposal, a list of tokens to ignore: a contact that is
+not at fault puts its token on the list for the rest of the horizon. Resolved on arrays, an at-fault
+contact counts iff it comes before the first not-at-fault contact of the same (proposal, object).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import shapely
+
+from scorer.geometry import FloatArray
+from scorer.metrics.convex import is_convex_counterclockwise, quads_intersect, segment_meets_quad
+from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, same_token_pairs
+from scorer.observation import ObservationBatch
+
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]
+
+AHEAD_ANGLE = float(np.deg2rad(30.0))  # nuPlan `is_agent_ahead`
+BEHIND_ANGLE = float(np.deg2rad(150.0))  # nuPlan `is_agent_behind`
+
+
+@dataclass(frozen=True, eq=False)
+class Contacts:
+    """Intersecting (ego box, object) pairs; touching counts."""
+
+    row: IntArray  # (K,) proposal row
+    step: IntArray  # (K,) box index along the row's second axis
+    obj: IntArray  # (K,) object column in the observation batch
+    polygons: npt.NDArray[np.object_]  # (K,) the object's polygon in the queried map
+    corners: FloatArray  # (K, 4, 2) its box corners (NaN if not a box)
+
+
+def find_contacts(
+    corners: FloatArray, map_index: IntArray, row_token: IntArray, observations: ObservationBatch
+) -> Contacts:
+    """Return the contacts of ego boxes (R, S, 4, 2): box (r, s) against occupancy map `map_index[s]` of row
+    r's token. Red-light tokens are left out (the devkit skips them before anything else).
+    """
+    box_bounds = corner_bounds(corners)  # (R, S, 4)
+    rows, objects = same_token_pairs(row_token, observations.start, observations.count)
+    near = (
+        boxes_touch(extents(box_bounds)[rows], observations.extent[objects])
+        & ~observations.is_red_light[objects]
+    )
+    rows, objects = rows[near], objects[near]
+    object_bounds = observations.bounds[map_index[None, :], objects[:, None]]  # (pairs, S, 4)
+    pair, step = np.nonzero(boxes_touch(box_bounds[rows], object_bounds))
+    if not len(pair):
+        return Contacts(
+            row=pair, step=step, obj=pair, polygons=np.empty(0, dtype=object), corners=np.empty((0, 4, 2))
+        )
+    row, obj = rows[pair], objects[pair]
+    polygons = observations.polygons[map_index[step], obj]
+    object_corners = observations.corners[map_index[step], obj]
+    hit = _boxes_meet(corners[row, step], object_corners, polygons)
+    return Contacts(
+        row=row[hit], step=step[hit], obj=obj[hit], polygons=polygons[hit], corners=object_corners[hit]
+    )
+
+
+def _exact_pairs(ego_corners: FloatArray, object_corners: FloatArray) -> BoolArray:
+    """Return which pairs the exact box tests can take: both proper counterclockwise boxes."""
+    valid = np.isfinite(object_corners).all(axis=(-2, -1))
+    valid[valid] = is_convex_counterclockwise(
+        np.stack([ego_corners[valid], object_corners[valid]], axis=1)
+    ).all(axis=1)
+    return valid
+
+
+def _boxes_meet(
+    ego_corners: FloatArray, object_corners: FloatArray, polygons: npt.NDArray[np.object_]
+) -> BoolArray:
+    """Return whether ego boxes (K, 4, 2) meet the objects' polygons (exact box test, else shapely, whose
+    polygon from the 4 corners is the devkit's ring FL, RL, RR, FR, FL)."""
+    exact = _exact_pairs(ego_corners, object_corners)
+    meet = np.empty(len(polygons), dtype=bool)
+    meet[exact] = quads_intersect(ego_corners[exact], object_corners[exact])
+    meet[~exact] = shapely.intersects(shapely.polygons(ego_corners[~exact]), polygons[~exact])
+    return meet
+
+
+def segments_meet(
+    start: FloatArray, end: FloatArray, ego_corners: FloatArray, contacts: Contacts
+) -> BoolArray:
+    """Return whether segments (K, 2) -> (K, 2) of the contacts' ego boxes meet the contacted objects."""
+    exact = _exact_pairs(ego_corners, contacts.corners)
+    meet = np.empty(len(start), dtype=bool)
+    meet[exact] = segment_meets_quad(start[exact], end[exact], contacts.corners[exact])
+    segments = shapely.linestrings(np.stack([start[~exact], end[~exact]], axis=1))
+    meet[~exact] = shapely.intersects(segments, contacts.polygons[~exact])
+    return meet
+
+
+def relative_angle(rear_axle: FloatArray, targets: FloatArray) -> FloatArray:
+    """Return the angle (K,) between the ego heading and the direction to each target (nuPlan's
+    `get_agent_relative_angle`): arccos of a unit-vector dot product, NaN when the target is the rear axle
+    or rounding pushes the dot product past 1 (every comparison with NaN is then false, as in the devkit).
+    """
+    offset = targets - rear_axle[:, :2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = offset / np.sqrt(offset[:, 0] * offset[:, 0] + offset[:, 1] * offset[:, 1])[:, None]
+        dot = np.cos(rear_axle[:, 2]) * unit[:, 0] + np.sin(rear_axle[:, 2]) * unit[:, 1]
+        return np.arccos(dot)
+
+
+def centroids(polygons: npt.NDArray[np.object_]) -> FloatArray:
+    """Return the polygon centroids (K, 2)."""
+    return shapely.get_coordinates(shapely.centroid(polygons)).reshape(-1, 2)
+
+
+def counted_contacts(row: IntArray, obj: IntArray, order: IntArray, at_fault: BoolArray) -> BoolArray:
+    """Return which contacts count: at fault and earlier (by `order`) than any not-at-fault contact of the
+    same (row, object), whose token the devkit would have put on that proposal's ignore-list.
+    """
+    keys, pair = np.unique(row * (obj.max(initial=0) + 1) + obj, return_inverse=True)
+    first_cleared = np.full(len(keys), np.inf)
+    np.minimum.at(first_cleared, pair[~at_fault], order[~at_fault])
+    return at_fault & (order < first_cleared[pair])
+
+
+def no_contacts(num_rows: int) -> tuple[FloatArray, IntArray]:
+    """Return the scores (1) and infraction indices (-1) of rows without any contact."""
+    return np.ones(num_rows), np.full(num_rows, -1, dtype=np.intp)
+
+
+def first_index(row: IntArray, time_index: IntArray, counted: BoolArray, num_rows: int) -> IntArray:
+    """Return each row's earliest time index among counted contacts, -1 without any."""
+    earliest = np.full(num_rows, np.iinfo(np.intp).max)
+    np.minimum.at(earliest, row[counted], time_index[counted])
+    return np.where(earliest == np.iinfo(np.intp).max, -1, earliest)

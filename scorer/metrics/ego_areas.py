@@ -1,0 +1,76 @@
+"""Where the ego box is at each state: across lanes, off the drivable area, off the route (spec 6)."""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+import numpy as np
+import numpy.typing as npt
+
+from scorer.drivable_map import MapBatch
+from scorer.geometry import FloatArray
+from scorer.metrics.ego_box import BoxPoint
+from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, points_inside, same_token_pairs
+
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]
+
+CORNERS = int(BoxPoint.CENTER)  # points 0..3 are the corners
+
+
+class EgoArea(IntEnum):
+    """Columns of the ego-area array (PDM's `EgoAreaIndex`)."""
+
+    MULTIPLE_LANES = 0
+    NON_DRIVABLE_AREA = 1
+    ONCOMING_TRAFFIC = 2
+
+
+def ego_areas(points: FloatArray, row_token: IntArray, maps: MapBatch) -> BoolArray:
+    """Return the ego-area flags (R, T, 3) of ego box points (R, T, 5, 2) (`_calculate_ego_area`).
+
+    MULTIPLE_LANES: more than one lane polygon holds a corner and none holds all four (the centre is not
+    used). NON_DRIVABLE_AREA: some corner is in no roadblock, intersection or car park (lane polygons
+    are not drivable). ONCOMING_TRAFFIC: the centre is in no on-route lane, off the road included.
+    Containment is strict: a point on a boundary is outside.
+    """
+    num_rows, num_steps, num_points = points.shape[:3]
+    state_bounds = corner_bounds(points)  # (R, T, 4); the centre lies within
+    rows, polygons = same_token_pairs(row_token, maps.start, maps.count)
+    near = boxes_touch(extents(state_bounds)[rows], maps.bounds[polygons])
+    near &= (maps.is_lane | maps.is_drivable)[polygons]
+    rows, polygons = rows[near], polygons[near]
+    # Then per state, then per point: only points of states whose box touches the polygon's box.
+    pair, step = np.nonzero(boxes_touch(state_bounds[rows], maps.bounds[polygons][:, None]))
+    pair, step, point = (
+        np.repeat(pair, num_points),
+        np.repeat(step, num_points),
+        np.tile(np.arange(num_points), len(pair)),
+    )
+    coords = points[rows[pair], step, point]
+    inside = points_inside(coords[:, 0], coords[:, 1], polygons[pair], maps)
+    pair, step, point = pair[inside], step[inside], point[inside]
+    row, polygon = rows[pair], polygons[pair]
+    corner = point < CORNERS
+
+    on_drivable = np.zeros((num_rows, num_steps, CORNERS), dtype=bool)
+    drivable = corner & maps.is_drivable[polygon]
+    on_drivable[row[drivable], step[drivable], point[drivable]] = True
+
+    lane = corner & maps.is_lane[polygon]
+    corners_in_lane = np.bincount(pair[lane] * num_steps + step[lane], minlength=len(rows) * num_steps)
+    state_of_pair = (rows[:, None] * num_steps + np.arange(num_steps)).reshape(-1)
+    lanes_touched = np.bincount(state_of_pair, corners_in_lane > 0, minlength=num_rows * num_steps)
+    within_one_lane = (
+        np.bincount(state_of_pair, corners_in_lane == CORNERS, minlength=num_rows * num_steps) > 0
+    )
+
+    on_route = np.zeros((num_rows, num_steps), dtype=bool)
+    route = ~corner & maps.is_route[polygon]
+    on_route[row[route], step[route]] = True
+
+    areas = np.zeros((num_rows, num_steps, len(EgoArea)), dtype=bool)
+    areas[..., EgoArea.MULTIPLE_LANES] = ((lanes_touched > 1) & ~within_one_lane).reshape(num_rows, num_steps)
+    areas[..., EgoArea.NON_DRIVABLE_AREA] = ~on_drivable.all(axis=-1)
+    areas[..., EgoArea.ONCOMING_TRAFFIC] = ~on_route
+    return areas

@@ -1,0 +1,61 @@
+"""Candidate pairs within each scene token of a batch, pruned by bounding boxes before any exact test.
+
+Bounding boxes only prune: two geometries that touch have touching boxes, a point strictly inside a
+polygon lies inside its box, so the exact shapely test that follows sees every true pair.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+import shapely
+
+from scorer.drivable_map import MapBatch
+from scorer.geometry import FloatArray
+
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]
+
+
+def same_token_pairs(row_token: IntArray, start: IntArray, count: IntArray) -> tuple[IntArray, IntArray]:
+    """Return every (row, item) with the item among its row's token's items [start, start + count)."""
+    counts = count[row_token]
+    rows = np.repeat(np.arange(len(row_token)), counts)
+    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    return rows, np.repeat(start[row_token], counts) + offsets
+
+
+def corner_bounds(points: FloatArray) -> FloatArray:
+    """Return the bounding boxes (..., 4) of boxes given by their first 4 points (..., >=4, 2), the corners."""
+    corners = [points[..., index, :] for index in range(4)]
+    lower = np.minimum(np.minimum(corners[0], corners[1]), np.minimum(corners[2], corners[3]))
+    upper = np.maximum(np.maximum(corners[0], corners[1]), np.maximum(corners[2], corners[3]))
+    return np.concatenate([lower, upper], axis=-1)
+
+
+def extents(bounds: FloatArray) -> FloatArray:
+    """Return the bounding box (R, 4) of all boxes (R, ..., 4) of each row."""
+    flat = bounds.reshape(len(bounds), -1, 4)
+    return np.concatenate([flat[..., :2].min(axis=1), flat[..., 2:].max(axis=1)], axis=-1)
+
+
+def boxes_touch(first: FloatArray, second: FloatArray) -> BoolArray:
+    """Return whether boxes (..., 4) touch or overlap; a NaN box (absent geometry) touches nothing."""
+    return (
+        (first[..., 0] <= second[..., 2])
+        & (second[..., 0] <= first[..., 2])
+        & (first[..., 1] <= second[..., 3])
+        & (second[..., 1] <= first[..., 3])
+    )
+
+
+def points_inside(x: FloatArray, y: FloatArray, polygon: IntArray, maps: MapBatch) -> BoolArray:
+    """Return whether each point lies strictly inside its paired polygon (a boundary point is outside).
+
+    The devkit's `shapely.vectorized.contains` (= `contains_xy`), after a bounding-box prune.
+    """
+    bounds = maps.bounds[polygon]
+    inside = (bounds[:, 0] <= x) & (x <= bounds[:, 2]) & (bounds[:, 1] <= y) & (y <= bounds[:, 3])
+    candidates = np.flatnonzero(inside)
+    inside[candidates] = shapely.contains_xy(maps.polygons[polygon[candidates]], x[candidates], y[candidates])
+    return inside

@@ -1,0 +1,40 @@
+"""Ego progress (EP): raw progress along the centerline and its normalisation (spec 7.4, 8)."""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+import shapely
+
+from scorer.geometry import FloatArray
+from scorer.metrics.ego_box import BoxPoint
+
+IntArray = npt.NDArray[np.intp]
+
+
+def centerline_strings(centerlines: list[FloatArray]) -> npt.NDArray[np.object_]:
+    """Return one LineString (B,) per centerline (n, >=2) x, y vertices."""
+    vertices = np.concatenate([np.asarray(line, dtype=np.float64)[:, :2] for line in centerlines])
+    owner = np.repeat(np.arange(len(centerlines)), [len(line) for line in centerlines])
+    return np.asarray(shapely.linestrings(vertices, indices=owner), dtype=object).reshape(len(centerlines))
+
+
+def raw_progress(points: FloatArray, centerlines: npt.NDArray[np.object_], row_token: IntArray) -> FloatArray:
+    """Return max(0, progress of the last centre - progress of the first) along each row's centerline (R,)."""
+    ends = points[:, [0, -1], BoxPoint.CENTER]
+    with np.errstate(invalid="ignore"):
+        located = shapely.line_locate_point(centerlines[row_token][:, None], shapely.points(ends))
+    return np.clip(located[:, 1] - located[:, 0], 0.0, None)
+
+
+def normalized_progress(raw: FloatArray, multiplier: FloatArray, threshold: float) -> FloatArray:
+    """Return EP (B, P): progress scaled by the multipliers, relative to the best proposal of each token.
+
+    When no proposal's scaled progress exceeds `threshold`, every proposal with a non-zero multiplier
+    gets 1 and the others 0.
+    """
+    scaled = raw * multiplier
+    best = np.max(scaled, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        relative = scaled / best
+    return np.where(best > threshold, relative, np.where(multiplier == 0.0, 0.0, 1.0))

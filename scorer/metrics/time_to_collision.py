@@ -1,0 +1,87 @@
+"""Time to collision within bound (TTC) in {0, 1}, a weighted metric (spec 7.5).
+
+At every time index k the ego box is pushed along its heading by |v| * dt for dt = 0, 0.3, 0.6 and
+0.9 s and tested against the occupancy map at k + dt. A contact counts when the object is ahead
+(within 30 degrees of the heading, seen from the rear axle), or when it is not behind while the ego
+straddles lanes, is off the drivable area or has its rear axle strictly inside an intersection. Other
+contacts put the token on the proposal's own ignore-list (separate from NC's), in the devkit's order
+(time index, then projection). States slower than the stopped-speed threshold are skipped entirely.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from scorer.drivable_map import MapBatch
+from scorer.geometry import FloatArray
+from scorer.metrics.contacts import (
+    AHEAD_ANGLE,
+    BEHIND_ANGLE,
+    centroids,
+    counted_contacts,
+    find_contacts,
+    first_index,
+    no_contacts,
+    relative_angle,
+)
+from scorer.metrics.ego_areas import EgoArea
+from scorer.metrics.ego_box import ego_corners
+from scorer.metrics.pairs import points_inside, same_token_pairs
+from scorer.observation import ObservationBatch
+from scorer.trajectory import StateIndex
+
+IntArray = npt.NDArray[np.intp]
+
+PROJECTION_STEPS = np.arange(0, 10, 3)  # time indices ahead: 0, 3, 6, 9
+
+
+def _in_intersection(x: FloatArray, y: FloatArray, token: IntArray, maps: MapBatch) -> npt.NDArray[np.bool_]:
+    """Return whether each point lies strictly inside an intersection of its token's map (`is_in_layer`)."""
+    points, polygons = same_token_pairs(token, maps.start, maps.count)
+    layer = maps.is_intersection[polygons]
+    points, polygons = points[layer], polygons[layer]
+    inside = np.zeros(len(token), dtype=bool)
+    inside[points[points_inside(x[points], y[points], polygons, maps)]] = True
+    return inside
+
+
+def time_to_collision(
+    states: FloatArray,
+    points: FloatArray,
+    areas: npt.NDArray[np.bool_],
+    row_token: IntArray,
+    observations: ObservationBatch,
+    maps: MapBatch,
+    stopped_speed_threshold: float,
+    step_s: float,
+) -> tuple[FloatArray, IntArray]:
+    """Return TTC (R,) and the time index of each row's first infraction (-1 if none)."""
+    num_rows, num_steps = states.shape[:2]
+    num_projections = len(PROJECTION_STEPS)
+    heading = states[..., StateIndex.HEADING]
+    speed = np.hypot(states[..., StateIndex.VELOCITY_X], states[..., StateIndex.VELOCITY_Y])
+    # Along the heading with |v|: a reversing ego is projected forward, as in the devkit.
+    velocity = np.stack([np.cos(heading) * speed, np.sin(heading) * speed], axis=-1)
+    delta_t = PROJECTION_STEPS.astype(np.float64) * step_s
+    corners = ego_corners(points)[:, :, None] + velocity[:, :, None, None, :] * delta_t[:, None, None]
+    # Box s = k * 4 + projection: the devkit's visiting order, tested against map k + 0, 3, 6 or 9.
+    map_index = (np.arange(num_steps)[:, None] + PROJECTION_STEPS).reshape(-1)
+    contacts = find_contacts(corners.reshape(num_rows, -1, 4, 2), map_index, row_token, observations)
+    if not len(contacts.row):
+        return no_contacts(num_rows)
+    row, step = contacts.row, contacts.step // num_projections
+    moving = speed[row, step] >= stopped_speed_threshold
+    row, step, order, obj = row[moving], step[moving], contacts.step[moving], contacts.obj[moving]
+    state = states[row, step]
+
+    angle = relative_angle(state[:, : StateIndex.HEADING + 1], centroids(contacts.polygons[moving]))
+    in_intersection = _in_intersection(state[:, StateIndex.X], state[:, StateIndex.Y], row_token[row], maps)
+    ego_area = areas[row, step]
+    exposed = ego_area[:, EgoArea.MULTIPLE_LANES] | ego_area[:, EgoArea.NON_DRIVABLE_AREA] | in_intersection
+    at_fault = (angle < AHEAD_ANGLE) | (exposed & ~(angle > BEHIND_ANGLE))
+
+    counted = counted_contacts(row, obj, order, at_fault)
+    scores = np.ones(num_rows)
+    scores[row[counted]] = 0.0
+    return scores, first_index(row, step, counted, num_rows)

@@ -1,0 +1,204 @@
+"""The evaluation observation: the recorded future of every tracked object at 10 Hz (spec 4).
+
+NAVSIM's metric caching (`_interpolate_gt_observation`) takes the boxes of the current frame and the 10
+frames after it (2 Hz, 0.0 ... 5.0 s), interpolates each track linearly to 51 occupancy maps at 0.1 s
+and keeps, per track, the object of its first appearance ("unique object") for collision classes.
+Scene files hold boxes in the global frame already, so they are used as given (no ego-frame step).
+
+Quirks kept on purpose: a track seen in exactly one frame stands still at that box in all 51 maps,
+also before and after the frame it was seen in (pitfall 10); a track seen more often exists from its
+first to its last sighting, gaps bridged linearly; length, width and type come from the first
+sighting (pitfall 11). Interpolated headings are wrapped with the AVX-512 arctan2 of the machine that
+made the official results (`geometry.normalize_angle_avx512`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import numpy.typing as npt
+import shapely
+
+from scorer.geometry import FloatArray, box_corners, normalize_angle_avx512
+from scorer.scene import AGENT_CATEGORIES, Scene
+
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]
+
+OBSERVATION_STEPS = 51  # occupancy maps at k * 0.1 s, k = 0..50
+STEP_S = 0.1
+FRAME_INTERVAL_S = 0.5  # the devkit samples the recorded boxes at 2 Hz
+RED_LIGHT_TOKEN = "red_light"
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """Occupancy maps (T time indices x n objects) and each object's first appearance."""
+
+    tokens: tuple[str, ...]  # n track tokens, first-appearance order
+    object_types: tuple[str, ...]  # nuPlan type at first appearance, e.g. "VEHICLE", "TRAFFIC_CONE"
+    is_agent: BoolArray  # (n,) vehicle, pedestrian or bicycle at first appearance (nuPlan `Agent`)
+    first_speed: FloatArray  # (n,) |velocity| at first appearance (0 for static objects)
+    present: BoolArray  # (T, n) the object is in occupancy map k
+    polygons: npt.NDArray[np.object_]  # (T, n) box polygons (ring FL, RL, RR, FR), None where absent
+
+    @cached_property
+    def bounds(self) -> FloatArray:
+        """Return the polygons' bounding boxes (T, n, 4) xmin, ymin, xmax, ymax; NaN where absent."""
+        return shapely.bounds(self.polygons)
+
+    @cached_property
+    def corners(self) -> FloatArray:
+        """Return the 4 ring corners (T, n, 4, 2) of box polygons; NaN where absent or not a 4-corner ring."""
+        corners = np.full((*self.polygons.shape, 4, 2), np.nan)
+        rings = shapely.get_exterior_ring(self.polygons[self.present])
+        boxes = shapely.get_num_coordinates(rings) == 5
+        coords = shapely.get_coordinates(rings[boxes]).reshape(-1, 5, 2)[:, :4]
+        present = np.argwhere(self.present)[boxes]
+        corners[present[:, 0], present[:, 1]] = coords
+        return corners
+
+    @cached_property
+    def extent(self) -> FloatArray:
+        """Return each object's bounding box over all steps (n, 4)."""
+        bounds = self.bounds
+        with np.errstate(invalid="ignore"):
+            return np.concatenate(
+                [np.nanmin(bounds[..., :2], axis=0), np.nanmax(bounds[..., 2:], axis=0)], axis=-1
+            )
+
+    @cached_property
+    def is_red_light(self) -> BoolArray:
+        """Return which tokens are red-light pseudo-obstacles (the devkit tests for this substring)."""
+        return np.array([RED_LIGHT_TOKEN in token for token in self.tokens], dtype=bool)
+
+
+@dataclass(frozen=True, eq=False)
+class ObservationBatch:
+    """The observations of several scene tokens side by side: object j of token b is column start[b] + j."""
+
+    polygons: npt.NDArray[np.object_]  # (T, N)
+    bounds: FloatArray  # (T, N, 4), NaN where absent
+    corners: FloatArray  # (T, N, 4, 2) box corners, NaN where absent or not a box
+    extent: FloatArray  # (N, 4) over all steps
+    is_agent: BoolArray  # (N,)
+    first_speed: FloatArray  # (N,)
+    is_red_light: BoolArray  # (N,)
+    start: IntArray  # (B,) first column of each token
+    count: IntArray  # (B,) objects of each token
+
+    @classmethod
+    def of(cls, observations: Sequence[Observation]) -> ObservationBatch:
+        """Return the batch of `observations`, in order."""
+        count = np.array([len(observation.tokens) for observation in observations], dtype=np.intp)
+
+        def joined(name: str, axis: int = 0) -> np.ndarray:
+            return np.concatenate([getattr(observation, name) for observation in observations], axis=axis)
+
+        return cls(
+            polygons=joined("polygons", axis=1),
+            bounds=joined("bounds", axis=1),
+            corners=joined("corners", axis=1),
+            extent=joined("extent").reshape(-1, 4),
+            is_agent=joined("is_agent").astype(bool),
+            first_speed=joined("first_speed").astype(np.float64),
+            is_red_light=joined("is_red_light").astype(bool),
+            start=np.cumsum(count) - count,
+            count=count,
+        )
+
+
+def _track_indices(tracks: npt.NDArray[np.str_]) -> tuple[IntArray, IntArray]:
+    """Return each sighting's track index (tracks in first-appearance order) and each track's first row."""
+    _, first_rows, inverse = np.unique(tracks, return_index=True, return_inverse=True)
+    by_appearance = np.argsort(first_rows)
+    rank = np.empty_like(by_appearance)
+    rank[by_appearance] = np.arange(len(by_appearance))
+    return rank[inverse], first_rows[by_appearance]
+
+
+def observe_scene(scene: Scene) -> Observation:
+    """Return the 10 Hz evaluation observation of the scene's current frame and 10 future frames (spec 4)."""
+    frames = scene.future_frames
+    frame_of = np.concatenate([np.full(len(frame.tracks), index) for index, frame in enumerate(frames)])
+    tracks = np.array([track for frame in frames for track in frame.tracks], dtype=str)
+    categories = np.array([category for frame in frames for category in frame.categories], dtype=str)
+    boxes = np.concatenate([frame.boxes for frame in frames]).reshape(-1, 7)
+    velocities = np.concatenate([frame.velocities for frame in frames]).reshape(-1, 2)
+    # The devkit records a velocity only for agent types; static objects keep zeros.
+    velocities = np.where(np.isin(categories, AGENT_CATEGORIES)[:, None], velocities, 0.0)
+
+    track_index, first_rows = _track_indices(tracks)
+    samples = _track_samples(track_index, frame_of, boxes, velocities, len(first_rows), len(frames))
+
+    is_agent = np.isin(categories[first_rows], AGENT_CATEGORIES)
+    present, states = _interpolate_tracks(*samples)
+    # A track seen once is the unchanged first sighting at every step (no interpolation, no wrap).
+    single = samples[2] == 1
+    present[:, single] = True
+    states[:, single] = boxes[first_rows][single][:, [0, 1, 6]]
+
+    half_length = boxes[first_rows, 3] / 2.0
+    half_width = boxes[first_rows, 4] / 2.0
+    corners = box_corners(states[..., 0], states[..., 1], states[..., 2], half_length, half_width)
+    polygons = np.full(present.shape, None, dtype=object)
+    polygons[present] = shapely.polygons(corners[present])
+    return Observation(
+        tokens=tuple(tracks[first_rows].tolist()),
+        object_types=tuple(category.upper() for category in categories[first_rows]),
+        is_agent=is_agent,
+        first_speed=np.where(is_agent, np.hypot(*velocities[first_rows].T), 0.0),
+        present=present,
+        polygons=polygons,
+    )
+
+
+def _track_samples(
+    track_index: IntArray, frame_of: IntArray, boxes: FloatArray, velocities: FloatArray, n: int, frames: int
+) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Return per track its sighting times (n, frames), states (n, frames, 5) and sighting count (n,).
+
+    States are x, y, heading (unwrapped over the track's own sightings), vx, vy; slots past a track's
+    last sighting repeat it (times +inf), which neither the unwrap nor the interpolation reads.
+    """
+    counts = np.bincount(track_index, minlength=n)
+    # Sightings come frame by frame, so each track's rows are already in time order.
+    slot = np.zeros(len(track_index), dtype=np.intp)
+    order = np.argsort(track_index, kind="stable")
+    starts = np.cumsum(counts) - counts
+    slot[order] = np.arange(len(track_index)) - np.repeat(starts, counts)
+    times = np.full((n, frames), np.inf)
+    times[track_index, slot] = frame_of * FRAME_INTERVAL_S
+    states = np.zeros((n, frames, 5))
+    states[track_index, slot] = np.column_stack([boxes[:, [0, 1, 6]], velocities])
+    last = np.maximum(counts - 1, 0)
+    padding = np.arange(frames)[None, :] > last[:, None]
+    states[padding] = np.repeat(states[np.arange(n), last], frames - 1 - last, axis=0)
+    states[..., 2] = np.unwrap(states[..., 2], axis=1)
+    return times, states, counts
+
+
+def _interpolate_tracks(
+    times: FloatArray, states: FloatArray, counts: IntArray
+) -> tuple[BoolArray, FloatArray]:
+    """Return presence (T, n) and x, y, heading (T, n, 3) at k * 0.1 s, as scipy's `interp1d` per track."""
+    query = np.arange(OBSERVATION_STEPS, dtype=np.float64) * STEP_S
+    first = times[:, 0]
+    last = np.take_along_axis(times, np.maximum(counts - 1, 0)[:, None], axis=1)[:, 0]
+    present = (first[None, :] <= query[:, None]) & (query[:, None] <= last[None, :])
+    # interp1d: searchsorted (side left) clipped to [1, count - 1] picks the interval.
+    upper = (times[None, :, :] < query[:, None, None]).sum(axis=-1)
+    upper = np.clip(upper, 1, np.maximum(counts - 1, 1)[None, :])
+    lower = upper - 1
+    track = np.arange(len(counts))[None, :]
+    low_time, high_time = times[track, lower], times[track, upper]
+    low, high = states[track, lower], states[track, upper]
+    with np.errstate(invalid="ignore"):
+        slope = (high - low) / (high_time - low_time)[..., None]
+        interpolated = slope * (query[:, None] - low_time)[..., None] + low
+    result = interpolated[..., :3]
+    result[..., 2] = normalize_angle_avx512(result[..., 2])
+    return present, result

@@ -1,0 +1,113 @@
+"""`navsim-lb import-openscene` and `navsim-lb curate`: build hidden splits from organiser data."""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from scorer.cli import fail, console, default_cache_dir, progress_bar
+from scorer.versions import VERSIONS
+
+SHOWN_REASONS = 10
+
+
+def import_openscene(
+    out: Annotated[
+        Path, typer.Argument(help="split directory to fill (scenes/ and the import report go inside)")
+    ],
+    logs: Annotated[Path, typer.Option(help="directory of OpenScene log pickles (<log_name>.pkl)")],
+    maps: Annotated[
+        Path, typer.Option(help="nuPlan map root (nuplan-maps-v1.0.json, <location>/<version>/map.gpkg)")
+    ],
+    tokens: Annotated[
+        Path | None, typer.Option(help="token list: one per line, or a NAVSIM scene-filter YAML's tokens")
+    ] = None,
+    workers: Annotated[int, typer.Option(help="processes (one log per task)")] = max(1, os.cpu_count() or 1),
+    frame_interval: Annotated[
+        int, typer.Option(help="frames between scene windows (navtest/navtrain: 1)")
+    ] = 1,
+    require_route: Annotated[bool, typer.Option(help="skip scenes whose current frame has no route")] = True,
+    check_commands: Annotated[
+        bool, typer.Option(help="recompute stored driving commands and report mismatches")
+    ] = True,
+) -> None:
+    """Import OpenScene logs and nuPlan maps into scene files; resumable, with a report of skipped tokens."""
+    from scorer.openscene.importer import REPORT_NAME, ImportSettings, import_logs, read_token_list
+
+    if not logs.is_dir() or not maps.is_dir():
+        raise fail(f"{logs if not logs.is_dir() else maps}: not a directory")
+    if frame_interval < 1:
+        raise fail(f"--frame-interval must be at least 1, got {frame_interval}")
+    try:
+        wanted = None if tokens is None else read_token_list(tokens)
+    except (OSError, ValueError) as error:
+        raise fail(str(error)) from None
+    settings = ImportSettings(maps, out, frame_interval, require_route, check_commands)
+    total = sum(1 for path in logs.iterdir() if path.suffix == ".pkl")
+    with progress_bar("importing logs", total) as advance:
+        report = import_logs(logs, settings, wanted, workers, advance)
+    run = report["this_run"]
+    console.print(
+        f"{run['written']} scenes written, {run['present']} already present, {run['skipped']} skipped; "
+        f"{report['scenes']} scenes in {out / 'scenes'}"
+    )
+    for failure in report["failed_logs"]:
+        console.print(f"[red]{failure['log']}[/red]: {failure['reason']}")
+    reasons = Counter(entry["reason"] for entry in report["skipped"])
+    if reasons:
+        table = Table(title="skipped tokens by reason")
+        table.add_column("tokens", justify="right")
+        table.add_column("reason")
+        for reason, count in reasons.most_common(SHOWN_REASONS):
+            table.add_row(str(count), reason)
+        Console().print(table)
+    if report["command_mismatches"]:
+        console.print(
+            f"[yellow]{len(report['command_mismatches'])} stored driving commands differ from the route's[/yellow]"
+        )
+    console.print(f"report: {out / REPORT_NAME}")
+
+
+def curate(
+    split: Annotated[Path, typer.Argument(help="split directory to curate")],
+    out: Annotated[Path, typer.Option(help="directory of the curated split")],
+    version: Annotated[str, typer.Option(help="metric version: " + ", ".join(VERSIONS))] = "v1.1",
+    threshold: Annotated[float, typer.Option(help="PDMS threshold for both agents")] = 0.8,
+    cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
+) -> None:
+    """Drop scenes the constant-velocity agent solves (PDMS > 0.8) or the human fails (< 0.8); print Table 3."""
+    from scorer.openscene.curation import AGENTS, curate_split, curation_table
+    from scorer.scene import SceneFormatError, scene_paths
+
+    if version not in VERSIONS:
+        raise fail(f"unknown version {version!r}; use one of {', '.join(VERSIONS)}")
+    try:
+        total = len(scene_paths(split)) * len(AGENTS)
+        with progress_bar(f"scoring baselines ({version})", total) as advance:
+            result = curate_split(
+                split, out, cache_dir or default_cache_dir(split), version, threshold, advance
+            )
+    except (SceneFormatError, ValueError) as error:
+        raise fail(str(error)) from None
+    rows = curation_table(result)
+    table = Table(title=f"{split.name}: before and after curation ({version}, threshold {threshold})")
+    for column in rows[0]:
+        table.add_column(column)
+    for row in rows[1:]:
+        table.add_row(*row)
+    Console().print(table)
+    console.print(
+        f"kept {len(result.kept)} of {len(result.kept) + len(result.dropped)} scenes in {out / 'scenes'}"
+    )
+
+
+def register(app: typer.Typer) -> None:
+    """Add `import-openscene` and `curate` to `app`."""
+    app.command("import-openscene")(import_openscene)
+    app.command()(curate)

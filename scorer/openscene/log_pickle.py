@@ -1,0 +1,48 @@
+"""Load an OpenScene log pickle without executing anything beyond numpy array reconstruction.
+
+Log pickles are trusted organiser files, but a log is still only data: the unpickler resolves the
+few numpy globals a list of frame dicts needs (upstream-formats.md 1.1) and refuses every other one.
+"""
+
+from __future__ import annotations
+
+import io
+import pickle
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy._core import multiarray, numeric
+
+# numpy < 2 writers name `numpy.core.*`, numpy >= 2 writers `numpy._core.*`; both map to the same code.
+_ALLOWED_GLOBALS: dict[tuple[str, str], Any] = {
+    ("numpy", "ndarray"): np.ndarray,
+    ("numpy", "dtype"): np.dtype,
+    **{(f"numpy.{core}.numeric", "_frombuffer"): numeric._frombuffer for core in ("core", "_core")},
+    **{(f"numpy.{core}.multiarray", "_reconstruct"): multiarray._reconstruct for core in ("core", "_core")},
+    **{(f"numpy.{core}.multiarray", "scalar"): multiarray.scalar for core in ("core", "_core")},
+}
+
+
+class LogFormatError(ValueError):
+    """A log pickle cannot be read as a list of OpenScene frame dicts; the message names the file."""
+
+
+class _LogUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str) -> Any:
+        try:
+            return _ALLOWED_GLOBALS[(module, name)]
+        except KeyError:
+            raise pickle.UnpicklingError(f"global {module}.{name} is not allowed in a log pickle") from None
+
+
+def load_log(path: Path | str) -> list[dict[str, Any]]:
+    """Return the frame dicts of an OpenScene log pickle, in file (time) order."""
+    path = Path(path)
+    try:
+        frames = _LogUnpickler(io.BytesIO(path.read_bytes())).load()
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError) as error:
+        raise LogFormatError(f"{path}: not a readable log pickle ({error})") from None
+    if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
+        raise LogFormatError(f"{path}: expected a list of frame dicts, got {type(frames).__name__}")
+    return frames

@@ -1,0 +1,156 @@
+"""PDM-Closed's own view of the world: a constant-velocity forecast of the current frame (spec 9.3).
+
+Unlike the evaluation observation (recorded future, `scorer.observation`), the planner sees only the
+current frame's objects within 100 m of the ego centre (the nearest 50 vehicles, 25 pedestrians,
+10 bicycles and 50 static objects), agents moving straight at constant speed, plus the polygons of
+red lane connectors on the route. Forecast maps exist at samples 0, 2, ..., 50 (0.1 s each); time
+index k reads map k // 2. Map order: static objects, agents, red lights (as `PDMObservation`).
+
+Per-scene isolation: the devkit's planner keeps a running list of "collided" tokens (objects the ego
+overlaps at t0, red lights that contain it) across all scenes of a caching worker, so a later scene
+can ignore objects of an earlier one (spec 12.21). Here the list starts empty for every scene, as in
+the reference run, and holds only this scene's own t0 overlaps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import shapely
+
+from scorer.geometry import (
+    FloatArray,
+    box_corners,
+    ego_center,
+    normalize_angle,
+)
+from scorer.observation import Observation
+from scorer.scene import AGENT_CATEGORIES, Lane, Scene
+
+BoolArray = npt.NDArray[np.bool_]
+
+RED_LIGHT_TOKEN = "red_light"  # the devkit recognises red lights by this substring of the token
+MAP_RADIUS = 100.0  # objects farther than this from the ego centre are not seen (Euclidean)
+MAX_AGENTS = {"vehicle": 50, "pedestrian": 25, "bicycle": 10}  # nearest kept per type, in this order
+MAX_STATIC_OBJECTS = 50
+FORECAST_SAMPLES = np.arange(0, 52, 2)  # samples 0, 2, ..., 50 at 0.1 s
+SAMPLE_INTERVAL_S = 0.1
+SCORING_STEPS = 51  # time indices 0..50 of the planner's scoring observation
+
+
+@dataclass(frozen=True, eq=False)
+class PlannerObservation:
+    """Forecast maps in the devkit's object order, with what the leading-agent search reads per object."""
+
+    tokens: tuple[str, ...]  # n objects: static objects, agents, red lights
+    categories: tuple[str, ...]  # scene category, "red_light" for red lights
+    is_agent: BoolArray  # (n,)
+    is_red_light: BoolArray  # (n,) token contains "red_light" (the devkit's test)
+    speeds: FloatArray  # (n,) |velocity| of the current-frame object (0 for static objects and red lights)
+    headings: FloatArray  # (n,) box heading (0 for red lights)
+    collided: BoolArray  # (n,) overlaps the ego footprint at t0 (red lights: contain it); ignored throughout
+    polygons: npt.NDArray[np.object_]  # (26, n) forecast map j = sample 2j
+    trees: tuple[shapely.STRtree, ...]  # per forecast map, node capacity 10 (query order = the devkit's)
+
+    @staticmethod
+    def map_index(time_index: int) -> int:
+        """Return the forecast map read at 10 Hz time index `time_index`."""
+        return time_index // 2
+
+
+def _nearest_first(distances: FloatArray, limit: int) -> npt.NDArray[np.intp]:
+    # The devkit's np.argsort (default kind), then the first `limit`.
+    return np.argsort(distances)[:limit]
+
+
+def observe_for_planner(
+    scene: Scene, route_lanes: Mapping[str, Lane], footprint: shapely.Polygon
+) -> PlannerObservation:
+    """Return PDM-Closed's forecast observation of the current frame (`PDMObservation.update`, spec 9.3)."""
+    frame = scene.current_frame
+    center = np.array(ego_center(frame.ego.x, frame.ego.y, frame.ego.heading))
+    boxes, velocities = frame.boxes, frame.velocities
+    categories = np.array(frame.categories, dtype=object)
+    seen = np.hypot(center[0] - boxes[:, 0], center[1] - boxes[:, 1]) <= MAP_RADIUS
+    corners = box_corners(boxes[:, 0], boxes[:, 1], boxes[:, 6], boxes[:, 3] / 2.0, boxes[:, 4] / 2.0)
+    # Ring FL, RL, RR, FR, FL: the devkit overwrites the centre slot of its 5-point box with FL.
+    rings = np.concatenate([corners, corners[:, :1]], axis=1)
+    center_distances = ((boxes[:, :2] - center) ** 2.0).sum(axis=-1) ** 0.5
+
+    def nearest(mask: BoolArray, limit: int) -> npt.NDArray[np.intp]:
+        members = np.flatnonzero(mask)
+        return members[_nearest_first(center_distances[members], limit)]
+
+    is_agent_category = np.isin(categories, AGENT_CATEGORIES)
+    static = nearest(seen & ~is_agent_category, MAX_STATIC_OBJECTS)
+    agents = np.concatenate(
+        [nearest(seen & (categories == category), limit) for category, limit in MAX_AGENTS.items()]
+    ).astype(np.intp)
+
+    speeds = np.hypot(velocities[:, 0], velocities[:, 1])
+    headings = boxes[:, 6]
+    # Agents move along their heading, or against it when they drive backwards.
+    forward = np.abs(normalize_angle(headings - np.arctan2(velocities[:, 1], velocities[:, 0]))) < np.pi / 2
+    track_headings = np.where(forward, headings, normalize_angle(headings + np.pi))
+    agent_velocity = np.stack([np.cos(track_headings) * speeds, np.sin(track_headings) * speeds], axis=-1)[
+        agents
+    ]
+
+    lights = [
+        (f"{RED_LIGHT_TOKEN}_{connector_id}", route_lanes[connector_id].polygon)
+        for connector_id, is_red in frame.traffic_lights
+        if is_red and connector_id in route_lanes
+    ]
+    light_polygons = np.empty(len(lights), dtype=object)
+    light_polygons[:] = [polygon for _, polygon in lights]
+
+    static_polygons = shapely.polygons(rings[static])
+    maps = np.empty((len(FORECAST_SAMPLES), len(static) + len(agents) + len(lights)), dtype=object)
+    for index, sample in enumerate(FORECAST_SAMPLES):
+        delta_t = float(sample) * SAMPLE_INTERVAL_S
+        agent_polygons = shapely.polygons(rings[agents] + delta_t * agent_velocity[:, None])
+        maps[index] = np.concatenate([static_polygons, agent_polygons, light_polygons])
+    trees = tuple(shapely.STRtree(polygons, node_capacity=10) for polygons in maps)
+
+    tokens = tuple(frame.tracks[i] for i in static) + tuple(frame.tracks[i] for i in agents)
+    tokens += tuple(token for token, _ in lights)
+    is_red_light = np.array([RED_LIGHT_TOKEN in token for token in tokens], dtype=bool)
+    objects = np.concatenate([static, agents]).astype(np.intp)
+    touching = np.zeros(len(tokens), dtype=bool)
+    touching[trees[0].query(footprint, predicate="intersects")] = True
+    # A red light counts only when it contains the whole ego; an object when it touches it.
+    collided = touching & (~is_red_light | shapely.within(footprint, maps[0]))
+    pad = np.zeros(len(lights))
+    return PlannerObservation(
+        tokens=tokens,
+        categories=tuple(frame.categories[i] for i in objects) + (RED_LIGHT_TOKEN,) * len(lights),
+        is_agent=np.concatenate([is_agent_category[objects].astype(bool), np.zeros(len(lights), dtype=bool)]),
+        is_red_light=is_red_light,
+        speeds=np.concatenate([np.where(is_agent_category, speeds, 0.0)[objects], pad]),
+        headings=np.concatenate([headings[objects], pad]),
+        collided=collided,
+        polygons=maps,
+        trees=trees,
+    )
+
+
+def scoring_observation(observation: PlannerObservation) -> Observation:
+    """Return the planner observation as the scorer reads it: 51 time indices, map k // 2 at index k.
+
+    Collided tokens and red lights are left out: the devkit's scorer skips both before anything else
+    (collided tokens seed every proposal's ignore-lists, red lights are skipped by name), so leaving
+    them out gives the same scores.
+    """
+    kept = np.flatnonzero(~observation.collided & ~observation.is_red_light)
+    time_to_map = np.arange(SCORING_STEPS) // 2
+    return Observation(
+        tokens=tuple(observation.tokens[i] for i in kept),
+        object_types=tuple(observation.categories[i].upper() for i in kept),
+        is_agent=observation.is_agent[kept],
+        first_speed=observation.speeds[kept],
+        present=np.ones((SCORING_STEPS, len(kept)), dtype=bool),
+        polygons=observation.polygons[time_to_map][:, kept],
+    )

@@ -1,0 +1,95 @@
+"""Metric-version regression guard: golden per-token results of a fixed synthetic split, both versions.
+
+The split is regenerated from its seed each run (the generator is deterministic), scored with every
+trajectory family under every registered version, and compared with the versioned golden files.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import tempfile
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from pathlib import Path
+
+from scorer.evaluate import score_tokens
+from scorer.regression.families import FAMILIES
+from scorer.scene import iter_scenes
+from scorer.versions import METRIC_COLUMNS, VERSIONS
+
+GOLDEN_DIR = Path(__file__).parent / "golden"
+SPLIT_SCENES = 24
+SPLIT_SEED = 20261122
+TOLERANCE = 1e-9
+
+Change = tuple[str, str, str, str, object, object]
+
+
+def compute_results(work_dir: Path, progress: Callable[[str, int], AbstractContextManager[Callable[[int], None]]]) -> dict[str, list[dict[str, object]]]:
+    """Return version -> rows (family, token, valid, metrics) of the regression split."""
+    from scorer.synth import synthesize_split
+
+    split = work_dir / "regression_split"
+    synthesize_split(split, SPLIT_SCENES, SPLIT_SEED)
+    scenes = list(iter_scenes(split))
+    rows: dict[str, list[dict[str, object]]] = {version: [] for version in VERSIONS}
+    with progress("regression split", len(VERSIONS) * len(FAMILIES) * len(scenes)) as advance:
+        for version in VERSIONS:
+            for family, make in FAMILIES.items():
+                predictions = {scene.token: make(scene) for scene in scenes}
+                for result in score_tokens(split, work_dir / "cache", predictions, version, progress=advance):
+                    rows[version].append(
+                        {"family": family, "token": result.token, "valid": result.valid, **result.metrics}
+                    )
+    return rows
+
+
+def _golden_path(version: str) -> Path:
+    return GOLDEN_DIR / f"{version}.jsonl.gz"
+
+
+def _read_golden(version: str) -> dict[tuple[str, str], dict[str, object]]:
+    with gzip.open(_golden_path(version), "rt") as handle:
+        rows = [json.loads(line) for line in handle]
+    return {(row["family"], row["token"]): row for row in rows}
+
+
+def compare(version: str, golden: dict[tuple[str, str], dict[str, object]], rows: list[dict[str, object]]) -> list[Change]:
+    """Return (version, family, token, metric, old, new) for every difference above the tolerance."""
+    changes: list[Change] = []
+    seen = set()
+    for row in rows:
+        key = (str(row["family"]), str(row["token"]))
+        seen.add(key)
+        old = golden.get(key)
+        if old is None:
+            changes.append((version, *key, "(row)", None, "new"))
+            continue
+        for metric in ("valid", *METRIC_COLUMNS):
+            before, after = old.get(metric), row.get(metric)
+            if isinstance(before, float) and isinstance(after, float):
+                if not abs(before - after) <= TOLERANCE:
+                    changes.append((version, *key, metric, before, after))
+            elif before != after:
+                changes.append((version, *key, metric, before, after))
+    changes.extend((version, *key, "(row)", "present", None) for key in golden.keys() - seen)
+    return changes
+
+
+def run_regression(update: bool, progress: Callable[[str, int], AbstractContextManager[Callable[[int], None]]]) -> list[Change]:
+    """Score the regression split; rewrite the goldens when `update`, else return the changes."""
+    with tempfile.TemporaryDirectory() as work_dir:
+        results = compute_results(Path(work_dir), progress)
+    changes: list[Change] = []
+    for version, rows in results.items():
+        if update:
+            GOLDEN_DIR.mkdir(parents=True, exist_ok=True)
+            with gzip.GzipFile(_golden_path(version), "wb", mtime=0) as handle:
+                handle.write("".join(json.dumps(row, sort_keys=True) + "\n" for row in rows).encode())
+            continue
+        if not _golden_path(version).exists():
+            changes.append((version, "-", "-", "(golden file)", "missing", "run `navsim-lb regress --update`"))
+            continue
+        changes.extend(compare(version, _read_golden(version), rows))
+    return changes

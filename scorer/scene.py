@@ -1,0 +1,500 @@
+"""The `navsim-lb/scene` v1 file: typed in-memory model, reader and validator (scene-format.md).
+
+Every broken rule raises `SceneFormatError` naming the file and the field; nothing is guessed.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import shapely
+
+from scorer.geometry import FloatArray
+
+SCENE_FORMAT = "navsim-lb/scene"
+SCENE_VERSION = 1
+AGENT_CATEGORIES = ("vehicle", "pedestrian", "bicycle")
+STATIC_CATEGORIES = ("traffic_cone", "barrier", "czone_sign", "generic_object")
+CATEGORIES = AGENT_CATEGORIES + STATIC_CATEGORIES
+FUTURE_FRAMES = 10  # the engine observes current + 10 frames (5 s at 2 Hz)
+AREA_LAYERS = ("intersections", "carpark_areas", "drivable_areas", "crosswalks", "walkways")
+
+
+class SceneFormatError(ValueError):
+    """A scene file breaks a rule of the format; the message names the file and the field."""
+
+
+@dataclass(frozen=True)
+class EgoStatus:
+    """Rear-axle pose (global frame) and rear-axle dynamics (ego frame; float32-rounded as NAVSIM holds them)."""
+
+    x: float
+    y: float
+    heading: float
+    vx: float
+    vy: float
+    ax: float
+    ay: float
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One 2 Hz frame. Objects are column arrays (one row per object, annotation order)."""
+
+    token: str
+    timestamp_us: int
+    ego: EgoStatus
+    driving_command: tuple[int, int, int, int]
+    tracks: tuple[str, ...]
+    categories: tuple[str, ...]
+    boxes: FloatArray  # (n, 7): x, y, z, length, width, height, heading
+    velocities: FloatArray  # (n, 2) global frame
+    traffic_lights: tuple[tuple[str, bool], ...]
+    route_roadblocks: tuple[str, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class Lane:
+    """A lane or a lane connector (`roadblock` then names a roadblock connector)."""
+
+    id: str
+    polygon: shapely.Polygon
+    roadblock: str
+    baseline: FloatArray  # (n, 2)
+    speed_limit_mps: float | None
+    incoming: tuple[str, ...]
+    outgoing: tuple[str, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class Roadblock:
+    """A roadblock or a roadblock connector."""
+
+    id: str
+    polygon: shapely.Polygon
+    incoming: tuple[str, ...]
+    outgoing: tuple[str, ...]
+    lanes: tuple[str, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class Area:
+    """A polygon-only map object (intersection, car park, generic drivable area, crosswalk, walkway)."""
+
+    id: str
+    polygon: shapely.Polygon
+
+
+@dataclass(frozen=True, eq=False)
+class MapExcerpt:
+    """Map layers in file order (the order decides the devkit's tie-breaks)."""
+
+    lanes: tuple[Lane, ...]
+    lane_connectors: tuple[Lane, ...]
+    roadblocks: tuple[Roadblock, ...]
+    roadblock_connectors: tuple[Roadblock, ...]
+    intersections: tuple[Area, ...] = ()
+    carpark_areas: tuple[Area, ...] = ()
+    drivable_areas: tuple[Area, ...] = ()
+    crosswalks: tuple[Area, ...] = ()
+    walkways: tuple[Area, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A hidden-log scene: frames in time order, the current frame index and the map excerpt."""
+
+    token: str
+    log_name: str
+    map_name: str
+    frame_interval_s: float
+    current_index: int
+    frames: tuple[Frame, ...]
+    map: MapExcerpt
+    content_hash: str = field(default="")
+
+    @property
+    def current_frame(self) -> Frame:
+        """Return the current (initial) frame."""
+        return self.frames[self.current_index]
+
+    @property
+    def future_frames(self) -> tuple[Frame, ...]:
+        """Return the current frame and the 10 frames after it: what the engine observes."""
+        return self.frames[self.current_index : self.current_index + FUTURE_FRAMES + 1]
+
+
+class _Reader:
+    """Typed field access that names the file and the JSON path of every error."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, where: str, message: str) -> SceneFormatError:
+        return SceneFormatError(f"{self.source}: {where}: {message}")
+
+    def get(self, obj: dict[str, Any], key: str, where: str) -> Any:
+        if not isinstance(obj, dict):
+            raise self.fail(where, "expected an object")
+        if key not in obj:
+            raise self.fail(f"{where}.{key}" if where else key, "missing field")
+        return obj[key]
+
+    def string(self, obj: dict[str, Any], key: str, where: str) -> str:
+        value = self.get(obj, key, where)
+        if not isinstance(value, str) or not value:
+            raise self.fail(self.path(where, key), f"expected a non-empty string, got {value!r}")
+        return value
+
+    def integer(self, value: Any, where: str) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(where, f"expected an integer, got {value!r}")
+        return value
+
+    def number(self, value: Any, where: str) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise self.fail(where, f"expected a finite number, got {value!r}")
+        return float(value)
+
+    def array(self, value: Any, where: str, shape: tuple[int | None, ...]) -> FloatArray:
+        try:
+            result = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.fail(where, f"expected numbers of shape {_shape_text(shape)}") from None
+        if result.ndim != len(shape) or any(n is not None and n != m for n, m in zip(shape, result.shape)):
+            raise self.fail(where, f"expected shape {_shape_text(shape)}, got {result.shape}")
+        if not np.all(np.isfinite(result)):
+            raise self.fail(where, "non-finite value")
+        return result
+
+    def id_list(self, obj: dict[str, Any], key: str, where: str) -> tuple[str, ...]:
+        value = self.get(obj, key, where)
+        if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
+            raise self.fail(self.path(where, key), "expected a list of id strings")
+        for item in value:
+            self.check_id(item, self.path(where, key))
+        return tuple(value)
+
+    def check_id(self, value: str, where: str) -> None:
+        # nuPlan casts map ids with int(); accept canonical decimal integers only.
+        if not value.isdigit() or (len(value) > 1 and value[0] == "0"):
+            raise self.fail(where, f"map id {value!r} is not a decimal integer")
+
+    @staticmethod
+    def path(where: str, key: str) -> str:
+        return f"{where}.{key}" if where else key
+
+
+def _shape_text(shape: tuple[int | None, ...]) -> str:
+    return "(" + ", ".join("n" if n is None else str(n) for n in shape) + ")"
+
+
+def _read_ego(reader: _Reader, raw: Any, where: str) -> EgoStatus:
+    values = {key: reader.number(reader.get(raw, key, where), f"{where}.{key}") for key in EgoStatus.__dataclass_fields__}
+    if not -math.pi <= values["heading"] <= math.pi:
+        raise reader.fail(f"{where}.heading", f"angle {values['heading']} outside [-pi, pi]")
+    # NAVSIM holds the ego dynamics as float32 (Scene._build_ego_status); the last bits decide NC/TTC.
+    for key in ("vx", "vy", "ax", "ay"):
+        values[key] = float(np.float32(values[key]))
+    return EgoStatus(**values)
+
+
+def _read_frame(reader: _Reader, raw: Any, where: str) -> Frame:
+    token = reader.string(raw, "token", where)
+    timestamp_us = reader.integer(reader.get(raw, "timestamp_us", where), f"{where}.timestamp_us")
+    ego = _read_ego(reader, reader.get(raw, "ego", where), f"{where}.ego")
+    command = reader.get(raw, "driving_command", where)
+    if (
+        not isinstance(command, list)
+        or len(command) != 4
+        or any(isinstance(c, bool) or c not in (0, 1) for c in command)
+    ):
+        raise reader.fail(f"{where}.driving_command", f"expected 4 ints 0/1, got {command!r}")
+    raw_objects = reader.get(raw, "objects", where)
+    if not isinstance(raw_objects, list):
+        raise reader.fail(f"{where}.objects", "expected a list")
+    tracks, categories, boxes, velocities = [], [], [], []
+    for index, raw_object in enumerate(raw_objects):
+        at = f"{where}.objects[{index}]"
+        tracks.append(reader.string(raw_object, "track", at))
+        category = reader.get(raw_object, "category", at)
+        if category not in CATEGORIES:
+            raise reader.fail(f"{at}.category", f"unknown category {category!r}; expected one of {CATEGORIES}")
+        categories.append(category)
+        box = reader.array(reader.get(raw_object, "box", at), f"{at}.box", (7,))
+        if box[3] <= 0 or box[4] <= 0:
+            raise reader.fail(f"{at}.box", "length and width must be positive")
+        boxes.append(box)
+        velocities.append(reader.array(reader.get(raw_object, "velocity", at), f"{at}.velocity", (2,)))
+    if len(set(tracks)) != len(tracks):
+        raise reader.fail(f"{where}.objects", "a track appears twice in one frame")
+    raw_lights = reader.get(raw, "traffic_lights", where)
+    if not isinstance(raw_lights, list):
+        raise reader.fail(f"{where}.traffic_lights", "expected a list of [lane_connector_id, is_red] pairs")
+    lights = []
+    for index, light in enumerate(raw_lights):
+        at = f"{where}.traffic_lights[{index}]"
+        if not (isinstance(light, list) and len(light) == 2 and isinstance(light[0], str) and isinstance(light[1], bool)):
+            raise reader.fail(at, f"expected [lane_connector_id, is_red], got {light!r}")
+        reader.check_id(light[0], at)
+        lights.append((light[0], light[1]))
+    return Frame(
+        token=token,
+        timestamp_us=timestamp_us,
+        ego=ego,
+        driving_command=tuple(command),  # type: ignore[arg-type]
+        tracks=tuple(tracks),
+        categories=tuple(categories),
+        boxes=np.array(boxes, dtype=np.float64).reshape(len(boxes), 7),
+        velocities=np.array(velocities, dtype=np.float64).reshape(len(velocities), 2),
+        traffic_lights=tuple(lights),
+        route_roadblocks=reader.id_list(raw, "route_roadblocks", where),
+    )
+
+
+def _read_polygon(reader: _Reader, raw: Any, where: str) -> shapely.Polygon:
+    ring = reader.array(reader.get(raw, "polygon", where), f"{where}.polygon", (None, 2))
+    if len(ring) < 3:
+        raise reader.fail(f"{where}.polygon", f"a polygon needs at least 3 vertices, got {len(ring)}")
+    # Used as given: the ring is closed implicitly and never repaired (as the reference run did).
+    return shapely.polygons(ring)
+
+
+def _read_lanes(reader: _Reader, raw_layer: list[Any], layer: str) -> tuple[Lane, ...]:
+    lanes = []
+    for index, raw in enumerate(raw_layer):
+        where = f"map.{layer}[{index}]"
+        lane_id = reader.string(raw, "id", where)
+        reader.check_id(lane_id, f"{where}.id")
+        roadblock = reader.string(raw, "roadblock", where)
+        reader.check_id(roadblock, f"{where}.roadblock")
+        baseline = reader.array(reader.get(raw, "baseline", where), f"{where}.baseline", (None, 2))
+        if len(baseline) < 2:
+            raise reader.fail(f"{where}.baseline", "a baseline needs at least 2 vertices")
+        speed_limit = reader.get(raw, "speed_limit_mps", where)
+        if speed_limit is not None:
+            speed_limit = reader.number(speed_limit, f"{where}.speed_limit_mps")
+            if speed_limit <= 0:
+                raise reader.fail(f"{where}.speed_limit_mps", "must be positive or null")
+        lanes.append(
+            Lane(
+                id=lane_id,
+                polygon=_read_polygon(reader, raw, where),
+                roadblock=roadblock,
+                baseline=baseline,
+                speed_limit_mps=speed_limit,
+                incoming=reader.id_list(raw, "incoming", where),
+                outgoing=reader.id_list(raw, "outgoing", where),
+            )
+        )
+    return tuple(lanes)
+
+
+def _read_roadblocks(reader: _Reader, raw_layer: list[Any], layer: str) -> tuple[Roadblock, ...]:
+    blocks = []
+    for index, raw in enumerate(raw_layer):
+        where = f"map.{layer}[{index}]"
+        block_id = reader.string(raw, "id", where)
+        reader.check_id(block_id, f"{where}.id")
+        blocks.append(
+            Roadblock(
+                id=block_id,
+                polygon=_read_polygon(reader, raw, where),
+                incoming=reader.id_list(raw, "incoming", where),
+                outgoing=reader.id_list(raw, "outgoing", where),
+                lanes=reader.id_list(raw, "lanes", where),
+            )
+        )
+    return tuple(blocks)
+
+
+def _read_areas(reader: _Reader, raw_layer: list[Any], layer: str) -> tuple[Area, ...]:
+    areas = []
+    for index, raw in enumerate(raw_layer):
+        where = f"map.{layer}[{index}]"
+        area_id = reader.string(raw, "id", where)
+        reader.check_id(area_id, f"{where}.id")
+        areas.append(Area(id=area_id, polygon=_read_polygon(reader, raw, where)))
+    return tuple(areas)
+
+
+def _read_map(reader: _Reader, raw: Any) -> MapExcerpt:
+    if not isinstance(raw, dict):
+        raise reader.fail("map", "expected an object of layers")
+    known = {"lanes", "lane_connectors", "roadblocks", "roadblock_connectors", *AREA_LAYERS}
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise reader.fail("map", f"unknown layer(s) {unknown}")
+
+    def layer(name: str, required: bool) -> list[Any]:
+        if name not in raw:
+            if required:
+                raise reader.fail(f"map.{name}", "missing layer")
+            return []
+        if not isinstance(raw[name], list):
+            raise reader.fail(f"map.{name}", "expected a list")
+        return raw[name]
+
+    excerpt = MapExcerpt(
+        lanes=_read_lanes(reader, layer("lanes", True), "lanes"),
+        lane_connectors=_read_lanes(reader, layer("lane_connectors", True), "lane_connectors"),
+        roadblocks=_read_roadblocks(reader, layer("roadblocks", True), "roadblocks"),
+        roadblock_connectors=_read_roadblocks(reader, layer("roadblock_connectors", True), "roadblock_connectors"),
+        **{name: _read_areas(reader, layer(name, False), name) for name in AREA_LAYERS},
+    )
+    _check_map_ids(reader, excerpt)
+    _check_lane_graph(reader, excerpt)
+    return excerpt
+
+
+def _check_map_ids(reader: _Reader, excerpt: MapExcerpt) -> None:
+    for name in ("lanes", "lane_connectors", "roadblocks", "roadblock_connectors", *AREA_LAYERS):
+        seen: set[str] = set()
+        for index, item in enumerate(getattr(excerpt, name)):
+            if item.id in seen:
+                raise reader.fail(f"map.{name}[{index}].id", f"duplicate id {item.id!r}")
+            seen.add(item.id)
+
+
+def _check_lane_graph(reader: _Reader, excerpt: MapExcerpt) -> None:
+    """Connectors define the graph; the lists on lanes and roadblocks must agree with it as sets."""
+    for layer, connectors in (
+        ("lane_connectors", excerpt.lane_connectors),
+        ("roadblock_connectors", excerpt.roadblock_connectors),
+    ):
+        connector_ids = {connector.id for connector in connectors}
+        for index, connector in enumerate(connectors):
+            for key in ("incoming", "outgoing"):
+                ids = getattr(connector, key)
+                if len(ids) != 1:
+                    raise reader.fail(f"map.{layer}[{index}].{key}", f"a connector joins exactly one, got {list(ids)}")
+                if ids[0] in connector_ids:
+                    raise reader.fail(f"map.{layer}[{index}].{key}", "a connector cannot join another connector")
+    _check_edges(reader, "lanes", excerpt.lanes, excerpt.lane_connectors)
+    _check_edges(reader, "roadblocks", excerpt.roadblocks, excerpt.roadblock_connectors)
+    for layer, owners, members in (
+        ("roadblocks", excerpt.roadblocks, excerpt.lanes),
+        ("roadblock_connectors", excerpt.roadblock_connectors, excerpt.lane_connectors),
+    ):
+        member_ids = {member.id for member in members}
+        for index, owner in enumerate(owners):
+            derived = {member.id for member in members if member.roadblock == owner.id}
+            listed = {lane for lane in owner.lanes if lane in member_ids}
+            if derived != listed:
+                raise reader.fail(
+                    f"map.{layer}[{index}].lanes",
+                    f"lists {sorted(listed)} but the excerpt's members of {owner.id} are {sorted(derived)}",
+                )
+
+
+def _check_edges(reader: _Reader, layer: str, nodes: tuple[Any, ...], connectors: tuple[Any, ...]) -> None:
+    connector_ids = {connector.id for connector in connectors}
+    for index, node in enumerate(nodes):
+        for key, end in (("outgoing", "incoming"), ("incoming", "outgoing")):
+            derived = {c.id for c in connectors if getattr(c, end)[0] == node.id}
+            listed = {item for item in getattr(node, key) if item in connector_ids}
+            if derived != listed:
+                raise reader.fail(
+                    f"map.{layer}[{index}].{key}",
+                    f"lists {sorted(listed)} but the connectors give {sorted(derived)}",
+                )
+
+
+def parse_scene(raw: Any, source: str, content_hash: str = "") -> Scene:
+    """Return the validated scene of an already decoded JSON document."""
+    reader = _Reader(source)
+    if not isinstance(raw, dict):
+        raise reader.fail("(top level)", "expected a JSON object")
+    if raw.get("format") != SCENE_FORMAT:
+        raise reader.fail("format", f"expected {SCENE_FORMAT!r}, got {raw.get('format')!r}")
+    if raw.get("version") != SCENE_VERSION:
+        raise reader.fail("version", f"unsupported version {raw.get('version')!r}; expected {SCENE_VERSION}")
+    token = reader.string(raw, "token", "")
+    frame_interval_s = reader.number(reader.get(raw, "frame_interval_s", ""), "frame_interval_s")
+    if frame_interval_s <= 0:
+        raise reader.fail("frame_interval_s", "must be positive")
+    current_index = reader.integer(reader.get(raw, "current_index", ""), "current_index")
+    raw_frames = reader.get(raw, "frames", "")
+    if not isinstance(raw_frames, list):
+        raise reader.fail("frames", "expected a list")
+    if current_index < 0 or len(raw_frames) < current_index + FUTURE_FRAMES + 1:
+        raise reader.fail(
+            "frames",
+            f"{len(raw_frames)} frames with current_index {current_index}; "
+            f"need at least current_index + {FUTURE_FRAMES + 1}",
+        )
+    frames = tuple(_read_frame(reader, frame, f"frames[{i}]") for i, frame in enumerate(raw_frames))
+    for index in range(1, len(frames)):
+        if frames[index].timestamp_us <= frames[index - 1].timestamp_us:
+            raise reader.fail(f"frames[{index}].timestamp_us", "timestamps must increase")
+    if frames[current_index].token != token:
+        raise reader.fail("token", f"{token!r} differs from the current frame's token {frames[current_index].token!r}")
+    return Scene(
+        token=token,
+        log_name=reader.string(raw, "log_name", ""),
+        map_name=reader.string(raw, "map_name", ""),
+        frame_interval_s=frame_interval_s,
+        current_index=current_index,
+        frames=frames,
+        map=_read_map(reader, reader.get(raw, "map", "")),
+        content_hash=content_hash,
+    )
+
+
+def _decompress(data: bytes, path: Path) -> bytes:
+    if not path.name.endswith(".gz"):
+        return data
+    try:
+        return gzip.decompress(data)
+    except (OSError, EOFError) as error:
+        raise SceneFormatError(f"{path}: (file): not a valid gzip file ({error})") from None
+
+
+def scene_file_hash(path: Path) -> str:
+    """Return the sha256 of a scene file as stored: the cache key, cheap enough to check on every scoring."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def load_scene(path: Path | str) -> Scene:
+    """Return the validated scene stored at `path`; its content hash is the sha256 of the file as stored."""
+    path = Path(path)
+    stored = path.read_bytes()
+    try:
+        raw = json.loads(_decompress(stored, path))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise SceneFormatError(f"{path}: (file): not valid JSON ({error})") from None
+    scene = parse_scene(raw, str(path), hashlib.sha256(stored).hexdigest())
+    expected_stem = path.name.removesuffix(".gz").removesuffix(".json")
+    if scene.token != expected_stem:
+        raise SceneFormatError(f"{path}: token: {scene.token!r} differs from the file name {expected_stem!r}")
+    return scene
+
+
+def scene_paths(split_dir: Path | str) -> dict[str, Path]:
+    """Return token -> scene file of a split directory (`<split>/scenes/<token>.json[.gz]`), sorted by token."""
+    scenes_dir = Path(split_dir) / "scenes"
+    if not scenes_dir.is_dir():
+        raise SceneFormatError(f"{split_dir}: no scenes/ directory")
+    paths: dict[str, Path] = {}
+    for path in sorted(scenes_dir.iterdir()):
+        if not (path.name.endswith(".json") or path.name.endswith(".json.gz")):
+            continue
+        token = path.name.removesuffix(".gz").removesuffix(".json")
+        if token in paths:
+            raise SceneFormatError(f"{path}: token {token!r} stored twice in {scenes_dir}")
+        paths[token] = path
+    return dict(sorted(paths.items()))
+
+
+def iter_scenes(split_dir: Path | str) -> Iterator[Scene]:
+    """Yield the validated scenes of a split in token order."""
+    for path in scene_paths(split_dir).values():
+        yield load_scene(path)

@@ -1,0 +1,502 @@
+"""Read submissions without trusting them: `navsim-lb/submission` JSON and NAVSIM's submission pickle.
+
+The format is decided by the bytes, not the file name (NAVSIM pickles are often xz streams named
+`.pkl`). Pickles are read by a restricted unpickler that maps the few globals a NAVSIM submission
+holds to inert records and refuses every other one, so a hostile file can never execute code.
+Every problem names the seed, token and field it is about; loading collects all of them.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import lzma
+import math
+import pickle
+import re
+import zlib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from scorer.geometry import FloatArray
+
+FORMAT = "navsim-lb/submission"
+FORMAT_VERSION = 1
+NUM_POSES = 8
+TIME_HORIZON_S = 4.0
+INTERVAL_LENGTH_S = 0.5
+MAX_DECOMPRESSED_BYTES = 1 << 30
+MAX_ARRAY_ELEMENTS = 1 << 20
+MAX_METADATA_CHARS = 1000
+MAX_PROBLEMS = 50
+
+# NAVSIM's pickle keys its metadata like this; the last one is literally "country / region".
+PICKLE_METADATA_KEYS = {
+    "team_name": "team_name",
+    "authors": "authors",
+    "email": "email",
+    "institution": "institution",
+    "country / region": "country",
+}
+_XZ_MAGIC = b"\xfd7zXZ\x00"
+_GZIP_MAGIC = b"\x1f\x8b"
+_HTML_LINK = re.compile(r"""^\s*<a\s+href\s*=\s*["']?([^"'>\s]+)["']?[^>]*>(.*?)</a>\s*$""", re.IGNORECASE | re.DOTALL)
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong with a submission; `token` and `field` say where (None when not about one)."""
+
+    token: str | None
+    field: str | None
+    message: str
+
+    def __str__(self) -> str:
+        where = ", ".join(part for part in (self.field, f"token {self.token}" if self.token else None) if part)
+        return f"{where}: {self.message}" if where else self.message
+
+
+class SubmissionError(Exception):
+    """A submission that cannot be read; `problems` lists every reason found.
+
+    `seed_tokens` holds the tokens each seed named (readable or not) when the file got that far, so
+    coverage of the split can still be reported alongside the other problems.
+    """
+
+    def __init__(self, problems: Sequence[Problem], seed_tokens: Sequence[Sequence[str]] = ()) -> None:
+        self.problems = list(problems)
+        self.seed_tokens = [list(tokens) for tokens in seed_tokens]
+        super().__init__("; ".join(str(problem) for problem in self.problems))
+
+
+@dataclass(frozen=True)
+class SubmissionMetadata:
+    """Who submitted what; every field is optional text."""
+
+    team_name: str = ""
+    authors: str = ""
+    email: str = ""
+    institution: str = ""
+    country: str = ""
+    method: str = ""
+    tech_report_url: str = ""
+    code_url: str = ""
+
+
+@dataclass(frozen=True)
+class Submission:
+    """Metadata and one token -> (8, 3) ego-frame poses mapping per seed."""
+
+    metadata: SubmissionMetadata
+    seeds: tuple[dict[str, FloatArray], ...]
+
+
+class _Problems:
+    """Collects problems, keeping the first MAX_PROBLEMS and counting the rest."""
+
+    def __init__(self) -> None:
+        self.items: list[Problem] = []
+        self.dropped = 0
+
+    def add(self, token: str | None, field: str | None, message: str) -> None:
+        if len(self.items) < MAX_PROBLEMS:
+            self.items.append(Problem(token, field, message))
+        else:
+            self.dropped += 1
+
+    def result(self) -> list[Problem]:
+        if self.dropped:
+            return [*self.items, Problem(None, None, f"{self.dropped} more problem(s) not listed")]
+        return list(self.items)
+
+    def raise_if_any(self, seed_tokens: Sequence[Sequence[str]] = ()) -> None:
+        if self.items:
+            raise SubmissionError(self.result(), seed_tokens)
+
+
+def _seed_field(seed: int, seed_count: int) -> str:
+    return f"predictions[{seed}]" if seed_count > 1 else "predictions"
+
+
+def _check_poses(values: Any, token: str, field: str, problems: _Problems) -> FloatArray | None:
+    """Return `values` as (8, 3) finite float64 poses, or record why they are not."""
+    try:
+        poses = np.asarray(values)
+    except (ValueError, TypeError):
+        problems.add(token, field, "poses must be a list of 8 [x, y, heading] numbers")
+        return None
+    if poses.dtype.kind not in "fiu":
+        problems.add(token, field, f"poses must be numbers, got {poses.dtype.name} values")
+        return None
+    if poses.shape != (NUM_POSES, 3):
+        problems.add(token, field, f"expected {NUM_POSES} poses of [x, y, heading], got shape {poses.shape}")
+        return None
+    poses = poses.astype(np.float64)
+    if not np.isfinite(poses).all():
+        row, column = (int(i) for i in np.argwhere(~np.isfinite(poses))[0])
+        problems.add(token, f"{field}[{row}][{column}]", "values must be finite (no NaN or infinity)")
+        return None
+    return poses
+
+
+def _text(value: Any, field: str, problems: _Problems) -> str:
+    if value is None:
+        return ""
+    if not isinstance(value, str):
+        problems.add(None, field, f"must be text, got {type(value).__name__}")
+        return ""
+    if len(value) > MAX_METADATA_CHARS:
+        problems.add(None, field, f"longer than {MAX_METADATA_CHARS} characters")
+        return ""
+    return value.strip()
+
+
+def _check_sampling(
+    num_poses: Any, time_horizon: Any, interval_length: Any, token: str | None, field: str, problems: _Problems
+) -> bool:
+    # The leaderboard scores NAVSIM's default sampling only, as the official leaderboard does.
+    expected = (NUM_POSES, TIME_HORIZON_S, INTERVAL_LENGTH_S)
+    actual = (num_poses, time_horizon, interval_length)
+    numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in actual)
+    if not numbers or not all(math.isclose(a, e, abs_tol=1e-9) for a, e in zip(actual, expected, strict=True)):
+        problems.add(
+            token,
+            field,
+            f"expected num_poses {NUM_POSES}, time_horizon {TIME_HORIZON_S}, interval_length "
+            f"{INTERVAL_LENGTH_S}; got {num_poses!r}, {time_horizon!r}, {interval_length!r}",
+        )
+        return False
+    return True
+
+
+# JSON ---------------------------------------------------------------------------------------------
+
+
+class _DuplicateKeys(dict[str, Any]):
+    """A JSON object that remembers which keys were repeated (json keeps only the last value)."""
+
+    duplicates: list[str]
+
+
+def _object_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    result = _DuplicateKeys()
+    result.duplicates = []
+    for key, value in pairs:
+        if key in result:
+            result.duplicates.append(key)
+        result[key] = value
+    return result
+
+
+JSON_FIELDS = {"format", "version", "trajectory_sampling", "predictions", *(f.name for f in fields(SubmissionMetadata))}
+
+
+def _load_json(data: bytes) -> Submission:
+    problems = _Problems()
+    try:
+        # NaN and Infinity (which Python's json writes) are read, then reported per token as non-finite.
+        document = json.loads(data, object_pairs_hook=_object_pairs)
+    except (UnicodeDecodeError, ValueError) as error:
+        raise SubmissionError([Problem(None, None, f"not valid JSON: {error}")]) from None
+    if not isinstance(document, dict):
+        raise SubmissionError([Problem(None, None, "the JSON document must be an object")])
+    if document.get("format") != FORMAT:
+        problems.add(None, "format", f"must be {FORMAT!r}, got {document.get('format')!r}")
+    if document.get("version") != FORMAT_VERSION:
+        problems.add(None, "version", f"must be {FORMAT_VERSION}, got {document.get('version')!r}")
+    for key in sorted(set(document) - JSON_FIELDS):
+        problems.add(None, key, "unknown field")
+    metadata = SubmissionMetadata(
+        **{f.name: _text(document.get(f.name), f.name, problems) for f in fields(SubmissionMetadata)}
+    )
+    sampling = document.get("trajectory_sampling", {"time_horizon": TIME_HORIZON_S, "interval_length": INTERVAL_LENGTH_S})
+    if isinstance(sampling, dict):
+        horizon, interval = sampling.get("time_horizon"), sampling.get("interval_length")
+        is_number = all(isinstance(v, int | float) for v in (horizon, interval))
+        num_poses = sampling.get("num_poses", round(horizon / interval) if is_number and interval else None)
+        _check_sampling(num_poses, horizon, interval, None, "trajectory_sampling", problems)
+    else:
+        problems.add(None, "trajectory_sampling", "must be an object with time_horizon and interval_length")
+    seeds, seed_tokens = _json_predictions(document.get("predictions"), problems)
+    problems.raise_if_any(seed_tokens)
+    return Submission(metadata, seeds)
+
+
+def _json_predictions(
+    predictions: Any, problems: _Problems
+) -> tuple[tuple[dict[str, FloatArray], ...], list[list[str]]]:
+    """Return the readable poses of each seed and every token each seed names."""
+    if isinstance(predictions, dict):
+        per_seed = [predictions]
+    elif isinstance(predictions, list) and predictions:
+        per_seed = predictions
+    else:
+        problems.add(None, "predictions", "must be an object token -> poses, or a non-empty list of them (one per seed)")
+        return (), []
+    seeds = []
+    seed_tokens = []
+    for seed, mapping in enumerate(per_seed):
+        field = _seed_field(seed, len(per_seed))
+        if not isinstance(mapping, dict):
+            problems.add(None, field, f"must be an object token -> poses, got {type(mapping).__name__}")
+            continue
+        for token in getattr(mapping, "duplicates", []):
+            problems.add(token, field, "token appears more than once")
+        poses = {token: _check_poses(values, token, f"{field}[{token!r}]", problems) for token, values in mapping.items()}
+        seeds.append({token: value for token, value in poses.items() if value is not None})
+        seed_tokens.append(list(mapping))
+    return tuple(seeds), seed_tokens
+
+
+# NAVSIM pickle ------------------------------------------------------------------------------------
+
+
+class _Record:
+    """Inert stand-in for a pickled dataclass: NEWOBJ makes it empty, BUILD fills `state`."""
+
+    def __init__(self) -> None:
+        self.state: dict[str, Any] = {}
+
+    def __setstate__(self, state: Any) -> None:
+        if not isinstance(state, dict):
+            raise pickle.UnpicklingError(f"{type(self).__name__} state must be a dict")
+        self.state = state
+
+
+class _Trajectory(_Record):
+    pass
+
+
+class _TrajectorySampling(_Record):
+    pass
+
+
+class _DType:
+    """numpy.dtype(code, align, copy) restricted to float codes; BUILD gives the byte order."""
+
+    ALLOWED = {"f2", "f4", "f8"}
+
+    def __init__(self, code: Any, align: Any = False, copy: Any = True) -> None:
+        if code not in self.ALLOWED:
+            raise pickle.UnpicklingError(f"array dtype {code!r} is not allowed; poses must be float32 or float64")
+        self.dtype = np.dtype(code)
+
+    def __setstate__(self, state: Any) -> None:
+        if not isinstance(state, tuple) or len(state) < 2 or state[1] not in ("<", ">", "=", "|"):
+            raise pickle.UnpicklingError("malformed dtype state")
+        self.dtype = self.dtype.newbyteorder(state[1])
+
+
+class _NDArrayType:
+    """Marks numpy.ndarray as the class argument of _reconstruct; never instantiated."""
+
+
+def _array(raw: Any, dtype: Any, shape: Any, fortran: bool) -> FloatArray:
+    if not isinstance(dtype, _DType):
+        raise pickle.UnpicklingError("array dtype must come from numpy.dtype")
+    if not (isinstance(shape, tuple) and all(isinstance(n, int) and n >= 0 for n in shape) and len(shape) <= 4):
+        raise pickle.UnpicklingError("malformed array shape")
+    count = math.prod(shape)
+    if count > MAX_ARRAY_ELEMENTS:
+        raise pickle.UnpicklingError(f"array of {count} elements is too large")
+    if not isinstance(raw, bytes | bytearray) or len(raw) != count * dtype.dtype.itemsize:
+        raise pickle.UnpicklingError("array data does not match its shape and dtype")
+    values = np.frombuffer(bytes(raw), dtype=dtype.dtype).reshape(shape, order="F" if fortran else "C")
+    return values.astype(np.float64)
+
+
+class _ArrayBuilder:
+    """numpy's `_reconstruct(ndarray, (0,), b'b')` followed by BUILD (version, shape, dtype, fortran, raw)."""
+
+    def __init__(self) -> None:
+        self.array: FloatArray | None = None
+
+    def __setstate__(self, state: Any) -> None:
+        if not isinstance(state, tuple) or len(state) != 5:
+            raise pickle.UnpicklingError("malformed array state")
+        _version, shape, dtype, fortran, raw = state
+        self.array = _array(raw, dtype, shape, bool(fortran))
+
+
+def _reconstruct(cls: Any, shape: Any, typecode: Any) -> _ArrayBuilder:
+    if cls is not _NDArrayType:
+        raise pickle.UnpicklingError("only numpy.ndarray may be reconstructed")
+    return _ArrayBuilder()
+
+
+def _frombuffer(buffer: Any, dtype: Any, shape: Any, order: Any) -> FloatArray:
+    return _array(buffer, dtype, shape, order == "F")
+
+
+def _latin1_encode(text: Any, encoding: Any = "latin1") -> bytes:
+    # Protocol 2 writes bytes as latin-1 text through _codecs.encode.
+    if not isinstance(text, str) or encoding not in ("latin1", "latin-1"):
+        raise pickle.UnpicklingError("only latin-1 text may be encoded")
+    return text.encode("latin1")
+
+
+_ALLOWED_GLOBALS: dict[tuple[str, str], Any] = {
+    ("navsim.common.dataclasses", "Trajectory"): _Trajectory,
+    ("nuplan.planning.simulation.trajectory.trajectory_sampling", "TrajectorySampling"): _TrajectorySampling,
+    ("numpy", "ndarray"): _NDArrayType,
+    ("numpy", "dtype"): _DType,
+    ("numpy.core.multiarray", "_reconstruct"): _reconstruct,
+    ("numpy._core.multiarray", "_reconstruct"): _reconstruct,
+    ("numpy.core.numeric", "_frombuffer"): _frombuffer,
+    ("numpy._core.numeric", "_frombuffer"): _frombuffer,
+    ("_codecs", "encode"): _latin1_encode,
+}
+
+
+class _RestrictedUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str) -> Any:
+        try:
+            return _ALLOWED_GLOBALS[(module, name)]
+        except KeyError:
+            raise pickle.UnpicklingError(
+                f"the pickle refers to {module}.{name}, which a NAVSIM submission never holds"
+            ) from None
+
+    def persistent_load(self, pid: Any) -> Any:
+        raise pickle.UnpicklingError("persistent ids are not allowed")
+
+
+def _unpickle(data: bytes) -> Any:
+    try:
+        return _RestrictedUnpickler(io.BytesIO(data)).load()
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError) as error:
+        # Any failure inside the stream is the file's fault: report it, never execute around it.
+        raise SubmissionError([Problem(None, None, f"not a readable NAVSIM submission pickle: {error}")]) from None
+
+
+def _pickle_trajectory(value: Any, token: Any, field: str, problems: _Problems) -> FloatArray | None:
+    if not isinstance(token, str):
+        problems.add(None, field, f"tokens must be text, got {type(token).__name__}")
+        return None
+    if not isinstance(value, _Trajectory):
+        problems.add(token, field, f"must be a navsim Trajectory, got {type(value).__name__}")
+        return None
+    poses = value.state.get("poses")
+    sampling = value.state.get("trajectory_sampling")
+    if isinstance(poses, _ArrayBuilder):
+        poses = poses.array
+    if not isinstance(poses, np.ndarray):
+        problems.add(token, f"{field}.poses", "must be a numpy float array")
+        return None
+    if not isinstance(sampling, _TrajectorySampling):
+        problems.add(token, f"{field}.trajectory_sampling", "must be a TrajectorySampling")
+        return None
+    state = sampling.state
+    sampling_field = f"{field}.trajectory_sampling"
+    values = (state.get("num_poses"), state.get("time_horizon"), state.get("interval_length"))
+    if not _check_sampling(*values, token, sampling_field, problems):
+        return None
+    return _check_poses(poses, token, f"{field}.poses", problems)
+
+
+def _load_pickle(data: bytes) -> Submission:
+    document = _unpickle(data)
+    problems = _Problems()
+    if not isinstance(document, dict):
+        raise SubmissionError([Problem(None, None, f"the pickle must hold a dict, got {type(document).__name__}")])
+    if "first_stage_predictions" in document:
+        raise SubmissionError([Problem(None, "first_stage_predictions", "NAVSIM v2 submissions are not scored here")])
+    for key in sorted(set(map(str, document)) - {*PICKLE_METADATA_KEYS, "predictions"}):
+        problems.add(None, key, "unknown key")
+    values = {name: _text(document.get(key), key, problems) for key, name in PICKLE_METADATA_KEYS.items()}
+    # The leaderboard rules ask for team_name as `<a href=URL>Method</a>`: split it into method and link.
+    link = _HTML_LINK.match(values["team_name"])
+    if link:
+        values["tech_report_url"], values["method"] = link.group(1), re.sub(r"<[^>]*>", "", link.group(2)).strip()
+    metadata = SubmissionMetadata(**values)
+    predictions = document.get("predictions")
+    # v1.0 pickles hold one dict; v1.1 a list of dicts, one per seed.
+    per_seed = [predictions] if isinstance(predictions, dict) else predictions
+    if not isinstance(per_seed, list) or not per_seed:
+        problems.add(None, "predictions", "must be a dict token -> Trajectory or a non-empty list of them")
+        problems.raise_if_any()
+    seeds = []
+    seed_tokens = []
+    for seed, mapping in enumerate(per_seed):
+        field = _seed_field(seed, len(per_seed))
+        if not isinstance(mapping, dict):
+            problems.add(None, field, f"must be a dict token -> Trajectory, got {type(mapping).__name__}")
+            continue
+        poses = {token: _pickle_trajectory(value, token, f"{field}[{token!r}]", problems) for token, value in mapping.items()}
+        seeds.append({token: value for token, value in poses.items() if value is not None})
+        seed_tokens.append([token for token in mapping if isinstance(token, str)])
+    problems.raise_if_any(seed_tokens)
+    return Submission(metadata, tuple(seeds))
+
+
+# Entry points -------------------------------------------------------------------------------------
+
+
+def _decompress(data: bytes) -> bytes:
+    """Undo xz or gzip compression, refusing to inflate past MAX_DECOMPRESSED_BYTES."""
+    if data.startswith(_XZ_MAGIC):
+        decompressor: Any = lzma.LZMADecompressor()
+    elif data.startswith(_GZIP_MAGIC):
+        decompressor = zlib.decompressobj(wbits=31)
+    else:
+        return data
+    try:
+        if isinstance(decompressor, lzma.LZMADecompressor):
+            inflated = decompressor.decompress(data, max_length=MAX_DECOMPRESSED_BYTES + 1)
+        else:
+            inflated = decompressor.decompress(data, MAX_DECOMPRESSED_BYTES + 1)
+    except (lzma.LZMAError, zlib.error) as error:
+        raise SubmissionError([Problem(None, None, f"corrupt compressed file: {error}")]) from None
+    if len(inflated) > MAX_DECOMPRESSED_BYTES:
+        raise SubmissionError([Problem(None, None, f"decompresses to more than {MAX_DECOMPRESSED_BYTES} bytes")])
+    return inflated
+
+
+def load_submission(data: bytes, filename: str = "submission") -> Submission:
+    """Read a submission (JSON or NAVSIM pickle, optionally xz- or gzip-compressed) from its bytes.
+
+    Raises SubmissionError listing every problem; `filename` only labels messages.
+    """
+    if not data:
+        raise SubmissionError([Problem(None, None, f"{filename} is empty")])
+    content = _decompress(data)
+    # Pickle protocol 2+ streams start with the PROTO opcode.
+    if content[:1] == b"\x80":
+        return _load_pickle(content)
+    return _load_json(content)
+
+
+def coverage_problems(seed_tokens: Sequence[Iterable[str]], tokens: Iterable[str]) -> list[Problem]:
+    """Return what keeps each seed's tokens from covering the split `tokens` exactly."""
+    expected = list(tokens)
+    expected_set = set(expected)
+    problems = _Problems()
+    for seed, named in enumerate(seed_tokens):
+        present = set(named)
+        field = _seed_field(seed, len(seed_tokens))
+        for token in (t for t in expected if t not in present):
+            problems.add(token, field, "token of the split is missing")
+        for token in (t for t in named if t not in expected_set):
+            problems.add(token, field, "token is not in the split")
+    return problems.result()
+
+
+def validate_submission(submission: Submission, tokens: Iterable[str]) -> list[Problem]:
+    """Return what keeps `submission` from covering the split `tokens` exactly once per seed."""
+    return coverage_problems([list(seed) for seed in submission.seeds], tokens)
+
+
+def dump_submission_json(submission: Submission) -> bytes:
+    """Return `submission` as `navsim-lb/submission` JSON (exact float round trip)."""
+    predictions = [{token: poses.tolist() for token, poses in seed.items()} for seed in submission.seeds]
+    document = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        **{f.name: getattr(submission.metadata, f.name) for f in fields(SubmissionMetadata)},
+        "trajectory_sampling": {"time_horizon": TIME_HORIZON_S, "interval_length": INTERVAL_LENGTH_S},
+        "predictions": predictions[0] if len(predictions) == 1 else predictions,
+    }
+    return json.dumps(document).encode()

@@ -1,0 +1,94 @@
+"""Metric versions as data: one frozen config per NAVSIM release, in one registry (spec 8, 11).
+
+Adding a version means adding a `MetricVersion` here; code branches only where a metric truly differs,
+and then on a field of this config (e.g. `ddc_window_axis`), never on the version name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+DdcRole = Literal["multiplier", "weighted"]
+DdcWindowAxis = Literal["proposal", "time"]
+
+
+@dataclass(frozen=True)
+class ScorerConfig:
+    """The devkit's `PDMScorerConfig` plus the two structural DDC choices that changed between releases."""
+
+    progress_weight: float = 5.0
+    ttc_weight: float = 5.0
+    comfortable_weight: float = 2.0
+    driving_direction_weight: float = 0.0
+    driving_direction_horizon: float = 1.0
+    driving_direction_compliance_threshold: float = 2.0
+    driving_direction_violation_threshold: float = 6.0
+    stopped_speed_threshold: float = 5e-3
+    progress_distance_threshold: float = 5.0
+    # v1.0 multiplies by DDC and sums its window over the proposal axis (a devkit bug reproduced on purpose).
+    ddc_role: DdcRole = "weighted"
+    ddc_window_axis: DdcWindowAxis = "time"
+
+
+@dataclass(frozen=True)
+class MetricVersion:
+    """A NAVSIM metric release: the evaluation scorer, PDM-Closed's internal scorer and the result columns."""
+
+    name: str
+    evaluation: ScorerConfig  # default_scoring_parameters.yaml
+    planner: ScorerConfig  # PDMScorerConfig() dataclass defaults, used inside PDM-Closed
+    result_columns: tuple[str, ...]  # PDMResults field order
+
+
+_V1_0_SCORER = ScorerConfig(ddc_role="multiplier", ddc_window_axis="proposal")
+_V1_1_SCORER = ScorerConfig(ddc_role="weighted", ddc_window_axis="time")
+
+VERSIONS: dict[str, MetricVersion] = {
+    "v1.0": MetricVersion(
+        name="v1.0",
+        evaluation=_V1_0_SCORER,
+        planner=replace(_V1_0_SCORER, progress_distance_threshold=0.1),
+        result_columns=(
+            "no_at_fault_collisions",
+            "drivable_area_compliance",
+            "driving_direction_compliance",
+            "ego_progress",
+            "time_to_collision_within_bound",
+            "comfort",
+            "score",
+        ),
+    ),
+    "v1.1": MetricVersion(
+        name="v1.1",
+        evaluation=_V1_1_SCORER,
+        planner=_V1_1_SCORER,
+        result_columns=(
+            "no_at_fault_collisions",
+            "drivable_area_compliance",
+            "ego_progress",
+            "time_to_collision_within_bound",
+            "comfort",
+            "driving_direction_compliance",
+            "score",
+        ),
+    ),
+}
+
+METRIC_COLUMNS = (
+    "no_at_fault_collisions",
+    "drivable_area_compliance",
+    "driving_direction_compliance",
+    "ego_progress",
+    "time_to_collision_within_bound",
+    "comfort",
+    "score",
+)
+
+
+def get_version(name: str) -> MetricVersion:
+    """Return the registered metric version `name`, or raise with the list of known versions."""
+    try:
+        return VERSIONS[name]
+    except KeyError:
+        raise ValueError(f"unknown metric version {name!r}; known: {', '.join(VERSIONS)}") from None

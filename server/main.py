@@ -1,0 +1,98 @@
+"""The FastAPI application: `create_app(settings)` wires database, routes, web pages and error mapping."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+from functools import partial
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+from pydantic import TypeAdapter
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+
+from scorer import ENGINE_VERSION
+from server.db import make_engine, make_session_factory, transaction
+from server.migrate import require_migrated
+from server.models import Split, utc_now
+from server.queue import broker_status, enqueue_submission, live_workers
+from server.routes import admin, public, submissions, web
+from server.services.errors import QuotaExceeded, ServiceError
+from server.services.splits import register_split
+from server.services.submissions import add_baselines
+from server.settings import Settings, get_settings
+from server.ttl_cache import TTLCache
+
+log = logging.getLogger(__name__)
+API_PREFIX = "/api/v1"
+WEB_DIR = Path(__file__).resolve().parent.parent / "web"
+
+
+def _service_error(_request: Request, error: Exception) -> JSONResponse:
+    assert isinstance(error, ServiceError)
+    headers = {}
+    if isinstance(error, QuotaExceeded) and error.resets_at is not None:
+        headers["Retry-After"] = str(max(1, int((error.resets_at - utc_now()).total_seconds())))
+    return JSONResponse(
+        # pydantic's JSON mode, as for every response model: UTC times end in "Z".
+        TypeAdapter(Any).dump_python({"detail": error.message, **error.extra}, mode="json"),
+        status_code=error.http_status,
+        headers=headers,
+    )
+
+
+def register_configured_splits(app: FastAPI) -> None:
+    """Register the splits named in the settings that are not registered yet, and queue their baselines."""
+    settings: Settings = app.state.settings
+    for name, directory in settings.splits.items():
+        try:
+            with transaction(app.state.session_factory) as session:
+                if session.scalar(select(Split.id).where(Split.name == name)) is not None:
+                    continue
+                split = register_split(session, name, directory)
+                queued = [submission.id for submission in add_baselines(session, split, settings.storage_dir)]
+        except IntegrityError:
+            continue  # another API process registered it at the same moment
+        log.info("registered split %s (%s tokens) from %s", name, split.token_count, directory)
+        for submission_id in queued:
+            app.state.enqueue(submission_id)
+
+
+def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] | None = None) -> FastAPI:
+    """Return the API and web app on a migrated database; raises NotMigratedError (with the fix) otherwise."""
+    settings = settings or get_settings()
+    assert settings.storage_dir is not None
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    settings.storage_dir.mkdir(parents=True, exist_ok=True)
+    engine = make_engine(settings.database_url)
+    require_migrated(engine)
+
+    app = FastAPI(
+        title="NAVSIM Leaderboard",
+        version=ENGINE_VERSION,
+        description="Submissions, PDM Score (v1.0, v1.1) leaderboard and administration of the NAVSIM benchmark.",
+    )
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.session_factory = make_session_factory(engine)
+    app.state.enqueue = enqueue or partial(enqueue_submission, settings=settings)
+    app.state.broker_status = broker_status
+    app.state.live_workers = live_workers
+    app.state.leaderboard_cache = TTLCache(settings.leaderboard_cache_seconds)
+    app.add_exception_handler(ServiceError, _service_error)
+    app.include_router(public.router, prefix=API_PREFIX)
+    app.include_router(submissions.router, prefix=API_PREFIX)
+    app.include_router(admin.router, prefix=API_PREFIX)
+    app.include_router(web.router)
+    app.mount("/static", StaticFiles(directory=WEB_DIR / "static"), name="static")
+    register_configured_splits(app)
+    return app
+
+
+def app_from_environment() -> FastAPI:
+    """Return the app configured from the environment (the uvicorn factory of `navsim-lb serve`)."""
+    return create_app(get_settings())

@@ -1,0 +1,288 @@
+"""Admin routes (admin token): teams, tokens, quotas, moderation, re-runs, rescore-all, export, audit log.
+
+Every state change is written to the audit log in the same transaction as the change itself.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse, PlainTextResponse
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from server.auth import AdminDep, SessionDep
+from server.models import Approval, Scope, Submission, Team
+from server.routes.public import leaderboard_view
+from server.routes.views import phase_view, submission_views
+from server.schemas import (
+    AdminSubmissionOut,
+    AuditOut,
+    DisqualifyIn,
+    HideIn,
+    PhaseIn,
+    PhaseOut,
+    QuotaIn,
+    RescoreIn,
+    SplitIn,
+    TeamIn,
+    TeamOut,
+    TokenCreated,
+    TokenIn,
+    TokenOut,
+)
+from server.services import admin as actions
+from server.services.splits import create_phase, register_split, resolve_phase, split_by_name
+from server.services.submissions import add_baselines, get_submission, list_submissions
+from server.services.teams import create_team, get_team, set_approval, set_team_quota
+from server.services.tokens import create_token, revoke_token
+
+log = logging.getLogger(__name__)
+router = APIRouter(prefix="/admin", tags=["admin"])
+
+
+def _enqueue(request: Request, submission_ids: Iterable[int]) -> None:
+    for submission_id in submission_ids:
+        try:
+            request.app.state.enqueue(submission_id)
+        except Exception:  # stays queued in SQL; the reaper re-sends it
+            log.exception("could not enqueue submission %s", submission_id)
+
+
+@router.get("/teams", response_model=list[TeamOut])
+def teams(session: SessionDep, _admin: AdminDep) -> list[Team]:
+    """Every team, pending ones first."""
+    rows = session.scalars(select(Team).where(Team.is_system.is_(False)).order_by(Team.id)).all()
+    return sorted(rows, key=lambda team: team.approval != Approval.pending)
+
+
+@router.post("/teams", response_model=TeamOut, status_code=201)
+def add_team(session: SessionDep, admin: AdminDep, team_in: TeamIn) -> Team:
+    """Create an approved team."""
+    team = create_team(session, team_in.name, team_in.members, team_in.affiliation, Approval.approved)
+    actions.audit(session, admin, "create_team", "team", team.id, name=team.name)
+    session.commit()
+    return team
+
+
+@router.post("/teams/{team_id}/approve", response_model=TeamOut)
+def approve(session: SessionDep, admin: AdminDep, team_id: int) -> Team:
+    """Approve a team: its tokens may now submit."""
+    team = set_approval(session, team_id, Approval.approved)
+    actions.audit(session, admin, "approve_team", "team", team_id, name=team.name)
+    session.commit()
+    return team
+
+
+@router.post("/teams/{team_id}/reject", response_model=TeamOut)
+def reject(session: SessionDep, admin: AdminDep, team_id: int) -> Team:
+    """Reject a team: its tokens may no longer submit."""
+    team = set_approval(session, team_id, Approval.rejected)
+    actions.audit(session, admin, "reject_team", "team", team_id, name=team.name)
+    session.commit()
+    return team
+
+
+@router.get("/teams/{team_id}/tokens", response_model=list[TokenOut])
+def team_tokens(session: SessionDep, _admin: AdminDep, team_id: int) -> list[Any]:
+    """A team's tokens (never their secrets)."""
+    return list(get_team(session, team_id).tokens)
+
+
+@router.post("/teams/{team_id}/tokens", response_model=TokenCreated, status_code=201)
+def new_team_token(session: SessionDep, admin: AdminDep, team_id: int, token_in: TokenIn) -> dict[str, Any]:
+    """Issue a team token; the secret is in this answer only."""
+    token, secret = create_token(
+        session, Scope.team, get_team(session, team_id), token_in.name, token_in.expires_at
+    )
+    actions.audit(session, admin, "create_token", "team", team_id, token_id=token.id, prefix=token.prefix)
+    session.commit()
+    return {**TokenOut.model_validate(token).model_dump(), "token": secret}
+
+
+@router.post("/tokens", response_model=TokenCreated, status_code=201)
+def new_admin_token(session: SessionDep, admin: AdminDep, token_in: TokenIn) -> dict[str, Any]:
+    """Issue another admin token."""
+    token, secret = create_token(session, Scope.admin, None, token_in.name, token_in.expires_at)
+    actions.audit(session, admin, "create_admin_token", "token", token.id, prefix=token.prefix)
+    session.commit()
+    return {**TokenOut.model_validate(token).model_dump(), "token": secret}
+
+
+@router.delete("/tokens/{token_id}", response_model=TokenOut)
+def revoke(session: SessionDep, admin: AdminDep, token_id: int) -> Any:
+    """Revoke a token (team or admin)."""
+    token = revoke_token(session, token_id)
+    actions.audit(session, admin, "revoke_token", "token", token_id, prefix=token.prefix)
+    session.commit()
+    return token
+
+
+@router.put("/teams/{team_id}/quotas")
+def quotas(session: SessionDep, admin: AdminDep, team_id: int, quota_in: QuotaIn) -> dict[str, Any]:
+    """Override a team's quotas in a phase (null keeps the phase default)."""
+    phase = resolve_phase(session, quota_in.phase)
+    set_team_quota(session, team_id, phase, quota_in.per_day, quota_in.total, quota_in.in_flight)
+    actions.audit(session, admin, "set_quota", "team", team_id, **quota_in.model_dump())
+    session.commit()
+    return quota_in.model_dump()
+
+
+@router.post("/splits", status_code=201)
+def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: SplitIn) -> dict[str, Any]:
+    """Register a split directory (on the server's disk) and queue its two baselines."""
+    split = register_split(session, split_in.name, Path(split_in.directory), split_in.public_tokens)
+    baselines = (
+        add_baselines(session, split, request.app.state.settings.storage_dir) if split_in.baselines else []
+    )
+    actions.audit(
+        session,
+        admin,
+        "register_split",
+        "split",
+        split.name,
+        directory=split.directory,
+        content_hash=split.content_hash,
+        tokens=split.token_count,
+    )
+    session.commit()
+    _enqueue(request, [submission.id for submission in baselines])
+    return {
+        "name": split.name,
+        "token_count": split.token_count,
+        "content_hash": split.content_hash,
+        "baseline_submissions": [submission.id for submission in baselines],
+    }
+
+
+@router.post("/phases", response_model=PhaseOut, status_code=201)
+def add_phase(session: SessionDep, admin: AdminDep, phase_in: PhaseIn) -> dict[str, Any]:
+    """Create a phase on a registered split."""
+    phase = create_phase(
+        session,
+        phase_in.name,
+        split_by_name(session, phase_in.split),
+        phase_in.opens_at,
+        phase_in.closes_at,
+        phase_in.per_day,
+        phase_in.total,
+        phase_in.in_flight,
+    )
+    actions.audit(session, admin, "create_phase", "phase", phase.name, **phase_in.model_dump(mode="json"))
+    session.commit()
+    return phase_view(phase)
+
+
+@router.get("/submissions", response_model=list[AdminSubmissionOut])
+def submissions(
+    session: SessionDep,
+    _admin: AdminDep,
+    team_id: int | None = None,
+    status: str | None = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 200,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> list[dict[str, Any]]:
+    """Every submission, newest first, with the admin-only fields."""
+    return submission_views(session, list_submissions(session, team_id, status, limit, offset), admin=True)
+
+
+def _one(session: Session, submission: Submission) -> dict[str, Any]:
+    return submission_views(session, [submission], admin=True)[0]
+
+
+@router.post("/submissions/{submission_id}/rerun", response_model=AdminSubmissionOut)
+def rerun(request: Request, session: SessionDep, admin: AdminDep, submission_id: int) -> dict[str, Any]:
+    """Score a submission again (a new run); its current results stay shown until the new run is scored."""
+    submission = actions.rerun_submission(session, admin, submission_id)
+    session.commit()
+    _enqueue(request, [submission.id])
+    return _one(session, submission)
+
+
+@router.post("/submissions/{submission_id}/cancel", response_model=AdminSubmissionOut)
+def cancel(session: SessionDep, admin: AdminDep, submission_id: int) -> dict[str, Any]:
+    """Cancel a queued or running submission (refunded)."""
+    submission = actions.cancel_submission(session, admin, submission_id)
+    session.commit()
+    return _one(session, submission)
+
+
+@router.post("/submissions/{submission_id}/hide", response_model=AdminSubmissionOut)
+def hide(session: SessionDep, admin: AdminDep, submission_id: int, hide_in: HideIn) -> dict[str, Any]:
+    """Hide a submission from the leaderboard, or show it again."""
+    submission = actions.hide_submission(session, admin, submission_id, hide_in.hidden)
+    session.commit()
+    return _one(session, submission)
+
+
+@router.post("/submissions/{submission_id}/disqualify", response_model=AdminSubmissionOut)
+def disqualify(
+    session: SessionDep, admin: AdminDep, submission_id: int, body: DisqualifyIn
+) -> dict[str, Any]:
+    """Disqualify a submission with a reason, or lift the disqualification."""
+    submission = actions.disqualify_submission(session, admin, submission_id, body.disqualified, body.reason)
+    session.commit()
+    return _one(session, submission)
+
+
+@router.post("/rescore", status_code=202)
+def rescore(request: Request, session: SessionDep, admin: AdminDep, body: RescoreIn) -> dict[str, Any]:
+    """Re-run every scored entry of a phase; the report compares the rankings under `version` before and after."""
+    view = leaderboard_view(session, body.version, body.subset, "score", body.phase, admin=True)
+    rescore_run, queued = actions.start_rescore(
+        session, admin, resolve_phase(session, view["phase"]), body.version, view["subset"]
+    )
+    session.commit()
+    _enqueue(request, [submission.id for submission in queued])
+    report = str(request.url_for("rescore_report_route", rescore_id=rescore_run.id))
+    return {"id": rescore_run.id, "queued": len(queued), "report": report}
+
+
+@router.get("/rescores/{rescore_id}", name="rescore_report_route")
+def rescore_report(session: SessionDep, _admin: AdminDep, rescore_id: int) -> dict[str, Any]:
+    """Rank-change report of a rescore: moved entries and Kendall's tau; `complete` once every run finished."""
+    return actions.rescore_report(session, rescore_id)
+
+
+@router.get("/export", response_model=None)
+def export(
+    session: SessionDep,
+    _admin: AdminDep,
+    version: str = "v1.1",
+    subset: str | None = None,
+    phase: str | None = None,
+    format: Literal["csv", "json"] = "csv",
+) -> PlainTextResponse | JSONResponse:
+    """Every scored submission of a phase (moderation flags included) as CSV or JSON."""
+    view = leaderboard_view(session, version, subset, "score", phase, admin=True)
+    rows = actions.export_rows(session, resolve_phase(session, view["phase"]), version, view["subset"])
+    name = f"navsim-lb-{view['phase']}-{version}-{view['subset']}"
+    if format == "json":
+        body = {"version": version, "phase": view["phase"], "subset": view["subset"], "rows": rows}
+        return JSONResponse(body, headers={"Content-Disposition": f'attachment; filename="{name}.json"'})
+    return PlainTextResponse(
+        actions.rows_to_csv(rows),
+        media_type="text/csv",
+        headers={"Content-Disposition": f'attachment; filename="{name}.csv"'},
+    )
+
+
+@router.get("/audit", response_model=list[AuditOut])
+def audit(
+    session: SessionDep,
+    _admin: AdminDep,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 200,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> list[Any]:
+    """The audit log, newest first."""
+    return list(actions.audit_log(session, limit, offset))
+
+
+@router.get("/submissions/{submission_id}", response_model=AdminSubmissionOut)
+def submission(session: SessionDep, _admin: AdminDep, submission_id: int) -> dict[str, Any]:
+    """One submission with the admin-only fields."""
+    return _one(session, get_submission(session, submission_id))

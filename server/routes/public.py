@@ -1,0 +1,177 @@
+"""Public routes: leaderboard, splits and phases, health, team registration, and the caller's own token."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from fastapi import APIRouter, FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse, Response
+from sqlalchemy import select, text
+from sqlalchemy.orm import Session
+
+from server.auth import SessionDep, TokenDep
+from server.migrate import current_revision
+from server.models import Approval, Phase, Scope, Split
+from server.routes.views import phase_view
+from server.schemas import HealthOut, LeaderboardOut, MeOut, PhaseOut, SplitOut, TeamIn, TeamRegistered
+from server.services.errors import Forbidden, NotFound
+from server.services.leaderboard import leaderboard, subscore_columns
+from server.services.quota import quota_usage
+from server.services.splits import (
+    ALL_SUBSET,
+    PUBLIC_SUBSET,
+    is_open,
+    resolve_phase,
+    subset_names,
+    visible_subsets,
+)
+from server.services.teams import create_team
+from server.services.tokens import create_token
+
+router = APIRouter()
+
+
+def leaderboard_view(
+    session: Session, version: str, subset: str | None, sort: str, phase_name: str | None, admin: bool = False
+) -> dict[str, Any]:
+    """Return the leaderboard body for the query (shared by the REST route and the web page)."""
+    phase = resolve_phase(session, phase_name)
+    columns = subscore_columns(version)
+    visible = visible_subsets(phase.split, phase, admin)
+    if subset is None:
+        subset = PUBLIC_SUBSET if PUBLIC_SUBSET in visible else ALL_SUBSET
+    known = subset_names(phase.split)
+    if subset not in known:
+        raise NotFound(f"split {phase.split.name!r} has no subset {subset!r}; it has {', '.join(known)}")
+    if subset not in visible:
+        closes = phase.closes_at.isoformat() if phase.closes_at else "an admin closes it"
+        raise Forbidden(
+            f"subset {subset!r} of phase {phase.name!r} is revealed when the phase closes ({closes})"
+        )
+    return {
+        "version": version,
+        "phase": phase.name,
+        "split": phase.split.name,
+        "subset": subset,
+        "subsets": visible,
+        "sort": sort,
+        "columns": list(columns),
+        "rows": leaderboard(session, phase, version, subset, sort),
+    }
+
+
+@dataclass(frozen=True)
+class Board:
+    """A leaderboard body and its JSON encoding, computed once per cache period."""
+
+    view: dict[str, Any]
+    body: bytes
+
+
+def cached_board(app: FastAPI, version: str, subset: str | None, sort: str, phase: str | None) -> Board:
+    """Return the public leaderboard for the query, from the app's short-lived cache when it is fresh."""
+    key = (version, subset, sort, phase)
+    board = app.state.leaderboard_cache.get(key)
+    if board is None:
+        with app.state.session_factory() as session:
+            view = leaderboard_view(session, version, subset, sort, phase)
+        board = Board(view, JSONResponse(view).body)
+        app.state.leaderboard_cache.put(key, board)
+    return board
+
+
+@router.get("/leaderboard", response_model=LeaderboardOut, tags=["leaderboard"])
+async def get_leaderboard(
+    request: Request,
+    version: str = "v1.1",
+    subset: str | None = None,
+    sort: str = "score",
+    phase: str | None = None,
+) -> Response:
+    """Best (or selected) entry per team plus baselines, ranked by PDMS with bootstrap 95% intervals."""
+    board = request.app.state.leaderboard_cache.get((version, subset, sort, phase))
+    if board is None:  # the database is only asked off the event loop
+        board = await run_in_threadpool(cached_board, request.app, version, subset, sort, phase)
+    return Response(board.body, media_type="application/json")
+
+
+@router.get("/splits", response_model=list[SplitOut], tags=["splits"])
+def splits(session: SessionDep) -> list[dict[str, Any]]:
+    """Registered splits with their token counts, content hashes, subsets and phases."""
+    phases = session.scalars(select(Phase).order_by(Phase.opens_at)).all()
+    return [
+        {
+            "name": split.name,
+            "token_count": split.token_count,
+            "content_hash": split.content_hash,
+            "subsets": {subset.name: len(subset.tokens) for subset in split.subsets}
+            | {ALL_SUBSET: split.token_count},
+            "phases": [phase_view(phase) for phase in phases if phase.split_id == split.id],
+        }
+        for split in session.scalars(select(Split).order_by(Split.name)).all()
+    ]
+
+
+@router.get("/phases", response_model=list[PhaseOut], tags=["splits"])
+def phases(session: SessionDep) -> list[dict[str, Any]]:
+    """Every phase with its window and default quotas."""
+    return [phase_view(phase) for phase in session.scalars(select(Phase).order_by(Phase.opens_at)).all()]
+
+
+@router.get("/health", response_model=HealthOut, tags=["health"])
+def health(request: Request, session: SessionDep) -> JSONResponse:
+    """Database, broker and live workers; 503 when the database does not answer."""
+    try:
+        session.execute(text("SELECT 1"))
+        database = {"ok": True, "revision": current_revision(session.get_bind()), "detail": ""}
+    except Exception as error:  # noqa: BLE001 - health reports, it does not fail
+        database = {"ok": False, "revision": None, "detail": f"{type(error).__name__}: {error}"}
+    settings = request.app.state.settings
+    broker, workers = request.app.state.broker_status(settings), request.app.state.live_workers(settings)
+    healthy = database["ok"] and broker["ok"] and workers["ok"] is not False
+    body = {
+        "status": "ok" if healthy else "degraded",
+        "database": database,
+        "broker": broker,
+        "workers": workers,
+    }
+    return JSONResponse(HealthOut(**body).model_dump(mode="json"), status_code=200 if database["ok"] else 503)
+
+
+@router.post("/teams", response_model=TeamRegistered, status_code=201, tags=["teams"])
+def register_team(session: SessionDep, team_in: TeamIn) -> dict[str, Any]:
+    """Register a team (pending until an admin approves it); answers its first token, shown once."""
+    team = create_team(session, team_in.name, team_in.members, team_in.affiliation, Approval.pending)
+    _, secret = create_token(session, Scope.team, team, name="registration")
+    session.commit()
+    return {"team": team, "token": secret}
+
+
+@router.get("/me", response_model=MeOut, tags=["teams"])
+def me(session: SessionDep, token: TokenDep) -> dict[str, Any]:
+    """The caller's token, team and quota usage in every open phase."""
+    team = token.team
+    quotas = []
+    if team is not None:
+        for phase in session.scalars(select(Phase).order_by(Phase.opens_at)).all():
+            if is_open(phase):
+                quotas += [
+                    {
+                        "phase": phase.name,
+                        "quota": u.name,
+                        "limit": u.limit,
+                        "used": u.used,
+                        "resets_at": u.resets_at,
+                    }
+                    for u in quota_usage(session, team.id, phase)
+                ]
+    return {
+        "scope": token.scope,
+        "team": team.name if team else None,
+        "approval": team.approval if team else None,
+        "token_prefix": token.prefix,
+        "expires_at": token.expires_at,
+        "quotas": quotas,
+    }

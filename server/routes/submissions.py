@@ -1,0 +1,180 @@
+"""Team routes: upload (validated synchronously), dry-run validation, listing, status and metadata edits."""
+
+from __future__ import annotations
+
+import logging
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Form, Header, HTTPException, Query, Request, UploadFile
+from fastapi.responses import JSONResponse
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from scorer.versions import METRIC_COLUMNS
+from server.auth import ApprovedTeamDep, SessionDep, TeamDep, TokenDep
+from server.models import Phase, TokenResultRow
+from server.routes.views import submission_views
+from server.schemas import SubmissionAccepted, SubmissionOut, SubmissionPatch, TokenRow, ValidationReport
+from server.services.splits import resolve_phase, split_tokens, subset_tokens, visible_subsets
+from server.services.submissions import create_submission, edit_submission, get_submission, list_submissions
+from server.services.validation import ValidUpload, validate_upload
+
+log = logging.getLogger(__name__)
+router = APIRouter(tags=["submissions"])
+UPLOAD_READ_BYTES = 1 << 20
+
+
+def _read_upload(file: UploadFile, limit: int) -> bytes:
+    """Return the uploaded bytes, or 413 beyond `limit`."""
+    chunks, size = [], 0
+    while chunk := file.file.read(UPLOAD_READ_BYTES):
+        size += len(chunk)
+        if size > limit:
+            raise HTTPException(status_code=413, detail=f"file larger than the limit of {limit} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _checked_upload(
+    request: Request, session: Session, file: UploadFile, phase: str | None, form: dict[str, str]
+) -> tuple[Phase, ValidUpload]:
+    """Return the phase and the checked file; raises Invalid (422) listing every problem."""
+    phase_row = resolve_phase(session, phase)
+    data = _read_upload(file, request.app.state.settings.max_upload_bytes)
+    return phase_row, validate_upload(
+        data, file.filename or "submission", split_tokens(phase_row.split), form
+    )
+
+
+FormField = Annotated[str | None, Form()]
+
+
+@router.post(
+    "/submissions",
+    status_code=202,
+    response_model=SubmissionAccepted,
+    responses={
+        409: {"description": "same file already submitted, or Idempotency-Key reused with another file"},
+        422: {"description": "every problem of the file: token, field, message"},
+        429: {"description": "a quota is exhausted; says which and when it resets"},
+    },
+)
+def submit(
+    request: Request,
+    session: SessionDep,
+    team: ApprovedTeamDep,
+    file: Annotated[UploadFile, File(description="JSON (navsim-lb/submission) or NAVSIM submission pickle")],
+    phase: FormField = None,
+    method: FormField = None,
+    authors: FormField = None,
+    institution: FormField = None,
+    country: FormField = None,
+    tech_report_url: FormField = None,
+    code_url: FormField = None,
+    idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key", max_length=200)] = None,
+) -> JSONResponse:
+    """Upload a submission: checked before anything is stored or queued; 202 with its id."""
+    form = {
+        "method": method,
+        "authors": authors,
+        "institution": institution,
+        "country": country,
+        "tech_report_url": tech_report_url,
+        "code_url": code_url,
+    }
+    phase_row, upload = _checked_upload(request, session, file, phase, {k: v for k, v in form.items() if v})
+    settings = request.app.state.settings
+    submission, replayed = create_submission(
+        session, team, phase_row, upload, settings.storage_dir, idempotency_key
+    )
+    session.commit()
+    if not replayed:
+        try:
+            request.app.state.enqueue(submission.id)
+        except Exception:  # the row stays queued; the worker's reaper re-sends queued submissions
+            log.exception("could not enqueue submission %s", submission.id)
+    url = str(request.url_for("get_submission_route", submission_id=submission.id))
+    body = SubmissionAccepted(id=submission.id, status=submission.status, replayed=replayed, url=url)
+    return JSONResponse(body.model_dump(), status_code=202, headers={"Location": url})
+
+
+@router.post(
+    "/submissions:validate",
+    response_model=ValidationReport,
+    responses={422: {"description": "every problem of the file: token, field, message"}},
+)
+def validate(
+    request: Request,
+    session: SessionDep,
+    _token: TokenDep,
+    file: Annotated[UploadFile, File()],
+    phase: FormField = None,
+) -> ValidationReport:
+    """Run the upload checks on a file without storing anything."""
+    _, upload = _checked_upload(request, session, file, phase, {})
+    return ValidationReport(
+        valid=True, sha256=upload.sha256, seed_count=upload.seed_count, token_count=upload.token_count
+    )
+
+
+@router.get("/submissions", response_model=list[SubmissionOut])
+def my_submissions(
+    session: SessionDep,
+    team: TeamDep,
+    status: str | None = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 100,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> list[dict[str, Any]]:
+    """List the team's own submissions, newest first."""
+    return submission_views(session, list_submissions(session, team.id, status, limit, offset), admin=False)
+
+
+@router.get("/submissions/{submission_id}", response_model=SubmissionOut, name="get_submission_route")
+def submission_status(session: SessionDep, team: TeamDep, submission_id: int) -> dict[str, Any]:
+    """Status, progress, per-version results and error summary of one of the team's submissions."""
+    return submission_views(session, [get_submission(session, submission_id, team.id)], admin=False)[0]
+
+
+@router.patch("/submissions/{submission_id}", response_model=SubmissionOut)
+def edit(session: SessionDep, team: TeamDep, submission_id: int, patch: SubmissionPatch) -> dict[str, Any]:
+    """Edit metadata, hide or show, or select as the team's final entry."""
+    submission = get_submission(session, submission_id, team.id)
+    changes = {
+        key: str(value) if key.endswith("_url") else value
+        for key, value in patch.model_dump(exclude_unset=True).items()
+    }
+    edit_submission(session, submission, changes)
+    session.commit()
+    return submission_views(session, [submission], admin=False)[0]
+
+
+@router.get("/submissions/{submission_id}/tokens", response_model=list[TokenRow])
+def token_rows(
+    session: SessionDep, team: TeamDep, submission_id: int, version: str = "v1.1", only_failed: bool = False
+) -> list[dict[str, Any]]:
+    """Per-token results of the current run on the tokens the team may see (failed tokens carry their error)."""
+    submission = get_submission(session, submission_id, team.id)
+    subsets = subset_tokens(submission.split)
+    allowed = {
+        t for name in visible_subsets(submission.split, submission.phase, admin=False) for t in subsets[name]
+    }
+    query = select(TokenResultRow).where(
+        TokenResultRow.submission_id == submission.id,
+        TokenResultRow.run == submission.run,
+        TokenResultRow.metric_version == version,
+    )
+    if only_failed:
+        query = query.where(TokenResultRow.valid.is_(False))
+    rows = session.scalars(query.order_by(TokenResultRow.seed, TokenResultRow.token)).all()
+    return [
+        {
+            "token": row.token,
+            "metric_version": row.metric_version,
+            "seed": row.seed,
+            "valid": row.valid,
+            "error": row.error,
+            "metrics": {column: getattr(row, column) for column in METRIC_COLUMNS},
+        }
+        for row in rows
+        if row.token in allowed
+    ]

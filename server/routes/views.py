@@ -1,0 +1,128 @@
+"""Shape stored rows into response bodies (shared by the team and admin routes)."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from scorer.versions import VERSIONS
+from server.models import Phase, Result, Submission, Summary
+from server.services.leaderboard import subscore_columns
+from server.services.splits import is_open, visible_subsets
+
+
+def _subset_result(summary: Summary, results: list[Result]) -> dict[str, Any]:
+    return {
+        "score": summary.score,
+        **{column: getattr(summary, column) for column in subscore_columns(summary.metric_version)},
+        "seeds": {
+            "count": summary.seeds,
+            "mean": summary.score,
+            "std": summary.score_std,
+            "max": summary.score_max,
+        },
+        "ci95": [summary.ci_low, summary.ci_high],
+        "tokens": summary.tokens,
+        "failed_tokens": summary.failed,
+        "per_seed": [
+            {
+                "seed": result.seed,
+                "score": result.score,
+                "tokens": result.tokens,
+                "failed_tokens": result.failed,
+                "engine_version": result.engine_version,
+                "split_hash": result.split_hash,
+                "workers": result.workers,
+                "duration_s": result.duration_s,
+            }
+            for result in sorted(results, key=lambda r: r.seed)
+        ],
+    }
+
+
+def submission_views(
+    session: Session, submissions: Sequence[Submission], admin: bool
+) -> list[dict[str, Any]]:
+    """Return the response bodies of submissions with their per-version results on the subsets the caller may see."""
+    ids = [submission.id for submission in submissions]
+    summaries = session.scalars(select(Summary).where(Summary.submission_id.in_(ids))).all() if ids else []
+    results: dict[tuple[int, str, str], list[Result]] = defaultdict(list)
+    for result in session.scalars(select(Result).where(Result.submission_id.in_(ids))).all() if ids else []:
+        results[result.submission_id, result.metric_version, result.subset].append(result)
+    by_submission: dict[int, list[Summary]] = defaultdict(list)
+    for summary in summaries:
+        by_submission[summary.submission_id].append(summary)
+    views = []
+    for submission in submissions:
+        visible = set(visible_subsets(submission.split, submission.phase, admin))
+        nested: dict[str, dict[str, Any]] = {version: {} for version in VERSIONS}
+        for summary in by_submission[submission.id]:
+            if summary.subset in visible:
+                key = (submission.id, summary.metric_version, summary.subset)
+                nested.setdefault(summary.metric_version, {})[summary.subset] = _subset_result(
+                    summary, results[key]
+                )
+        views.append(_submission_view(submission, {v: r for v, r in nested.items() if r}, admin))
+    return views
+
+
+def _submission_view(submission: Submission, results: dict[str, Any], admin: bool) -> dict[str, Any]:
+    view = {
+        "id": submission.id,
+        "team": submission.team.name,
+        "phase": submission.phase.name if submission.phase else None,
+        "split": submission.split.name,
+        "baseline": submission.is_baseline,
+        "status": submission.status,
+        "progress": submission.progress,
+        "error": submission.error,
+        "method": submission.method,
+        "authors": submission.authors,
+        "institution": submission.institution,
+        "country": submission.country,
+        "tech_report_url": submission.tech_report_url,
+        "code_url": submission.code_url,
+        "seed_count": submission.seed_count,
+        "token_count": submission.token_count,
+        "filename": submission.filename,
+        "sha256": submission.sha256,
+        "size_bytes": submission.size_bytes,
+        "hidden": submission.hidden,
+        "selected": submission.selected,
+        "disqualified": submission.disqualified,
+        "submitted_at": submission.created_at,
+        "started_at": submission.started_at,
+        "finished_at": submission.finished_at,
+        "results": results,
+    }
+    if admin:
+        view.update(
+            team_id=submission.team_id,
+            run=submission.run,
+            attempts=submission.attempts,
+            worker=submission.worker,
+            charged=submission.charged,
+            failure_kind=submission.failure_kind,
+            error_detail=submission.error_detail,
+            admin_hidden=submission.admin_hidden,
+            disqualified_reason=submission.disqualified_reason,
+        )
+    return view
+
+
+def phase_view(phase: Phase) -> dict[str, Any]:
+    """Return the response body of a phase."""
+    return {
+        "name": phase.name,
+        "split": phase.split.name,
+        "opens_at": phase.opens_at,
+        "closes_at": phase.closes_at,
+        "open": is_open(phase),
+        "per_day": phase.per_day,
+        "total": phase.total,
+        "in_flight": phase.in_flight,
+    }

@@ -1,0 +1,295 @@
+"""Request and response bodies of the REST API (pydantic); the OpenAPI docs at /docs are generated from them."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, HttpUrl
+
+
+class Problem(BaseModel):
+    token: str | None = Field(description="the token the problem concerns, if any")
+    field: str | None = Field(description="the field or key of the file, e.g. predictions[3].poses")
+    message: str
+
+
+class ValidationReport(BaseModel):
+    valid: bool
+    sha256: str | None = None
+    seed_count: int | None = None
+    token_count: int | None = None
+    problems: list[Problem] = []
+
+
+class SubmissionAccepted(BaseModel):
+    id: int
+    status: str
+    replayed: bool = Field(
+        description="true when an earlier request with the same Idempotency-Key created it"
+    )
+    url: str
+
+
+class Seeds(BaseModel):
+    count: int
+    mean: float
+    std: float
+    max: float
+
+
+class SeedResult(BaseModel):
+    """One seed's means over a subset, with the provenance of the numbers."""
+
+    seed: int
+    score: float | None
+    tokens: int
+    failed_tokens: int
+    engine_version: str
+    split_hash: str
+    workers: str
+    duration_s: float
+
+
+class SubsetResult(BaseModel):
+    """Results of a submission on one subset; the devkit's subscore columns are extra fields."""
+
+    model_config = ConfigDict(extra="allow")
+
+    score: float | None
+    seeds: Seeds
+    ci95: list[float]
+    tokens: int
+    failed_tokens: int
+    per_seed: list[SeedResult]
+
+
+class SubmissionOut(BaseModel):
+    id: int
+    team: str
+    phase: str | None
+    split: str
+    baseline: bool
+    status: str = Field(description="queued, running, scored, failed or cancelled")
+    progress: int = Field(description="0-100")
+    error: str | None = Field(description="sanitised error summary")
+    method: str
+    authors: str
+    institution: str
+    country: str
+    tech_report_url: str
+    code_url: str
+    seed_count: int
+    token_count: int
+    filename: str
+    sha256: str
+    size_bytes: int
+    hidden: bool
+    selected: bool
+    disqualified: bool
+    submitted_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    results: dict[str, dict[str, SubsetResult]] = Field(description="metric version -> subset -> results")
+
+
+class AdminSubmissionOut(SubmissionOut):
+    team_id: int
+    run: int
+    attempts: int
+    worker: str | None
+    charged: bool
+    failure_kind: str | None
+    error_detail: str | None
+    admin_hidden: bool
+    disqualified_reason: str
+
+
+class SubmissionPatch(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    method: str | None = Field(None, max_length=300)
+    authors: str | None = None
+    institution: str | None = Field(None, max_length=300)
+    country: str | None = Field(None, max_length=100)
+    tech_report_url: HttpUrl | None = None
+    code_url: HttpUrl | None = None
+    hidden: bool | None = None
+    selected: bool | None = Field(None, description="true: this is the team's final entry of the phase")
+
+
+class TokenRow(BaseModel):
+    token: str
+    metric_version: str
+    seed: int
+    valid: bool
+    error: str | None
+    metrics: dict[str, float | None]
+
+
+class LeaderboardRow(BaseModel):
+    """One entry; the devkit's subscore columns of the version are extra fields."""
+
+    model_config = ConfigDict(extra="allow")
+
+    rank: int | None = Field(description="standing by PDMS among team entries; null for baselines")
+    team: str
+    method: str
+    score: float | None
+    seeds: Seeds
+    baseline: bool
+    ci95: list[float] = Field(description="bootstrap 95% interval of PDMS over tokens")
+    submitted_at: datetime
+    submission_id: int
+    tokens: int
+    failed_tokens: int
+
+
+class LeaderboardOut(BaseModel):
+    version: str
+    phase: str
+    split: str
+    subset: str
+    subsets: list[str]
+    sort: str
+    columns: list[str] = Field(description="the devkit's subscore columns of this version, in order")
+    rows: list[LeaderboardRow]
+
+
+class PhaseOut(BaseModel):
+    name: str
+    split: str
+    opens_at: datetime
+    closes_at: datetime | None
+    open: bool
+    per_day: int | None
+    total: int | None
+    in_flight: int | None
+
+
+class SplitOut(BaseModel):
+    name: str
+    token_count: int
+    content_hash: str
+    subsets: dict[str, int] = Field(description="subset name -> token count")
+    phases: list[PhaseOut]
+
+
+class QuotaOut(BaseModel):
+    phase: str
+    quota: str
+    limit: int | None
+    used: int
+    resets_at: datetime | None
+
+
+class MeOut(BaseModel):
+    scope: str
+    team: str | None
+    approval: str | None
+    token_prefix: str
+    expires_at: datetime | None
+    quotas: list[QuotaOut]
+
+
+class HealthOut(BaseModel):
+    status: str = Field(description="ok, or degraded when the broker or the workers do not answer")
+    database: dict[str, Any]
+    broker: dict[str, Any]
+    workers: dict[str, Any]
+
+
+class TeamIn(BaseModel):
+    name: str = Field(min_length=1, max_length=200)
+    members: list[str] = []
+    affiliation: str = Field("", max_length=300)
+
+
+class TeamOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+    id: int
+    name: str
+    members: list[str]
+    affiliation: str
+    approval: str
+    created_at: datetime
+
+
+class TeamRegistered(BaseModel):
+    team: TeamOut
+    token: str = Field(description="shown once: store it now")
+
+
+class TokenIn(BaseModel):
+    name: str = ""
+    expires_at: datetime | None = None
+
+
+class TokenOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+    id: int
+    scope: str
+    team_id: int | None
+    name: str
+    prefix: str
+    created_at: datetime
+    expires_at: datetime | None
+    revoked_at: datetime | None
+    last_used_at: datetime | None
+
+
+class TokenCreated(TokenOut):
+    token: str = Field(description="shown once: store it now")
+
+
+class QuotaIn(BaseModel):
+    phase: str
+    per_day: int | None = Field(None, ge=0)
+    total: int | None = Field(None, ge=0)
+    in_flight: int | None = Field(None, ge=0)
+
+
+class HideIn(BaseModel):
+    hidden: bool = True
+
+
+class DisqualifyIn(BaseModel):
+    disqualified: bool = True
+    reason: str = Field(min_length=1)
+
+
+class RescoreIn(BaseModel):
+    version: str = "v1.1"
+    subset: str | None = None
+    phase: str | None = None
+
+
+class SplitIn(BaseModel):
+    name: str
+    directory: str
+    public_tokens: list[str] | None = None
+    baselines: bool = True
+
+
+class PhaseIn(BaseModel):
+    name: str
+    split: str
+    opens_at: datetime | None = None
+    closes_at: datetime | None = None
+    per_day: int | None = Field(None, ge=0)
+    total: int | None = Field(None, ge=0)
+    in_flight: int | None = Field(None, ge=0)
+
+
+class AuditOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+    id: int
+    at: datetime
+    actor: str
+    action: str
+    target_type: str
+    target_id: str
+    details: dict[str, Any]

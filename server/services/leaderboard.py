@@ -1,0 +1,259 @@
+"""Leaderboard aggregation: per-token rows -> per-seed results -> entries with multi-seed spread and bootstrap CI.
+
+Means follow `scorer.evaluate.summarize`: every token of the subset counts, a token that could not be
+scored counting 0, and the number of such tokens is reported.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy.stats import kendalltau
+from sqlalchemy import case, delete, func, or_, select
+from sqlalchemy.orm import Session
+
+from scorer.versions import METRIC_COLUMNS, get_version
+from server.models import Phase, Result, Status, Submission, Summary, Team, TokenResultRow
+from server.services.errors import Invalid
+
+BOOTSTRAP_SEED = 20240915  # fixed: the same rows always give the same interval
+BOOTSTRAP_BATCH = 256
+HIDDEN_STATUSES = (Status.failed, Status.cancelled)
+
+
+def subscore_columns(version: str) -> tuple[str, ...]:
+    """Return the devkit's subscore columns of a metric version, in its result-table order."""
+    try:
+        columns = get_version(version).result_columns
+    except ValueError as error:
+        raise Invalid(str(error), [{"token": None, "field": "version", "message": str(error)}]) from None
+    return tuple(column for column in columns if column != "score")
+
+
+def bootstrap_ci(token_scores: np.ndarray, samples: int, seed: int = BOOTSTRAP_SEED) -> tuple[float, float]:
+    """Return the percentile bootstrap 95% interval of the mean of `token_scores` (resampling tokens)."""
+    count = len(token_scores)
+    if count == 0:
+        return float("nan"), float("nan")
+    rng = np.random.default_rng(seed)
+    means = np.empty(samples)
+    for start in range(0, samples, BOOTSTRAP_BATCH):
+        stop = min(start + BOOTSTRAP_BATCH, samples)
+        means[start:stop] = token_scores[rng.integers(0, count, size=(stop - start, count))].mean(axis=1)
+    low, high = np.percentile(means, [2.5, 97.5])
+    return float(low), float(high)
+
+
+def _token_results(rows: Sequence[TokenResultRow]) -> dict[tuple[str, int], dict[str, Any]]:
+    """Return (metric version, seed) -> token -> scorer TokenResult."""
+    from scorer.evaluate import TokenResult
+
+    grouped: dict[tuple[str, int], dict[str, Any]] = defaultdict(dict)
+    for row in rows:
+        metrics = {column: getattr(row, column) for column in METRIC_COLUMNS} if row.valid else {}
+        grouped[row.metric_version, row.seed][row.token] = TokenResult(
+            row.token, row.seed, row.valid, metrics, row.error
+        )
+    return grouped
+
+
+def aggregate_submission(
+    session: Session,
+    submission: Submission,
+    subsets: dict[str, list[str]],
+    engine_version: str,
+    bootstrap_samples: int,
+) -> None:
+    """Replace the results and summaries of a submission with those of its current run's per-token rows."""
+    from scorer.evaluate import TokenResult, summarize
+
+    rows = session.scalars(
+        select(TokenResultRow).where(
+            TokenResultRow.submission_id == submission.id, TokenResultRow.run == submission.run
+        )
+    ).all()
+    grouped = _token_results(rows)
+    provenance: dict[tuple[str, int], list[TokenResultRow]] = defaultdict(list)
+    for row in rows:
+        provenance[row.metric_version, row.seed].append(row)
+    session.execute(delete(Result).where(Result.submission_id == submission.id))
+    session.execute(delete(Summary).where(Summary.submission_id == submission.id))
+    versions = sorted({version for version, _ in grouped})
+    seeds = sorted({seed for _, seed in grouped})
+    for version in versions:
+        for subset, tokens in subsets.items():
+            per_seed = []
+            for seed in seeds:
+                by_token = grouped[version, seed]
+                # A token without a row was never scored: it counts as a failed token.
+                results = [by_token.get(t) or TokenResult(t, seed, False, {}, "not scored") for t in tokens]
+                per_seed.append(results)
+                summary = summarize(results)
+                chosen = set(tokens)
+                rows_here = [row for row in provenance[version, seed] if row.token in chosen]
+                session.add(
+                    Result(
+                        submission_id=submission.id,
+                        metric_version=version,
+                        subset=subset,
+                        seed=seed,
+                        tokens=int(summary["tokens"]),
+                        failed=int(summary["failed"]),
+                        engine_version=engine_version,
+                        split_hash=submission.split.content_hash,
+                        workers=",".join(sorted({row.worker for row in rows_here})),
+                        duration_s=float(sum(row.duration_s for row in rows_here)),
+                        **{column: summary[column] for column in METRIC_COLUMNS},
+                    )
+                )
+            session.add(_summary(submission.id, version, subset, per_seed, bootstrap_samples))
+    session.flush()
+
+
+def _summary(
+    submission_id: int, version: str, subset: str, per_seed: list[list[Any]], bootstrap_samples: int
+) -> Summary:
+    """Combine the seeds of one (version, subset): means, per-seed PDMS spread, CI of seed-averaged token PDMS."""
+    values = {
+        column: np.array(
+            [[r.metrics.get(column, 0.0) for r in results] for results in per_seed], dtype=np.float64
+        )
+        for column in METRIC_COLUMNS
+    }  # column -> (seeds, tokens), unscored tokens as 0
+    seed_scores = values["score"].mean(axis=1) if values["score"].size else np.full(len(per_seed), np.nan)
+    low, high = bootstrap_ci(values["score"].mean(axis=0), bootstrap_samples)
+    failed_anywhere = {r.token for results in per_seed for r in results if not r.valid}
+    return Summary(
+        submission_id=submission_id,
+        metric_version=version,
+        subset=subset,
+        seeds=len(per_seed),
+        score_std=float(np.std(seed_scores)),
+        score_max=float(np.max(seed_scores)),
+        ci_low=low,
+        ci_high=high,
+        tokens=len(per_seed[0]) if per_seed else 0,
+        failed=len(failed_anywhere),
+        **{
+            column: float(values[column].mean()) if values[column].size else float("nan")
+            for column in METRIC_COLUMNS
+        },
+    )
+
+
+def _row(entry: Any, columns: tuple[str, ...]) -> dict[str, Any]:
+    return {
+        "rank": None,
+        "team": entry.team,
+        "method": entry.method,
+        "score": entry.score,
+        **{column: getattr(entry, column) for column in columns},
+        "seeds": {"count": entry.seeds, "mean": entry.score, "std": entry.score_std, "max": entry.score_max},
+        "baseline": entry.is_baseline,
+        "ci95": [entry.ci_low, entry.ci_high],
+        "submitted_at": entry.created_at.isoformat(),
+        "submission_id": entry.submission_id,
+        "tokens": entry.tokens,
+        "failed_tokens": entry.failed,
+    }
+
+
+def _entries(session: Session, phase: Phase, version: str, subset: str) -> Sequence[Any]:
+    """Return the visible entries of a phase, best first: per team its selected, else best, submission; baselines."""
+    # Each baseline is its own entry: partition it by its negated id, which no team id can equal.
+    entry_key = case((Submission.is_baseline, -Submission.id), else_=Submission.team_id)
+    standing = (Summary.score.desc(), Submission.created_at, Submission.id)
+    choice = func.row_number().over(partition_by=entry_key, order_by=(Submission.selected.desc(), *standing))
+    candidates = (
+        select(
+            Summary.submission_id,
+            Team.name.label("team"),
+            Submission.method,
+            Submission.is_baseline,
+            Submission.created_at,
+            Summary.seeds,
+            Summary.score_std,
+            Summary.score_max,
+            Summary.ci_low,
+            Summary.ci_high,
+            Summary.tokens,
+            Summary.failed,
+            *(getattr(Summary, column) for column in METRIC_COLUMNS),
+            choice.label("choice"),
+        )
+        .join(Submission, Summary.submission_id == Submission.id)
+        .join(Team, Team.id == Submission.team_id)
+        .where(
+            Summary.metric_version == version,
+            Summary.subset == subset,
+            Submission.split_id == phase.split_id,
+            or_(Submission.phase_id == phase.id, Submission.is_baseline.is_(True)),
+            Submission.hidden.is_(False),
+            Submission.admin_hidden.is_(False),
+            Submission.disqualified.is_(False),
+            Submission.status.not_in(HIDDEN_STATUSES),
+        )
+        .subquery()
+    )
+    query = (
+        select(candidates)
+        .where(candidates.c.choice == 1)
+        .order_by(candidates.c.score.desc(), candidates.c.created_at, candidates.c.submission_id)
+    )
+    return session.execute(query).all()
+
+
+def leaderboard(
+    session: Session, phase: Phase, version: str, subset: str, sort: str = "score"
+) -> list[dict[str, Any]]:
+    """Return the leaderboard rows: ranked by PDMS (ties: earlier submission, then id), ordered by `sort`."""
+    columns = subscore_columns(version)
+    sortable = ("score", *columns, "submitted_at")
+    if sort not in sortable:
+        message = f"cannot sort by {sort!r}; choose one of {', '.join(sortable)}"
+        raise Invalid(message, [{"token": None, "field": "sort", "message": message}])
+    rows = [_row(entry, columns) for entry in _entries(session, phase, version, subset)]
+    rank = 0
+    for row in rows:
+        if not row["baseline"]:
+            rank += 1
+            row["rank"] = rank
+    if sort == "submitted_at":
+        return sorted(rows, key=lambda row: (row["submitted_at"], row["submission_id"]))
+    if sort != "score":
+        # Python's sort is stable: equal values keep the PDMS order.
+        return sorted(rows, key=lambda row: -(row[sort] if row[sort] is not None else float("-inf")))
+    return rows
+
+
+def rank_change_report(before: list[dict[str, Any]], after: list[dict[str, Any]]) -> dict[str, Any]:
+    """Compare two rankings of teams: who moved, who entered or left, and Kendall's tau over the common teams."""
+    old = {row["team"]: row for row in before if not row["baseline"]}
+    new = {row["team"]: row for row in after if not row["baseline"]}
+    common = [team for team in old if team in new]
+    moved = [
+        {
+            "team": team,
+            "method": new[team]["method"],
+            "rank_before": old[team]["rank"],
+            "rank_after": new[team]["rank"],
+            "score_before": old[team]["score"],
+            "score_after": new[team]["score"],
+        }
+        for team in common
+        if old[team]["rank"] != new[team]["rank"]
+    ]
+    tau = None
+    if len(common) >= 2:
+        statistic = kendalltau([old[t]["rank"] for t in common], [new[t]["rank"] for t in common]).statistic
+        tau = None if np.isnan(statistic) else float(statistic)
+    return {
+        "entries": len(common),
+        "moved": sorted(moved, key=lambda m: m["rank_after"]),
+        "entered": sorted(team for team in new if team not in old),
+        "left": sorted(team for team in old if team not in new),
+        "kendall_tau": tau,
+    }

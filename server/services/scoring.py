@@ -1,0 +1,271 @@
+"""State transitions of a scoring run, called by the worker (and by admin actions): pure SQLAlchemy.
+
+queued -> running -> scored | failed; any active state -> cancelled (admin). A re-run increments
+`Submission.run`; every write names the run it belongs to, so a late chunk of an older run or of a
+cancelled submission is dropped instead of mixing with the new one. Per-token rows are upserted on
+(submission, metric version, seed, token): a redelivered chunk overwrites, it never duplicates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.orm import Session
+
+from scorer.versions import METRIC_COLUMNS, VERSIONS
+from server.models import ACTIVE_STATUSES, FailureKind, Status, Submission, TokenResultRow, utc_now
+from server.services.errors import Conflict, NotFound
+from server.services.leaderboard import aggregate_submission
+from server.services.splits import split_tokens, subset_tokens
+from server.storage import read_file
+
+MAX_ERROR_CHARS = 2000
+UPSERT_KEY = ("submission_id", "metric_version", "seed", "token")
+
+
+@dataclass(frozen=True)
+class ScoringJob:
+    """Everything a worker needs to score one run of a submission."""
+
+    submission_id: int
+    run: int
+    filename: str
+    data: bytes
+    split_name: str
+    split_dir: Path
+    split_hash: str
+    tokens: tuple[str, ...]
+    seed_count: int
+    versions: tuple[str, ...]
+
+
+def metric_versions() -> tuple[str, ...]:
+    """Return the metric versions every submission is scored under."""
+    return tuple(VERSIONS)
+
+
+def _locked(session: Session, submission_id: int) -> Submission:
+    submission = session.scalar(select(Submission).where(Submission.id == submission_id).with_for_update())
+    if submission is None:
+        raise NotFound(f"submission {submission_id} does not exist")
+    return submission
+
+
+def _current(submission: Submission, run: int) -> bool:
+    """Whether a write for `run` still belongs: the submission is active and not re-run since."""
+    return submission.run == run and submission.status in ACTIVE_STATUSES
+
+
+def load_job(session: Session, submission_id: int, storage_dir: Path) -> ScoringJob:
+    """Return the submission's stored file and split as a scoring job for its current run."""
+    submission = session.get(Submission, submission_id)
+    if submission is None:
+        raise NotFound(f"submission {submission_id} does not exist")
+    split = submission.split
+    return ScoringJob(
+        submission_id=submission.id,
+        run=submission.run,
+        filename=submission.filename,
+        data=read_file(storage_dir, submission.stored_name),
+        split_name=split.name,
+        split_dir=Path(split.directory),
+        split_hash=split.content_hash,
+        tokens=split_tokens(split),
+        seed_count=submission.seed_count,
+        versions=metric_versions(),
+    )
+
+
+def claim_submission(
+    session: Session, submission_id: int, worker: str, lease_seconds: float, now: datetime | None = None
+) -> int | None:
+    """Mark an active submission running under `worker` with a lease; return its run, or None if it is done."""
+    now = now or utc_now()
+    submission = _locked(session, submission_id)
+    if submission.status not in ACTIVE_STATUSES:
+        return None
+    submission.status = Status.running
+    submission.worker = worker
+    submission.attempts += 1
+    submission.started_at = submission.started_at or now
+    submission.lease_expires_at = now + timedelta(seconds=lease_seconds)
+    session.flush()
+    return submission.run
+
+
+def expected_rows(submission: Submission) -> int:
+    """Return how many per-token rows a complete run holds: tokens x seeds x metric versions."""
+    return submission.token_count * submission.seed_count * len(VERSIONS)
+
+
+def _insert(session: Session) -> Any:
+    dialect = session.get_bind().dialect.name
+    inserts = {"postgresql": postgresql.insert, "sqlite": sqlite.insert}
+    if dialect not in inserts:
+        raise NotImplementedError(f"per-token upsert is not implemented for {dialect}")
+    return inserts[dialect]
+
+
+def write_chunk_results(
+    session: Session,
+    submission_id: int,
+    run: int,
+    metric_version: str,
+    results: Sequence[Any],
+    worker: str,
+    duration_s: float,
+    lease_seconds: float,
+    now: datetime | None = None,
+) -> bool:
+    """Upsert one chunk of scorer TokenResults (seed None counts as 0), update progress and renew the lease.
+
+    Returns False, writing nothing, when the run is no longer wanted (cancelled, finished or re-run):
+    the worker should then stop.
+    """
+    now = now or utc_now()
+    submission = _locked(session, submission_id)
+    if not _current(submission, run):
+        return False
+    if results:
+        share = duration_s / len(results)
+        rows = [
+            {
+                "submission_id": submission_id,
+                "metric_version": metric_version,
+                "seed": result.seed or 0,
+                "token": result.token,
+                "valid": result.valid,
+                "error": result.error,
+                "run": run,
+                "worker": worker,
+                "duration_s": share,
+                "scored_at": now,
+                **{column: result.metrics.get(column) if result.valid else None for column in METRIC_COLUMNS},
+            }
+            for result in results
+        ]
+        statement = _insert(session)(TokenResultRow).values(rows)
+        updated = {name: statement.excluded[name] for name in rows[0] if name not in UPSERT_KEY}
+        session.execute(statement.on_conflict_do_update(index_elements=list(UPSERT_KEY), set_=updated))
+    done = session.scalar(
+        select(func.count()).where(TokenResultRow.submission_id == submission_id, TokenResultRow.run == run)
+    )
+    # 100 only once the results are aggregated (mark_scored).
+    submission.progress = min(99, int(100 * (done or 0) / max(expected_rows(submission), 1)))
+    submission.lease_expires_at = now + timedelta(seconds=lease_seconds)
+    session.flush()
+    return True
+
+
+def mark_scored(
+    session: Session,
+    submission_id: int,
+    run: int,
+    engine_version: str,
+    bootstrap_samples: int,
+    now: datetime | None = None,
+) -> bool:
+    """Aggregate a complete run into results and leaderboard summaries and mark it scored (False: not wanted)."""
+    submission = _locked(session, submission_id)
+    if not _current(submission, run):
+        return False
+    done = session.scalar(
+        select(func.count()).where(TokenResultRow.submission_id == submission_id, TokenResultRow.run == run)
+    )
+    if done != expected_rows(submission):
+        raise Conflict(
+            f"submission {submission_id} run {run}: {done} of {expected_rows(submission)} token rows written"
+        )
+    aggregate_submission(
+        session, submission, subset_tokens(submission.split), engine_version, bootstrap_samples
+    )
+    submission.status = Status.scored
+    submission.progress = 100
+    submission.finished_at = now or utc_now()
+    submission.lease_expires_at = None
+    session.flush()
+    return True
+
+
+def mark_failed(
+    session: Session,
+    submission_id: int,
+    run: int,
+    kind: FailureKind,
+    error: str,
+    detail: str | None = None,
+    now: datetime | None = None,
+) -> bool:
+    """Mark a run failed with a team-visible `error` (admins also see `detail`); infrastructure failures are refunded."""
+    submission = _locked(session, submission_id)
+    if not _current(submission, run):
+        return False
+    submission.status = Status.failed
+    submission.failure_kind = kind
+    refund = kind == FailureKind.infrastructure
+    suffix = " The submission was refunded; you can upload it again." if refund else ""
+    submission.error = (error[:MAX_ERROR_CHARS] + suffix).strip()
+    submission.error_detail = detail
+    submission.charged = submission.charged and not refund
+    submission.finished_at = now or utc_now()
+    submission.lease_expires_at = None
+    session.flush()
+    return True
+
+
+def expired_leases(session: Session, now: datetime | None = None) -> list[int]:
+    """Return the ids of running submissions whose worker lease has expired (for the reaper)."""
+    now = now or utc_now()
+    query = select(Submission.id).where(
+        Submission.status == Status.running, Submission.lease_expires_at < now
+    )
+    return list(session.scalars(query.order_by(Submission.id)).all())
+
+
+def requeue(session: Session, submission_id: int) -> bool:
+    """Put a running submission back in the queue within its current run (the caller enqueues it again)."""
+    submission = _locked(session, submission_id)
+    if submission.status != Status.running:
+        return False
+    submission.status = Status.queued
+    submission.queued_at = utc_now()
+    submission.lease_expires_at = None
+    session.flush()
+    return True
+
+
+def stale_queued(session: Session, queued_before: datetime) -> list[int]:
+    """Return the ids of submissions still queued since before `queued_before` (their task may be lost)."""
+    query = select(Submission.id).where(Submission.status == Status.queued, Submission.queued_at < queued_before)
+    return list(session.scalars(query.order_by(Submission.id)).all())
+
+
+def reset_for_rerun(session: Session, submission: Submission) -> None:
+    """Start a new run: queued, progress 0; earlier results stay on the leaderboard until the new run is scored."""
+    submission.run += 1
+    submission.status = Status.queued
+    submission.queued_at = utc_now()
+    submission.progress = 0
+    submission.error = submission.error_detail = submission.failure_kind = None
+    submission.finished_at = submission.lease_expires_at = None
+    submission.worker = None
+    session.flush()
+
+
+def cancel(session: Session, submission: Submission, now: datetime | None = None) -> None:
+    """Cancel an active submission; it no longer counts against the team's quotas."""
+    if submission.status not in ACTIVE_STATUSES:
+        raise Conflict(
+            f"submission {submission.id} is {submission.status}: only queued or running ones can be cancelled"
+        )
+    submission.status = Status.cancelled
+    submission.charged = False
+    submission.finished_at = now or utc_now()
+    submission.lease_expires_at = None
+    session.flush()

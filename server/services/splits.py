@@ -1,0 +1,142 @@
+"""Splits (scene directories with a content hash and token subsets) and the phases that run on them."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from pathlib import Path
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from scorer.scene import SceneFormatError, scene_paths
+from server.models import Phase, Split, SplitSubset, utc_now
+from server.services.errors import Conflict, Invalid, NotFound
+
+ALL_SUBSET = "all"
+PUBLIC_SUBSET = "public"
+PRIVATE_SUBSET = "private"
+
+
+def split_tokens(split: Split) -> tuple[str, ...]:
+    """Return the tokens of a split's directory in token order."""
+    return tuple(scene_paths(split.directory))
+
+
+def register_split(
+    session: Session, name: str, directory: Path, public_tokens: list[str] | None = None
+) -> Split:
+    """Register a split directory under `name`; with `public_tokens`, the rest of the split is the private subset."""
+    from scorer.evaluate import split_content_hash  # the engine is heavy: imported only when a split is added
+
+    if session.scalar(select(Split.id).where(Split.name == name)) is not None:
+        raise Conflict(f"split {name!r} is already registered")
+    directory = Path(directory).resolve()
+    try:
+        tokens = list(scene_paths(directory))
+    except SceneFormatError as error:
+        raise Conflict(f"split {name!r}: {error}") from None
+    if not tokens:
+        raise Conflict(f"split {name!r}: no scene in {directory / 'scenes'}")
+    split = Split(
+        name=name,
+        directory=str(directory),
+        content_hash=split_content_hash(directory),
+        token_count=len(tokens),
+    )
+    if public_tokens is not None:
+        unknown = sorted(set(public_tokens) - set(tokens))
+        if unknown:
+            problems = [
+                {"token": t, "field": "public_tokens", "message": "not a token of the split"} for t in unknown
+            ]
+            raise Invalid(f"{len(unknown)} public tokens are not in split {name!r}", problems)
+        public = set(public_tokens)
+        split.subsets = [
+            SplitSubset(name=PUBLIC_SUBSET, tokens=[t for t in tokens if t in public]),
+            SplitSubset(name=PRIVATE_SUBSET, tokens=[t for t in tokens if t not in public]),
+        ]
+    session.add(split)
+    session.flush()
+    return split
+
+
+def subset_tokens(split: Split) -> dict[str, list[str]]:
+    """Return subset name -> tokens of a split, "all" included."""
+    subsets = {ALL_SUBSET: list(split_tokens(split))}
+    subsets.update({subset.name: list(subset.tokens) for subset in split.subsets})
+    return subsets
+
+
+def subset_names(split: Split) -> list[str]:
+    """Return the subset names of a split, "all" last."""
+    return [subset.name for subset in split.subsets] + [ALL_SUBSET]
+
+
+def visible_subsets(split: Split, phase: Phase | None, admin: bool, now: datetime | None = None) -> list[str]:
+    """Return the subsets a caller may see: the private part only to admins or once the phase has closed."""
+    names = subset_names(split)
+    closed = phase is not None and phase.closes_at is not None and phase.closes_at <= (now or utc_now())
+    if admin or closed or names == [ALL_SUBSET]:
+        return names
+    # Before the phase closes, "all" would leak the private tokens' scores into the public numbers.
+    return [PUBLIC_SUBSET] if PUBLIC_SUBSET in names else []
+
+
+def split_by_name(session: Session, name: str) -> Split:
+    """Return the registered split `name` or raise NotFound."""
+    split = session.scalar(select(Split).where(Split.name == name))
+    if split is None:
+        raise NotFound(f"split {name!r} is not registered")
+    return split
+
+
+def create_phase(
+    session: Session,
+    name: str,
+    split: Split,
+    opens_at: datetime | None = None,
+    closes_at: datetime | None = None,
+    per_day: int | None = None,
+    total: int | None = None,
+    in_flight: int | None = None,
+) -> Phase:
+    """Create a phase on `split` (opening now by default) with its default quotas (None: unlimited)."""
+    if session.scalar(select(Phase.id).where(Phase.name == name)) is not None:
+        raise Conflict(f"phase {name!r} already exists")
+    opens_at = opens_at or utc_now()
+    if closes_at is not None and closes_at <= opens_at:
+        raise Conflict(
+            f"phase {name!r} would close ({closes_at.isoformat()}) before it opens ({opens_at.isoformat()})"
+        )
+    phase = Phase(
+        name=name,
+        split=split,
+        opens_at=opens_at,
+        closes_at=closes_at,
+        per_day=per_day,
+        total=total,
+        in_flight=in_flight,
+    )
+    session.add(phase)
+    session.flush()
+    return phase
+
+
+def is_open(phase: Phase, now: datetime | None = None) -> bool:
+    """Return whether the phase accepts submissions at `now`."""
+    now = now or utc_now()
+    return phase.opens_at <= now and (phase.closes_at is None or now < phase.closes_at)
+
+
+def resolve_phase(session: Session, name: str | None, now: datetime | None = None) -> Phase:
+    """Return the phase called `name`, or by default the open phase that opened last, else the newest phase."""
+    if name:
+        phase = session.scalar(select(Phase).where(Phase.name == name))
+        if phase is None:
+            raise NotFound(f"phase {name!r} does not exist")
+        return phase
+    phases = session.scalars(select(Phase).order_by(Phase.opens_at.desc(), Phase.id.desc())).all()
+    if not phases:
+        raise NotFound("no phase exists yet: an admin must create one (`navsim-lb admin create-phase`)")
+    open_phases = [phase for phase in phases if is_open(phase, now)]
+    return (open_phases or phases)[0]

@@ -1,0 +1,166 @@
+"""Submissions: the atomic create path (lock, idempotency, duplicates, quota), baselines, team edits."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from server.models import Phase, Split, Status, Submission, Team, utc_now
+from server.services.errors import Conflict, Forbidden, NotFound
+from server.services.quota import check_quota, lock_team
+from server.services.splits import is_open
+from server.services.teams import baseline_team
+from server.services.validation import ValidUpload
+from server.storage import store_file
+
+# Statuses after which the same file may be uploaded again (it was never scored to the end).
+RETRYABLE_STATUSES = (Status.failed, Status.cancelled)
+BASELINES = (("constant-velocity", "Constant Velocity"), ("human", "Human"))
+EDITABLE_FIELDS = ("method", "authors", "institution", "country", "tech_report_url", "code_url", "hidden")
+
+
+def _new_submission(
+    team: Team, split: Split, phase: Phase | None, upload: ValidUpload, stored: str
+) -> Submission:
+    return Submission(
+        team=team,
+        split=split,
+        phase=phase,
+        sha256=upload.sha256,
+        filename=upload.filename,
+        stored_name=stored,
+        size_bytes=len(upload.data),
+        seed_count=upload.seed_count,
+        token_count=upload.token_count,
+        **upload.metadata,
+    )
+
+
+def create_submission(
+    session: Session,
+    team: Team,
+    phase: Phase,
+    upload: ValidUpload,
+    storage_dir: Path,
+    idempotency_key: str | None = None,
+    now: datetime | None = None,
+) -> tuple[Submission, bool]:
+    """Insert a queued submission and store its file; return it and whether it replays an earlier request.
+
+    Runs under the team lock, so idempotency, duplicate and quota checks see every earlier upload of
+    the team. The caller commits, then enqueues unless it was a replay.
+    """
+    now = now or utc_now()
+    if not is_open(phase, now):
+        raise Forbidden(
+            f"phase {phase.name!r} is not open for submissions (opens {phase.opens_at.isoformat()}"
+            + (f", closes {phase.closes_at.isoformat()})" if phase.closes_at else ")")
+        )
+    lock_team(session, team.id, now)
+    if idempotency_key:
+        earlier = session.scalar(
+            select(Submission).where(
+                Submission.team_id == team.id, Submission.idempotency_key == idempotency_key
+            )
+        )
+        if earlier is not None:
+            if earlier.sha256 != upload.sha256 or earlier.phase_id != phase.id:
+                raise Conflict(
+                    f"Idempotency-Key {idempotency_key!r} was used for submission {earlier.id} with another file",
+                    submission_id=earlier.id,
+                )
+            return earlier, True
+    duplicate = session.scalar(
+        select(Submission).where(
+            Submission.team_id == team.id,
+            Submission.phase_id == phase.id,
+            Submission.sha256 == upload.sha256,
+            Submission.status.not_in(RETRYABLE_STATUSES),
+        )
+    )
+    if duplicate is not None:
+        raise Conflict(
+            f"this file (sha256 {upload.sha256[:12]}…) is already submission {duplicate.id} ({duplicate.status}); "
+            "it is not scored twice",
+            submission_id=duplicate.id,
+        )
+    check_quota(session, team.id, phase, now)
+    submission = _new_submission(
+        team, phase.split, phase, upload, store_file(storage_dir, upload.sha256, upload.data)
+    )
+    submission.idempotency_key = idempotency_key or None
+    submission.created_at = submission.queued_at = now
+    session.add(submission)
+    session.flush()
+    return submission, False
+
+
+def add_baselines(session: Session, split: Split, storage_dir: Path) -> list[Submission]:
+    """Create the queued constant-velocity and human baseline submissions of a split (the caller enqueues them)."""
+    from scorer.baselines import baseline_submission
+    from scorer.submission import dump_submission_json
+
+    from server.services.splits import split_tokens
+    from server.services.validation import validate_upload
+
+    team = baseline_team(session)
+    tokens = split_tokens(split)
+    created = []
+    for kind, method in BASELINES:
+        data = dump_submission_json(baseline_submission(Path(split.directory), kind, method))
+        upload = validate_upload(data, f"{kind}.json", tokens, {"method": method})
+        submission = _new_submission(team, split, None, upload, store_file(storage_dir, upload.sha256, data))
+        submission.is_baseline = True
+        submission.charged = False
+        session.add(submission)
+        created.append(submission)
+    session.flush()
+    return created
+
+
+def get_submission(session: Session, submission_id: int, team_id: int | None = None) -> Submission:
+    """Return a submission; with `team_id`, only one of that team's (others are reported as missing)."""
+    submission = session.get(Submission, submission_id)
+    if submission is None or (team_id is not None and submission.team_id != team_id):
+        raise NotFound(f"submission {submission_id} does not exist")
+    return submission
+
+
+def list_submissions(
+    session: Session, team_id: int | None = None, status: str | None = None, limit: int = 200, offset: int = 0
+) -> Sequence[Submission]:
+    """Return submissions, newest first, optionally of one team and one status."""
+    query = select(Submission).order_by(Submission.id.desc()).limit(limit).offset(offset)
+    if team_id is not None:
+        query = query.where(Submission.team_id == team_id)
+    if status is not None:
+        query = query.where(Submission.status == status)
+    return session.scalars(query).all()
+
+
+def edit_submission(session: Session, submission: Submission, changes: dict[str, Any]) -> Submission:
+    """Apply a team's edit: metadata, hidden, and `selected` (the team's final entry in the phase)."""
+    unknown = set(changes) - {*EDITABLE_FIELDS, "selected"}
+    if unknown:
+        raise Conflict(f"cannot edit {', '.join(sorted(unknown))}")
+    for name in EDITABLE_FIELDS:
+        if name in changes and changes[name] is not None:
+            setattr(submission, name, changes[name])
+    if changes.get("selected") is True:
+        if submission.status in RETRYABLE_STATUSES:
+            raise Conflict(f"submission {submission.id} is {submission.status} and cannot be the final entry")
+        session.execute(
+            update(Submission)
+            .where(Submission.team_id == submission.team_id, Submission.phase_id == submission.phase_id)
+            .values(selected=False)
+        )
+        submission.selected = True
+    elif changes.get("selected") is False:
+        submission.selected = False
+    session.flush()
+    return submission

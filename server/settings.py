@@ -1,0 +1,50 @@
+"""Server settings from the environment (pydantic-settings); every default lives under one data directory."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Where the server keeps its state and which splits it serves; each field reads the env var of its name."""
+
+    model_config = SettingsConfigDict(
+        env_file=".env", env_file_encoding="utf-8", extra="ignore", populate_by_name=True
+    )
+
+    data_dir: Path = Field(Path(".navsim-lb"), validation_alias="DATA_DIR")
+    # Defaults below are derived from data_dir when left empty.
+    database_url: str = Field("", validation_alias="DATABASE_URL")
+    broker_url: str = Field("", validation_alias="BROKER_URL")
+    storage_dir: Path | None = Field(None, validation_alias="STORAGE_DIR")
+    cache_dir: Path | None = Field(None, validation_alias="CACHE_DIR")
+    # Split directories registered at startup: JSON object name -> directory.
+    splits: dict[str, Path] = Field(default_factory=dict, validation_alias="SPLITS")
+    max_upload_bytes: int = Field(256 * 1024 * 1024, validation_alias="MAX_UPLOAD_BYTES")
+    lease_seconds: float = Field(900.0, validation_alias="LEASE_SECONDS")
+    bootstrap_samples: int = Field(2000, validation_alias="BOOTSTRAP_SAMPLES")
+    # The public leaderboard is served from memory for this long (0 disables the cache).
+    leaderboard_cache_seconds: float = Field(2.0, validation_alias="LEADERBOARD_CACHE_SECONDS")
+
+    @model_validator(mode="after")
+    def _derive_defaults(self) -> Settings:
+        if not self.database_url:
+            self.database_url = f"sqlite:///{self.data_dir / 'navsim-lb.sqlite'}"
+        if not self.broker_url:
+            # kombu's SQLAlchemy transport: a broker in an SQLite file, no server to run.
+            self.broker_url = f"sqla+sqlite:///{self.data_dir / 'broker.sqlite'}"
+        if self.storage_dir is None:
+            self.storage_dir = self.data_dir / "submissions"
+        if self.cache_dir is None:
+            self.cache_dir = self.data_dir / "cache"
+        return self
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """Return the process-wide settings read from the environment."""
+    return Settings()

@@ -1,0 +1,37 @@
+"""Submission files on disk, content-addressed by sha256 (so a retried upload never writes a second copy)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+
+def stored_name(sha256: str) -> str:
+    """Return the storage-relative name of a file with this sha256."""
+    return f"{sha256[:2]}/{sha256}"
+
+
+def store_file(storage_dir: Path, sha256: str, data: bytes) -> str:
+    """Write `data` atomically under its sha256 (a no-op when already stored) and return its stored name."""
+    name = stored_name(sha256)
+    path = Path(storage_dir) / name
+    if path.exists():
+        return name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".upload-")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return name
+
+
+def read_file(storage_dir: Path, name: str) -> bytes:
+    """Return the bytes of a stored submission file."""
+    return (Path(storage_dir) / name).read_bytes()

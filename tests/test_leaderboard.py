@@ -1,0 +1,236 @@
+"""Leaderboard from per-token rows written through the worker services: ordering, ties, best or selected entry
+per team, multi-seed spread, unscored tokens counting 0, bootstrap intervals, baselines, subsets, moderation."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+import numpy as np
+import pytest
+from server_testing import World, add_phase, add_team, reference_tokens, score_run, submit_scored, uniform
+
+from server.db import transaction
+from server.models import utc_now
+from server.services.leaderboard import bootstrap_ci, rank_change_report
+from server.services.submissions import add_baselines
+
+pytest_plugins = ["server_testing"]
+
+TOKENS = reference_tokens()
+
+
+def _board(world: World, **params: str) -> dict:
+    response = world.client.get("/api/v1/leaderboard", params=params)
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def test_rows_are_ranked_by_pdms_with_ties_to_the_earlier_submission(world: World) -> None:
+    beta, _ = add_team(world.factory, "beta")
+    gamma, _ = add_team(world.factory, "gamma")
+    start = utc_now() - timedelta(hours=3)
+    submit_scored(world, gamma, b"g", [uniform(0.8)], "G", now=start + timedelta(hours=2))
+    submit_scored(world, world.team_id, b"a", [uniform(0.8)], "A", now=start)
+    submit_scored(world, beta, b"b", [uniform(0.9)], "B", now=start + timedelta(hours=1))
+    board = _board(world, version="v1.1", sort="score")
+    assert board["version"] == "v1.1"
+    assert [(r["rank"], r["team"], r["method"]) for r in board["rows"]] == [
+        (1, "beta", "B"),
+        (2, "alpha", "A"),  # tie with gamma at 0.8: alpha submitted first
+        (3, "gamma", "G"),
+    ]
+    assert board["rows"][0]["score"] == pytest.approx(0.9)
+    v11_columns = [
+        "no_at_fault_collisions",
+        "drivable_area_compliance",
+        "ego_progress",
+        "time_to_collision_within_bound",
+        "comfort",
+        "driving_direction_compliance",
+    ]
+    assert board["columns"] == v11_columns
+    assert all(column in board["rows"][0] for column in v11_columns)
+    assert {"rank", "team", "method", "score", "seeds", "baseline", "ci95", "submitted_at"} <= set(
+        board["rows"][0]
+    )
+
+
+def test_one_entry_per_team_best_unless_one_is_selected(world: World) -> None:
+    worse = submit_scored(world, world.team_id, b"1", [uniform(0.7)], "worse")
+    submit_scored(world, world.team_id, b"2", [uniform(0.8)], "better")
+    rows = _board(world)["rows"]
+    assert [(r["team"], r["method"]) for r in rows] == [("alpha", "better")]
+    response = world.client.patch(
+        f"/api/v1/submissions/{worse}", json={"selected": True}, headers=world.team_headers()
+    )
+    assert response.status_code == 200 and response.json()["selected"] is True
+    assert [r["method"] for r in _board(world)["rows"]] == ["worse"]
+
+
+def test_multi_seed_mean_std_max(world: World) -> None:
+    seeds = [0.6, 0.7, 0.85]
+    submit_scored(world, world.team_id, b"s", [uniform(s) for s in seeds], "three seeds")
+    row = _board(world)["rows"][0]
+    assert row["score"] == pytest.approx(np.mean(seeds))
+    assert row["seeds"] == pytest.approx(
+        {"count": 3, "mean": np.mean(seeds), "std": np.std(seeds), "max": 0.85}
+    )
+
+
+def test_unscored_tokens_count_zero_and_are_counted(world: World) -> None:
+    scores = {token: (None if index < 4 else 1.0) for index, token in enumerate(TOKENS)}
+    submission_id = submit_scored(world, world.team_id, b"f", [scores])
+    row = _board(world)["rows"][0]
+    assert row["score"] == pytest.approx(36 / 40)
+    assert (row["tokens"], row["failed_tokens"]) == (40, 4)
+    detail = world.client.get(f"/api/v1/submissions/{submission_id}", headers=world.team_headers()).json()
+    assert detail["status"] == "scored" and detail["progress"] == 100
+    assert detail["results"]["v1.0"]["all"]["failed_tokens"] == 4
+    failed = world.client.get(
+        f"/api/v1/submissions/{submission_id}/tokens",
+        params={"only_failed": True},
+        headers=world.team_headers(),
+    ).json()
+    assert (
+        sorted(r["token"] for r in failed) == TOKENS[:4] and failed[0]["error"] == "poses: non-finite value"
+    )
+
+
+def test_bootstrap_interval_from_token_rows(world: World) -> None:
+    rng = np.random.default_rng(7)
+    scores = dict(zip(TOKENS, rng.uniform(0.3, 1.0, len(TOKENS)).round(3).tolist()))
+    submit_scored(world, world.team_id, b"ci", [scores])
+    row = _board(world)["rows"][0]
+    low, high = row["ci95"]
+    assert low < row["score"] < high
+    assert (low, high) == pytest.approx(bootstrap_ci(np.array([scores[t] for t in TOKENS]), 300))
+    assert _board(world)["rows"][0]["ci95"] == row["ci95"]  # deterministic
+
+
+def test_bootstrap_interval_properties() -> None:
+    constant = bootstrap_ci(np.full(50, 0.4), 200)
+    assert constant == pytest.approx((0.4, 0.4))
+    rng = np.random.default_rng(0)
+    small, large = rng.uniform(size=30), rng.uniform(size=3000)
+    small_ci, large_ci = bootstrap_ci(small, 500), bootstrap_ci(large, 500)
+    assert small_ci[0] < small.mean() < small_ci[1]
+    assert large_ci[1] - large_ci[0] < small_ci[1] - small_ci[0]
+    assert bootstrap_ci(small, 500) == small_ci
+
+
+def test_baselines_are_marked_and_take_no_rank(world: World) -> None:
+    pytest.importorskip("scorer.baselines")
+    submit_scored(world, world.team_id, b"t", [uniform(0.5)], "team entry")
+    with transaction(world.factory) as session:
+        from server.models import Split
+
+        split = session.query(Split).filter_by(name="reference").one()
+        baselines = [s.id for s in add_baselines(session, split, world.settings.storage_dir)]
+    score_run(world.factory, baselines[0], [uniform(0.3)])
+    score_run(world.factory, baselines[1], [uniform(0.9)])
+    rows = _board(world)["rows"]
+    assert [(r["method"], r["baseline"], r["rank"]) for r in rows] == [
+        ("Human", True, None),
+        ("team entry", False, 1),
+        ("Constant Velocity", True, None),
+    ]
+
+
+def test_hidden_and_disqualified_entries_leave_the_board(world: World) -> None:
+    beta, _ = add_team(world.factory, "beta")
+    hidden = submit_scored(world, world.team_id, b"h", [uniform(0.9)], "hidden by team")
+    shown = submit_scored(world, world.team_id, b"s", [uniform(0.5)], "shown")
+    cheat = submit_scored(world, beta, b"c", [uniform(0.99)], "cheat")
+    world.client.patch(f"/api/v1/submissions/{hidden}", json={"hidden": True}, headers=world.team_headers())
+    response = world.client.post(
+        f"/api/v1/admin/submissions/{cheat}/disqualify",
+        json={"reason": "used the test labels"},
+        headers=world.admin_headers(),
+    )
+    assert response.status_code == 200 and response.json()["disqualified_reason"] == "used the test labels"
+    assert [(r["team"], r["submission_id"], r["rank"]) for r in _board(world)["rows"]] == [
+        ("alpha", shown, 1)
+    ]
+    world.client.post(
+        f"/api/v1/admin/submissions/{shown}/hide", json={"hidden": True}, headers=world.admin_headers()
+    )
+    assert _board(world)["rows"] == []
+
+
+def test_private_subset_is_revealed_when_the_phase_closes(world: World) -> None:
+    public = TOKENS[:10]
+    add_phase(
+        world.factory,
+        "split-phase",
+        split="halves",
+        public_tokens=public,
+        opens_at=utc_now() - timedelta(days=2),
+    )
+    scores = {token: (1.0 if token in public else 0.0) for token in TOKENS}
+    submit_scored(world, world.team_id, b"p", [scores], phase="split-phase")
+    board = _board(world, phase="split-phase")
+    assert (board["subset"], board["subsets"]) == ("public", ["public"])
+    assert board["rows"][0]["score"] == pytest.approx(1.0) and board["rows"][0]["tokens"] == 10
+    closed = world.client.get("/api/v1/leaderboard", params={"phase": "split-phase", "subset": "private"})
+    assert closed.status_code == 403 and "revealed when the phase closes" in closed.json()["detail"]
+    assert (
+        world.client.get("/api/v1/leaderboard", params={"phase": "split-phase", "subset": "x"}).status_code
+        == 404
+    )
+    with transaction(world.factory) as session:
+        from server.models import Phase
+
+        session.query(Phase).filter_by(name="split-phase").one().closes_at = utc_now() - timedelta(seconds=1)
+    private = _board(world, phase="split-phase", subset="private")
+    assert private["rows"][0]["score"] == pytest.approx(0.0) and private["rows"][0]["tokens"] == 30
+    assert _board(world, phase="split-phase", subset="all")["rows"][0]["score"] == pytest.approx(0.25)
+
+
+def test_sorting_by_a_subscore_keeps_the_pdms_rank(world: World) -> None:
+    beta, _ = add_team(world.factory, "beta")
+    submit_scored(world, world.team_id, b"a", [uniform(0.9)], "A")
+    submit_scored(world, beta, b"b", [uniform(0.5)], "B")
+    by_time = _board(world, sort="submitted_at")["rows"]
+    assert [(r["method"], r["rank"]) for r in by_time] == [("A", 1), ("B", 2)]
+    assert world.client.get("/api/v1/leaderboard", params={"sort": "pdms"}).status_code == 422
+    assert world.client.get("/api/v1/leaderboard", params={"version": "v9"}).status_code == 422
+
+
+def test_both_versions_are_served(world: World) -> None:
+    submit_scored(world, world.team_id, b"a", [uniform(0.75)], "A")
+    v10 = _board(world, version="v1.0")
+    assert v10["version"] == "v1.0" and v10["rows"][0]["score"] == pytest.approx(0.75)
+    assert v10["columns"][:3] == [
+        "no_at_fault_collisions",
+        "drivable_area_compliance",
+        "driving_direction_compliance",
+    ]
+
+
+def test_web_page_shows_rows_baseline_flag_and_interval(world: World) -> None:
+    submit_scored(world, world.team_id, b"a", [uniform(0.755)], "Page method")
+    page = world.client.get("/", params={"version": "v1.1"})
+    assert page.status_code == 200
+    assert "Page method" in page.text and "75.5" in page.text and "95% CI" in page.text
+    assert world.client.get("/", params={"sort": "nope"}).status_code == 422
+
+
+def test_rank_change_report() -> None:
+    def rows(order: list[tuple[str, float]]) -> list[dict]:
+        return [
+            {"team": t, "method": t, "rank": i + 1, "score": s, "baseline": False}
+            for i, (t, s) in enumerate(order)
+        ]
+
+    before = rows([("a", 0.9), ("b", 0.8), ("c", 0.7), ("d", 0.6)])
+    same = rank_change_report(before, before)
+    assert (same["moved"], same["kendall_tau"]) == ([], pytest.approx(1.0))
+    reversed_report = rank_change_report(before, rows([("d", 0.9), ("c", 0.8), ("b", 0.7), ("a", 0.6)]))
+    assert reversed_report["kendall_tau"] == pytest.approx(-1.0) and len(reversed_report["moved"]) == 4
+    swap = rank_change_report(before, rows([("b", 0.9), ("a", 0.8), ("c", 0.7), ("e", 0.5)]))
+    assert [(m["team"], m["rank_before"], m["rank_after"]) for m in swap["moved"]] == [
+        ("b", 2, 1),
+        ("a", 1, 2),
+    ]
+    assert (swap["entered"], swap["left"]) == (["e"], ["d"])
+    assert swap["kendall_tau"] == pytest.approx(1 / 3)  # pairs among a, b, c: one discordant of three

@@ -1,0 +1,99 @@
+"""Batching never changes a token's result: many tokens per call, or proposals measured apart and joined,
+give exactly what `score_proposals` gives for each token alone (reference scenes, devkit-simulated poses).
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scorer.drivable_map import build_drivable_map
+from scorer.observation import observe_scene
+from scorer.pdm_scorer import (
+    ProposalScores,
+    join_measures,
+    measure_batch,
+    score_batch,
+    score_measures,
+    score_proposals,
+)
+from scorer.scene import load_scene
+from scorer.versions import get_version
+
+REFERENCE = Path(__file__).parent / "fixtures" / "reference"
+FAMILIES = ("human", "swerve_left", "zigzag", "hard_brake")
+RESULTS = (
+    "no_at_fault_collisions",
+    "drivable_area_compliance",
+    "driving_direction_compliance",
+    "ego_progress",
+    "time_to_collision_within_bound",
+    "comfort",
+    "score",
+    "progress_raw",
+    "collision_index",
+    "ttc_index",
+    "ego_areas",
+)
+
+
+@cache
+def _scene_inputs(token: str) -> tuple:
+    scene = load_scene(REFERENCE / "scenes" / f"{token}.json.gz")
+    return observe_scene(scene), build_drivable_map(scene)
+
+
+@cache
+def _tokens(version: str) -> tuple:
+    """(states (2, 41, 11), observation, map, centerline, route lane ids) per token and family."""
+    cases = []
+    for family in FAMILIES:
+        with gzip.open(REFERENCE / "expected" / f"{family}.{version}.jsonl.gz", "rt") as handle:
+            for row in map(json.loads, handle):
+                states = np.zeros((2, 41, 11))
+                states[0, :, :3] = row["diagnostics"]["pdm_simulated"]
+                states[1, :, :3] = row["diagnostics"]["pred_simulated"]
+                states[..., 3] = (
+                    np.hypot(*np.diff(states[..., :2], axis=1, prepend=states[:, :1, :2]).T).T / 0.1
+                )
+                cached = row["cache"]
+                cases.append(
+                    (
+                        states,
+                        *_scene_inputs(row["token"]),
+                        np.asarray(cached["centerline"])[:, :2],
+                        cached["route_lane_ids"],
+                    )
+                )
+    return tuple(cases)
+
+
+def _same(first: ProposalScores, second: ProposalScores) -> bool:
+    return all(np.array_equal(getattr(first, name), getattr(second, name)) for name in RESULTS)
+
+
+@pytest.mark.parametrize("version", ["v1.0", "v1.1"])
+def test_a_batch_scores_each_token_as_alone(version: str) -> None:
+    config = get_version(version).evaluation
+    cases = _tokens(version)
+    batch = score_batch(*(list(column) for column in zip(*cases)), config)
+    assert batch.score.shape == (len(cases), 2)
+    singles = [score_proposals(*case, config) for case in cases]
+    assert all(_same(batch.token(index), single) for index, single in enumerate(singles))
+
+
+@pytest.mark.parametrize("version", ["v1.0", "v1.1"])
+def test_proposals_measured_apart_and_joined_score_as_together(version: str) -> None:
+    config = get_version(version).evaluation
+    cases = _tokens(version)
+    states, observations, maps, centerlines, routes = (list(column) for column in zip(*cases))
+    states = np.stack(states)
+    reference = measure_batch(states[:, :1], observations, maps, centerlines, routes, config)
+    submitted = measure_batch(states[:, 1:], observations, maps, centerlines, routes, config)
+    joined = score_measures(join_measures([reference, submitted]), config)
+    assert _same(joined, score_batch(states, observations, maps, centerlines, routes, config))

@@ -1,0 +1,145 @@
+"""PDM-Closed building blocks: IDM step, shared leading-agent buffer, path interpolation, AVX-512 arctan2."""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import numpy as np
+import shapely
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.interpolate import interp1d
+
+from scorer.geometry import _fused_multiply_add, arctan2_avx512, normalize_angle
+from scorer.pdm_closed import (
+    EGO_LENGTH,
+    PdmPath,
+    _shared_buffer,
+    idm_step,
+    idm_target_speeds,
+    interpolate_paths,
+    parallel_poses,
+)
+
+finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
+
+
+def test_target_speeds_are_fractions_of_the_limit_or_of_15_mps() -> None:
+    assert idm_target_speeds(10.0).tolist() == [0.2 * 10.0, 0.4 * 10.0, 0.6 * 10.0, 0.8 * 10.0, 10.0]
+    assert idm_target_speeds(None).tolist() == [3.0, 6.0, 0.6 * 15.0, 12.0, 15.0]
+
+
+def test_first_step_brakes_against_the_phantom_obstacle_then_accelerates() -> None:
+    """Spec 9.4's example: v 10.0 -> 9.7 -> 9.84 (index 1 sees the unfilled leading buffer, index 2 free road)."""
+    targets = np.array([15.0])
+    progress, speed = idm_step(np.array([0.0]), np.array([10.0]), np.zeros((1, 3)), targets)
+    assert (progress[0], speed[0]) == (1.0, 9.7)
+    free_road = np.array([[1000.0, 0.0, EGO_LENGTH / 2]])
+    progress, speed = idm_step(progress, speed, free_road, targets)
+    assert progress[0] == 1.0 + 0.1 * 9.7
+    assert abs(speed[0] - 9.84) < 0.01
+
+
+def test_idm_never_brakes_harder_than_3_or_accelerates_more_than_1_5() -> None:
+    speed = np.array([0.0, 5.0, 30.0])
+    _, faster = idm_step(np.zeros(3), speed, np.tile([1e6, 0.0, 2.588], (3, 1)), np.array([10.0, 10.0, 10.0]))
+    assert np.all(faster - speed <= 0.1 * 1.5 + 1e-12) and np.all(faster - speed >= -0.1 * 3.0 - 1e-12)
+
+
+def test_shared_buffer_carries_the_previous_proposals_value_within_a_path_only() -> None:
+    values = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    written = np.array([False, True, False, False, False, True])
+    paths = np.array([0, 0, 0, 1, 1, 1])
+    # Path 0: nothing before row 1, then row 1's value twice; path 1 starts from zeros again.
+    assert _shared_buffer(values, written, paths).tolist() == [0.0, 2.0, 2.0, 0.0, 0.0, 6.0]
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    steps=st.lists(st.floats(min_value=0.0, max_value=5.0), min_size=2, max_size=11),
+    headings=st.lists(st.floats(min_value=-3.0, max_value=3.0), min_size=12, max_size=12),
+    queries=st.lists(st.floats(min_value=-5.0, max_value=80.0), min_size=1, max_size=8),
+)
+def test_interpolation_is_scipy_interp1d_bit_for_bit(
+    steps: list[float], headings: list[float], queries: list[float]
+) -> None:
+    x = np.cumsum([0.0, *steps])
+    poses = np.column_stack([x, np.zeros_like(x), np.array(headings[: len(x)])])
+    path = PdmPath.from_poses(poses)
+    if path.length < 1e-5 or np.any(np.diff(path.progress) == 0):
+        return  # scipy (as the devkit) divides by zero there; both give NaN, set to 0
+    distances = np.array(queries)
+    ours = interpolate_paths(
+        path.states[None],
+        path.progress[None],
+        np.array([len(path.progress) - 1]),
+        distances[None],
+        normalize_angle,
+    )[0]
+    expected = interp1d(path.progress, path.states, axis=0)(np.clip(distances, 1e-5, path.length))
+    expected[..., 2] = normalize_angle(expected[..., 2])
+    assert np.array_equal(ours, expected)
+
+
+def test_interpolation_unwraps_the_heading_across_pi() -> None:
+    poses = np.array([[0.0, 0.0, 3.1], [1.0, 0.0, -3.1], [2.0, 0.0, -3.1]])
+    path = PdmPath.from_poses(poses)
+    middle = interpolate_paths(
+        path.states[None], path.progress[None], np.array([2]), np.array([[0.5]]), normalize_angle
+    )[0, 0]
+    assert abs(abs(middle[2]) - math.pi) < 1e-9  # through pi, not through 0
+
+
+def test_substring_keeps_the_vertices_in_range_else_cuts_the_line() -> None:
+    path = PdmPath.from_poses(
+        np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [20.0, 0.0, 0.0], [30.0, 0.0, 0.0]])
+    )
+    assert shapely.get_coordinates(path.substring(5.0, 25.0)).tolist() == [[10.0, 0.0], [20.0, 0.0]]
+    assert shapely.get_coordinates(path.substring(12.0, 18.0)).tolist() == [[12.0, 0.0], [18.0, 0.0]]
+    assert shapely.get_coordinates(path.substring(-5.0, 99.0)).tolist()[-1] == [30.0, 0.0]
+
+
+def test_parallel_poses_move_left_for_positive_offsets() -> None:
+    moved = parallel_poses(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, math.pi / 2]]), 1.0)
+    assert np.allclose(moved, [[0.0, 1.0, 0.0], [-1.0, 0.0, math.pi / 2]], atol=1e-15)
+
+
+@settings(max_examples=300, deadline=None)
+@given(a=finite, b=finite, c=finite)
+def test_emulated_fma_rounds_once(a: float, b: float, c: float) -> None:
+    exact = Fraction(a) * Fraction(b) + Fraction(c)
+    assert _fused_multiply_add(np.array([a]), np.array([b]), np.array([c]))[0] == float(exact)
+
+
+# numpy's own arctan2 is SVML on AVX-512 hosts and libm elsewhere, so libm is read through `math`.
+libm_arctan2 = np.vectorize(math.atan2, otypes=[np.float64])
+
+
+def test_avx512_arctan2_differs_from_libm_by_at_most_one_ulp_and_keeps_special_values() -> None:
+    rng = np.random.default_rng(0)
+    y, x = rng.normal(size=200_000), rng.normal(size=200_000)
+    ours, libm = arctan2_avx512(y, x), libm_arctan2(y, x)
+    assert np.all(np.abs(ours - libm) <= np.spacing(np.abs(libm)))
+    assert 0.02 < np.mean(ours != libm) < 0.2  # SVML is not correctly rounded: about 7 % differ
+    special_y = np.array([0.0, -0.0, 1.0, -1.0, 0.0, 2.0, np.inf, np.nan])
+    special_x = np.array([1.0, -1.0, 0.0, -0.0, 0.0, np.inf, 1.0, 1.0])
+    assert np.array_equal(
+        arctan2_avx512(special_y, special_x), np.arctan2(special_y, special_x), equal_nan=True
+    )
+
+
+def test_avx512_arctan2_gives_the_devkit_headings_where_libm_does_not() -> None:
+    """Baseline segments of the reference maps and the heading the official cache stored for them."""
+    segments = np.array(
+        [
+            [665407.312, 3996386.042, 665407.633, 3996386.17],
+            [330928.065, 4691707.429, 330929.289, 4691708.997],
+            [330955.016, 4691741.946, 330956.23, 4691743.501],
+            [331027.146, 4691834.328, 331027.255, 4691834.467],
+        ]
+    )
+    devkit = [0.37943168657386134, 0.9079894916263764, 0.9079303705665318, 0.9057809857221297]
+    dy, dx = segments[:, 3] - segments[:, 1], segments[:, 2] - segments[:, 0]
+    assert arctan2_avx512(dy, dx).tolist() == devkit
+    assert not np.any(libm_arctan2(dy, dx) == devkit)

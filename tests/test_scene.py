@@ -1,0 +1,127 @@
+"""Scene reader: the reference scenes load, and every broken rule names the file and the field."""
+
+from __future__ import annotations
+
+import copy
+import gzip
+import json
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+
+from scorer.scene import SceneFormatError, iter_scenes, load_scene, scene_paths
+
+REFERENCE = Path(__file__).parent / "fixtures" / "reference"
+TOKEN = "05ef979906eefe4a"
+
+
+def _raw_scene() -> dict[str, Any]:
+    return json.loads(gzip.decompress((REFERENCE / "scenes" / f"{TOKEN}.json.gz").read_bytes()))
+
+
+def _write(tmp_path: Path, raw: dict[str, Any], name: str = TOKEN) -> Path:
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps(raw))
+    return path
+
+
+def test_reference_split_loads_with_float32_dynamics() -> None:
+    scenes = list(iter_scenes(REFERENCE))
+    assert len(scenes) == 40
+    assert [scene.token for scene in scenes] == sorted(scene.token for scene in scenes)
+    raw = _raw_scene()["frames"][3]["ego"]
+    ego = next(scene for scene in scenes if scene.token == TOKEN).current_frame.ego
+    assert ego.x == raw["x"]  # poses stay float64
+    assert ego.vx == float(np.float32(raw["vx"])) and ego.vx != raw["vx"]
+
+
+def test_json_and_gzip_give_the_same_scene(tmp_path: Path) -> None:
+    plain = load_scene(_write(tmp_path, _raw_scene()))
+    packed = load_scene(REFERENCE / "scenes" / f"{TOKEN}.json.gz")
+    assert plain.current_frame.ego == packed.current_frame.ego
+    assert np.array_equal(plain.current_frame.boxes, packed.current_frame.boxes)
+    assert plain.content_hash != packed.content_hash  # the key is the stored file
+
+
+def _set(path: list[Any], value: Any) -> Callable[[dict[str, Any]], None]:
+    def mutate(raw: dict[str, Any]) -> None:
+        target = raw
+        for key in path[:-1]:
+            target = target[key]
+        target[path[-1]] = value
+
+    return mutate
+
+
+def _delete(path: list[Any]) -> Callable[[dict[str, Any]], None]:
+    def mutate(raw: dict[str, Any]) -> None:
+        target = raw
+        for key in path[:-1]:
+            target = target[key]
+        del target[path[-1]]
+
+    return mutate
+
+
+BROKEN = [
+    (_set(["format"], "other"), "format"),
+    (_set(["version"], 2), "version"),
+    (_delete(["frames", 3, "ego", "vx"]), "frames[3].ego.vx"),
+    (_set(["frames", 2, "ego", "heading"], 4.0), "frames[2].ego.heading"),
+    (_set(["frames", 3, "objects", 0, "box"], [1.0, 2.0, 3.0]), "frames[3].objects[0].box"),
+    (_set(["frames", 3, "objects", 0, "category"], "truck"), "frames[3].objects[0].category"),
+    (_set(["frames", 3, "objects", 0, "velocity"], [float("nan"), 0.0]), "frames[3].objects[0].velocity"),
+    (_set(["frames", 3, "timestamp_us"], 1.5), "frames[3].timestamp_us"),
+    (_set(["frames", 4, "timestamp_us"], 0), "frames[4].timestamp_us"),
+    (_set(["frames", 3, "driving_command"], [0, 1, 0]), "frames[3].driving_command"),
+    (_set(["frames", 3, "route_roadblocks"], ["abc"]), "frames[3].route_roadblocks"),
+    (_set(["frames", 3, "traffic_lights"], [["303236", "red"]]), "frames[3].traffic_lights[0]"),
+    (_set(["current_index"], 5), "frames"),
+    (_set(["token"], "ffffffffffffffff"), "token"),
+    (_set(["map", "lanes", 0, "baseline"], [[1.0, 2.0]]), "map.lanes[0].baseline"),
+    (_set(["map", "lanes", 0, "polygon"], [[1.0, 2.0], [3.0, 4.0]]), "map.lanes[0].polygon"),
+    (_set(["map", "lanes", 0, "speed_limit_mps"], -1), "map.lanes[0].speed_limit_mps"),
+    (_set(["map", "lanes", 0, "outgoing"], []), "map.lanes[0].outgoing"),
+    (_set(["map", "lane_connectors", 0, "incoming"], ["1", "2"]), "map.lane_connectors[0].incoming"),
+    (_set(["map", "roadblocks", 0, "lanes"], []), "map.roadblocks[0].lanes"),
+    (_set(["map", "hovercraft_lanes"], []), "map"),
+    (_delete(["map", "roadblocks"]), "map.roadblocks"),
+]
+
+
+@pytest.mark.parametrize(("mutate", "field"), BROKEN)
+def test_broken_rule_names_file_and_field(tmp_path: Path, mutate: Callable[[dict[str, Any]], None], field: str) -> None:
+    raw = copy.deepcopy(_raw_scene())
+    mutate(raw)
+    path = _write(tmp_path, raw)
+    with pytest.raises(SceneFormatError) as error:
+        load_scene(path)
+    assert str(error.value).startswith(f"{path}: {field}:"), str(error.value)
+
+
+def test_duplicate_map_id_is_rejected(tmp_path: Path) -> None:
+    raw = _raw_scene()
+    raw["map"]["crosswalks"].append(copy.deepcopy(raw["map"]["crosswalks"][0]))
+    path = _write(tmp_path, raw)
+    with pytest.raises(SceneFormatError, match=r"map\.crosswalks\[\d+\]\.id: duplicate id"):
+        load_scene(path)
+
+
+def test_file_level_errors(tmp_path: Path) -> None:
+    bad_json = tmp_path / f"{TOKEN}.json"
+    bad_json.write_text("{")
+    with pytest.raises(SceneFormatError, match="not valid JSON"):
+        load_scene(bad_json)
+    bad_gzip = tmp_path / f"{TOKEN}.json.gz"
+    bad_gzip.write_bytes(b"not gzip")
+    with pytest.raises(SceneFormatError, match="not a valid gzip file"):
+        load_scene(bad_gzip)
+    with pytest.raises(SceneFormatError, match="differs from the file name"):
+        load_scene(_write(tmp_path, _raw_scene(), name="0000000000000000"))
+
+
+def test_split_without_scenes_dir(tmp_path: Path) -> None:
+    with pytest.raises(SceneFormatError, match="no scenes/ directory"):
+        scene_paths(tmp_path)

@@ -1,0 +1,70 @@
+"""The server around the real engine: per-token results of `scorer.evaluate.score_tokens`, written through the
+worker services, give leaderboard numbers equal to the official devkit's mean over the reference tokens."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from server_testing import REFERENCE_DIR, REFERENCE_SUBMISSIONS, World, phase_row, team_row, upload_of
+
+from scorer.evaluate import score_tokens
+from server.db import transaction
+from server.services.scoring import claim_submission, mark_scored, write_chunk_results
+from server.services.submissions import create_submission
+
+pytest_plugins = ["server_testing"]
+FAMILY = "lane_change"
+
+
+def _official_mean(family: str, version: str, column: str) -> float:
+    path = REFERENCE_DIR / "expected" / f"{family}.{version}.jsonl.gz"
+    rows = [json.loads(line) for line in gzip.decompress(path.read_bytes()).splitlines()]
+    return float(np.mean([row[column] for row in rows]))
+
+
+@pytest.mark.slow
+def test_leaderboard_equals_the_devkit_mean_for_a_reference_family(world: World, tmp_path: Path) -> None:
+    document = json.loads((REFERENCE_SUBMISSIONS / f"{FAMILY}.json").read_bytes())
+    predictions = {
+        token: np.asarray(poses, dtype=np.float64) for token, poses in document["predictions"].items()
+    }
+    with transaction(world.factory) as session:
+        submission, _ = create_submission(
+            session,
+            team_row(session, world.team_id),
+            phase_row(session, "test"),
+            upload_of(b"lane change", method=FAMILY),
+            world.settings.storage_dir,
+        )
+        submission_id = submission.id
+    with transaction(world.factory) as session:
+        run = claim_submission(session, submission_id, "engine-test", 600)
+    for version in ("v1.0", "v1.1"):
+        started = time.perf_counter()
+        results = score_tokens(REFERENCE_DIR, tmp_path / "cache", predictions, version)
+        with transaction(world.factory) as session:
+            assert write_chunk_results(
+                session,
+                submission_id,
+                run,
+                version,
+                results,
+                "engine-test",
+                time.perf_counter() - started,
+                600,
+            )
+    with transaction(world.factory) as session:
+        assert mark_scored(session, submission_id, run, "engine", 200)
+    for version in ("v1.0", "v1.1"):
+        row = world.client.get("/api/v1/leaderboard", params={"version": version}).json()["rows"][0]
+        assert row["failed_tokens"] == 0
+        for column in ("score", "ego_progress", "drivable_area_compliance", "no_at_fault_collisions"):
+            assert row[column] == pytest.approx(_official_mean(FAMILY, version, column), abs=1e-12), (
+                version,
+                column,
+            )

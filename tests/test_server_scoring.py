@@ -1,0 +1,185 @@
+"""The services a worker calls: claim, chunk writes (idempotent, run-checked), progress, scored/failed, leases."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+from server_testing import (
+    World,
+    add_phase,
+    add_team,
+    factory_for,
+    phase_row,
+    reference_tokens,
+    score_run,
+    team_row,
+    token_results,
+    uniform,
+    upload_of,
+)
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.db import transaction
+from server.migrate import upgrade
+from server.models import Result, Status, Submission, TokenResultRow, utc_now
+from server.services.errors import Conflict
+from server.services.scoring import (
+    cancel,
+    claim_submission,
+    expired_leases,
+    load_job,
+    mark_scored,
+    requeue,
+    reset_for_rerun,
+    stale_queued,
+    write_chunk_results,
+)
+from server.services.submissions import create_submission
+
+pytest_plugins = ["server_testing"]
+
+TOKENS = reference_tokens()
+
+
+def _new(factory: sessionmaker[Session], team_id: int, storage: Path, payload: bytes = b"x") -> int:
+    with transaction(factory) as session:
+        submission, _ = create_submission(
+            session, team_row(session, team_id), phase_row(session, "test"), upload_of(payload), storage
+        )
+        return submission.id
+
+
+def _rows(factory: sessionmaker[Session], submission_id: int) -> int:
+    with factory() as session:
+        return session.scalar(select(func.count()).where(TokenResultRow.submission_id == submission_id)) or 0
+
+
+def _get(factory: sessionmaker[Session], submission_id: int) -> Submission:
+    with factory() as session:
+        submission = session.get(Submission, submission_id)
+        assert submission is not None
+        return submission
+
+
+def test_job_holds_the_stored_file_and_the_split(world: World) -> None:
+    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir, b"file bytes")
+    with world.session() as session:
+        job = load_job(session, submission_id, world.settings.storage_dir)
+    assert (job.data, job.run, job.tokens, job.seed_count) == (b"file bytes", 1, tuple(TOKENS), 1)
+    assert job.versions == ("v1.0", "v1.1")
+
+
+def _check_idempotent_chunks(factory: sessionmaker[Session], submission_id: int) -> None:
+    with transaction(factory) as session:
+        run = claim_submission(session, submission_id, "w1", 60)
+    assert run == 1 and _get(factory, submission_id).status == Status.running
+    chunk = token_results(uniform(0.5, TOKENS[:20]))
+    for _ in range(2):  # the broker redelivers the chunk
+        with transaction(factory) as session:
+            assert write_chunk_results(session, submission_id, run, "v1.1", chunk, "w1", 1.0, 60)
+    assert _rows(factory, submission_id) == 20
+    assert _get(factory, submission_id).progress == 25  # 20 of 40 tokens x 2 versions
+    changed = token_results(uniform(0.25, TOKENS[:20]))
+    with transaction(factory) as session:
+        write_chunk_results(session, submission_id, run, "v1.1", changed, "w2", 1.0, 60)
+    with factory() as session:
+        scores = set(
+            session.scalars(select(TokenResultRow.score).where(TokenResultRow.submission_id == submission_id))
+        )
+        workers = set(
+            session.scalars(
+                select(TokenResultRow.worker).where(TokenResultRow.submission_id == submission_id)
+            )
+        )
+    assert (scores, workers, _rows(factory, submission_id)) == ({0.25}, {"w2"}, 20)
+
+
+def test_redelivered_chunks_overwrite_instead_of_duplicating(world: World) -> None:
+    _check_idempotent_chunks(world.factory, _new(world.factory, world.team_id, world.settings.storage_dir))
+
+
+@pytest.mark.services
+def test_redelivered_chunks_overwrite_on_postgresql(postgres_url: str, tmp_path: Path) -> None:
+    upgrade(postgres_url)
+    factory = factory_for(postgres_url)
+    team_id, _ = add_team(factory, "alpha")
+    add_phase(factory, "test")
+    _check_idempotent_chunks(factory, _new(factory, team_id, tmp_path))
+    factory.kw["bind"].dispose()
+
+
+def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:
+    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    with transaction(world.factory) as session:
+        run = claim_submission(session, submission_id, "w1", 60)
+        write_chunk_results(session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1.0, 60)
+    with pytest.raises(Conflict, match="40 of 80"), transaction(world.factory) as session:
+        mark_scored(session, submission_id, 1, "e", 100)
+    assert _get(world.factory, submission_id).status == Status.running
+
+
+def test_cancelled_or_rerun_submissions_drop_late_writes(world: World) -> None:
+    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    with transaction(world.factory) as session:
+        run = claim_submission(session, submission_id, "w1", 60)
+        cancel(session, session.get(Submission, submission_id))
+    with transaction(world.factory) as session:
+        assert not write_chunk_results(
+            session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1, 60
+        )
+        assert claim_submission(session, submission_id, "w2", 60) is None
+    assert _rows(world.factory, submission_id) == 0
+    with transaction(world.factory) as session:
+        reset_for_rerun(session, session.get(Submission, submission_id))
+    with transaction(world.factory) as session:
+        assert not write_chunk_results(
+            session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1, 60
+        )
+        assert claim_submission(session, submission_id, "w2", 60) == run + 1
+
+
+def test_a_rerun_keeps_the_old_results_until_it_is_scored(world: World) -> None:
+    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    score_run(world.factory, submission_id, [uniform(0.4)])
+    with transaction(world.factory) as session:
+        reset_for_rerun(session, session.get(Submission, submission_id))
+    board = world.client.get("/api/v1/leaderboard").json()["rows"]
+    assert board[0]["score"] == pytest.approx(0.4)
+    assert _get(world.factory, submission_id).progress == 0
+    score_run(world.factory, submission_id, [uniform(0.6)])
+    assert world.client.get("/api/v1/leaderboard").json()["rows"][0]["score"] == pytest.approx(0.6)
+    with world.session() as session:
+        results = session.scalars(select(Result).where(Result.submission_id == submission_id)).all()
+    # one row per (version, subset, seed): v1.0 and v1.1 on "all", with provenance
+    assert sorted((r.metric_version, r.subset, r.seed) for r in results) == [
+        ("v1.0", "all", 0),
+        ("v1.1", "all", 0),
+    ]
+    assert {(r.engine_version, r.workers, r.tokens) for r in results} == {("test-engine", "test-worker", 40)}
+    assert results[0].duration_s == pytest.approx(3 * 0.5)  # three chunks (16, 16, 8 tokens) of 0.5 s each
+
+
+def test_expired_leases_are_found_and_requeued(world: World) -> None:
+    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    with transaction(world.factory) as session:
+        claim_submission(session, submission_id, "w1", 30)
+    with world.session() as session:
+        assert expired_leases(session, utc_now()) == []
+        assert expired_leases(session, utc_now() + timedelta(seconds=31)) == [submission_id]
+    with transaction(world.factory) as session:
+        assert requeue(session, submission_id)
+    assert _get(world.factory, submission_id).status == Status.queued
+
+
+def test_submissions_queued_too_long_are_found(world: World) -> None:
+    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    with world.session() as session:
+        assert stale_queued(session, utc_now() - timedelta(minutes=5)) == []
+        assert stale_queued(session, utc_now() + timedelta(seconds=1)) == [submission_id]
+    with transaction(world.factory) as session:
+        claim_submission(session, submission_id, "w1", 30)
+    with world.session() as session:
+        assert stale_queued(session, utc_now() + timedelta(seconds=1)) == []

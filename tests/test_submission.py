@@ -1,0 +1,257 @@
+"""Submission loading: JSON and NAVSIM pickles (every protocol, compressed or not), and every refusal."""
+
+from __future__ import annotations
+
+import json
+import lzma
+import pickle
+import sys
+import types
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from scorer.submission import (
+    Submission,
+    SubmissionError,
+    SubmissionMetadata,
+    coverage_problems,
+    dump_submission_json,
+    load_submission,
+    validate_submission,
+)
+
+TOKENS = ["a1", "b2", "c3"]
+
+
+def _poses(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).normal(size=(8, 3))
+
+
+def _document(**changes: object) -> dict[str, object]:
+    document: dict[str, object] = {
+        "format": "navsim-lb/submission",
+        "version": 1,
+        "team_name": "team",
+        "method": "method",
+        "trajectory_sampling": {"time_horizon": 4.0, "interval_length": 0.5},
+        "predictions": {token: _poses(i).tolist() for i, token in enumerate(TOKENS)},
+    }
+    document.update(changes)
+    return document
+
+
+def _problems(data: bytes) -> list[tuple[str | None, str | None, str]]:
+    with pytest.raises(SubmissionError) as error:
+        load_submission(data, "upload.json")
+    return [(p.token, p.field, p.message) for p in error.value.problems]
+
+
+def test_json_round_trip_is_exact() -> None:
+    submission = load_submission(json.dumps(_document()).encode())
+    assert submission.metadata.method == "method"
+    assert list(submission.seeds[0]) == TOKENS
+    np.testing.assert_array_equal(submission.seeds[0]["b2"], _poses(1))
+    again = load_submission(dump_submission_json(submission))
+    assert list(again.seeds[0]) == TOKENS
+    assert all(np.array_equal(again.seeds[0][t], submission.seeds[0][t]) for t in TOKENS)
+    assert again.metadata == submission.metadata
+
+
+def test_json_multi_seed() -> None:
+    seeds = [{t: _poses(i + 10 * s).tolist() for i, t in enumerate(TOKENS)} for s in range(3)]
+    submission = load_submission(json.dumps(_document(predictions=seeds)).encode())
+    assert len(submission.seeds) == 3
+    np.testing.assert_array_equal(submission.seeds[2]["a1"], _poses(20))
+    assert len(load_submission(dump_submission_json(submission)).seeds) == 3
+
+
+def test_json_problems_name_token_and_field() -> None:
+    predictions = {
+        "a1": _poses(0).tolist()[:7],
+        "b2": [[1.0, 2.0, "x"]] * 8,
+        "c3": _poses(2).tolist(),
+    }
+    found = _problems(json.dumps(_document(predictions=predictions, format="other", extra=1)).encode())
+    assert (None, "format", "must be 'navsim-lb/submission', got 'other'") in found
+    assert (None, "extra", "unknown field") in found
+    assert ("a1", "predictions['a1']", "expected 8 poses of [x, y, heading], got shape (7, 3)") in found
+    assert any(token == "b2" and "numbers" in message for token, _, message in found)
+
+
+def test_json_non_finite_values_and_duplicates_are_refused() -> None:
+    document = _document()
+    document["predictions"]["b2"][0][0] = float("nan")  # type: ignore[index]
+    text = json.dumps(document)
+    assert _problems(text.encode()) == [("b2", "predictions['b2'][0][0]", "values must be finite (no NaN or infinity)")]
+    row = "[[1e400, 0.0, 0.0]" + ", [0.0, 0.0, 0.0]" * 7 + "]"
+    text = json.dumps(_document(predictions={})).replace('"predictions": {}', f'"predictions": {{"a1": {row}}}')
+    assert _problems(text.encode()) == [("a1", "predictions['a1'][0][0]", "values must be finite (no NaN or infinity)")]
+    text = '{"format": "navsim-lb/submission", "version": 1, "predictions": {"a1": %s, "a1": %s}}' % (
+        json.dumps(_poses(0).tolist()),
+        json.dumps(_poses(1).tolist()),
+    )
+    assert _problems(text.encode()) == [("a1", "predictions", "token appears more than once")]
+
+
+def test_wrong_sampling_is_refused() -> None:
+    document = _document(trajectory_sampling={"time_horizon": 4.0, "interval_length": 0.1})
+    ((token, field, message),) = _problems(json.dumps(document).encode())
+    assert field == "trajectory_sampling" and "interval_length 0.5" in message
+
+
+def test_garbage_is_refused_with_a_message() -> None:
+    for data in (b"", b"not json", b"[1, 2]", lzma.compress(b"{")[:-5], b"\x80\x04garbage"):
+        with pytest.raises(SubmissionError) as error:
+            load_submission(data, "x")
+        assert error.value.problems and error.value.problems[0].message
+
+
+def test_problem_list_is_capped() -> None:
+    predictions = {f"t{i}": [[0.0]] for i in range(200)}
+    found = _problems(json.dumps(_document(predictions=predictions)).encode())
+    assert len(found) == 51 and found[-1] == (None, None, "150 more problem(s) not listed")
+
+
+def test_validate_against_split() -> None:
+    submission = load_submission(json.dumps(_document()).encode())
+    assert validate_submission(submission, TOKENS) == []
+    problems = validate_submission(submission, ["a1", "b2", "zz"])
+    assert [(p.token, p.message) for p in problems] == [
+        ("zz", "token of the split is missing"),
+        ("c3", "token is not in the split"),
+    ]
+
+
+# NAVSIM pickles: stand-in classes registered under the devkit's module paths ---------------------
+
+
+@dataclass
+class TrajectorySampling:
+    num_poses: int = 8
+    time_horizon: float = 4.0
+    interval_length: float = 0.5
+
+
+@dataclass
+class Trajectory:
+    poses: np.ndarray
+    trajectory_sampling: TrajectorySampling
+
+
+@pytest.fixture
+def devkit_classes() -> Iterator[None]:
+    """Make pickle write the devkit's module paths for the stand-in classes."""
+    modules = {
+        "navsim.common.dataclasses": Trajectory,
+        "nuplan.planning.simulation.trajectory.trajectory_sampling": TrajectorySampling,
+    }
+    packages = {".".join(name.split(".")[:i]) for name in modules for i in range(1, name.count(".") + 2)}
+    saved = {name: sys.modules.get(name) for name in packages}
+    for name in packages:
+        sys.modules[name] = types.ModuleType(name)
+    for name, cls in modules.items():
+        setattr(sys.modules[name], cls.__name__, cls)
+        cls.__module__ = name
+        cls.__qualname__ = cls.__name__
+    yield
+    for name, module in saved.items():
+        if module is None:
+            sys.modules.pop(name, None)
+        else:
+            sys.modules[name] = module
+
+
+def _navsim_pickle(predictions: object, protocol: int, **metadata: object) -> bytes:
+    document = {
+        "team_name": "<a href=https://example.org/paper>Great Planner</a>",
+        "authors": "A. Author",
+        "email": "a@example.org",
+        "institution": "Uni",
+        "country / region": "Nowhere",
+        "predictions": predictions,
+    }
+    document.update(metadata)
+    return pickle.dumps(document, protocol=protocol)
+
+
+@pytest.mark.parametrize("protocol", [2, 3, 4, 5])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_navsim_pickle_every_protocol(devkit_classes: None, protocol: int, dtype: type) -> None:
+    sampling = TrajectorySampling()
+    seeds = [{t: Trajectory(_poses(i + s).astype(dtype), sampling) for i, t in enumerate(TOKENS)} for s in range(2)]
+    submission = load_submission(_navsim_pickle(seeds, protocol), "submission.pkl")
+    assert len(submission.seeds) == 2
+    np.testing.assert_array_equal(submission.seeds[1]["c3"], _poses(3).astype(dtype).astype(np.float64))
+    assert submission.metadata.method == "Great Planner"
+    assert submission.metadata.tech_report_url == "https://example.org/paper"
+    assert submission.metadata.country == "Nowhere"
+
+
+def test_navsim_v10_pickle_xz_and_fortran_arrays(devkit_classes: None) -> None:
+    sampling = TrajectorySampling()
+    predictions = {t: Trajectory(np.asfortranarray(_poses(i)), sampling) for i, t in enumerate(TOKENS)}
+    data = lzma.compress(_navsim_pickle(predictions, 4), preset=0)
+    submission = load_submission(data, "submission.pkl")
+    np.testing.assert_array_equal(submission.seeds[0]["a1"], _poses(0))
+
+
+def test_navsim_pickle_problems(devkit_classes: None) -> None:
+    sampling = TrajectorySampling()
+    predictions = {
+        "a1": Trajectory(np.zeros((6, 3)), sampling),
+        "b2": Trajectory(np.zeros((8, 3)), TrajectorySampling(num_poses=40, interval_length=0.1)),
+        "c3": Trajectory(np.full((8, 3), np.inf), sampling),
+    }
+    with pytest.raises(SubmissionError) as error:
+        load_submission(_navsim_pickle(predictions, 4, team_name=["not", "text"]), "s.pkl")
+    found = {(p.token, p.field) for p in error.value.problems}
+    assert {
+        (None, "team_name"),
+        ("a1", "predictions['a1'].poses"),
+        ("b2", "predictions['b2'].trajectory_sampling"),
+        ("c3", "predictions['c3'].poses[0][0]"),
+    } == found
+
+
+class Exploit:
+    def __reduce__(self) -> tuple[object, tuple[str]]:
+        return (print, ("executed",))
+
+
+def test_pickle_with_foreign_globals_is_refused_without_running_them(capsys: pytest.CaptureFixture[str]) -> None:
+    for payload in (pickle.dumps({"predictions": Exploit()}), pickle.dumps({"predictions": {"a": object}})):
+        with pytest.raises(SubmissionError) as error:
+            load_submission(payload, "evil.pkl")
+        assert "which a NAVSIM submission never holds" in str(error.value)
+    assert "executed" not in capsys.readouterr().out
+
+
+def test_pickle_object_arrays_are_refused(devkit_classes: None) -> None:
+    poses = np.empty((8, 3), dtype=object)
+    poses[:] = 0.0
+    data = _navsim_pickle({"a1": Trajectory(poses, TrajectorySampling())}, 4)
+    with pytest.raises(SubmissionError) as error:
+        load_submission(data, "s.pkl")
+    assert "never holds" in str(error.value) or "dtype" in str(error.value)
+
+
+def test_dump_keeps_metadata() -> None:
+    metadata = SubmissionMetadata(team_name="t", method="m", code_url="https://example.org/code")
+    submission = Submission(metadata, ({"a1": _poses(0)},))
+    assert load_submission(dump_submission_json(submission)).metadata == metadata
+
+
+def test_unreadable_file_still_reports_split_coverage() -> None:
+    document = _document(predictions={"a1": [[0.0]], "zz": _poses(0).tolist()})
+    with pytest.raises(SubmissionError) as error:
+        load_submission(json.dumps(document).encode())
+    assert error.value.seed_tokens == [["a1", "zz"]]
+    problems = coverage_problems(error.value.seed_tokens, TOKENS)
+    assert [(p.token, p.message) for p in problems] == [
+        ("b2", "token of the split is missing"),
+        ("c3", "token of the split is missing"),
+        ("zz", "token is not in the split"),
+    ]
