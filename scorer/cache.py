@@ -24,7 +24,7 @@ from scorer import ENGINE_VERSION
 from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.geometry import FloatArray
 from scorer.observation import Observation, observe_scene
-from scorer.pdm_closed import plan_reference
+from scorer.pdm_closed import plan_references
 from scorer.scene import EgoStatus, Scene
 from scorer.versions import MetricVersion
 
@@ -61,8 +61,9 @@ def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, M
     observation = observe_scene(scene)
     frame = scene.current_frame
     caches = {}
-    for version in versions:
-        plan = plan_reference(scene, drivable_map, version.planner)
+    # One PDM-Closed unroll serves every version; only the proposal selection differs.
+    plans = plan_references(scene, drivable_map, [version.planner for version in versions])
+    for version, plan in zip(versions, plans, strict=True):
         caches[version.name] = MetricCache(
             token=scene.token,
             key=CacheKey(scene.content_hash, ENGINE_VERSION, version.name),

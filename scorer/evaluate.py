@@ -16,10 +16,10 @@ import numpy as np
 
 from scorer.cache import MetricCache, build_caches, load_cache, save_cache
 from scorer.geometry import FloatArray
-from scorer.pdm_scorer import score_proposals
+from scorer.pdm_scorer import score_batch
 from scorer.scene import SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
-from scorer.trajectory import agent_reference, initial_state, pdm_reference
+from scorer.trajectory import agent_references, initial_state, pdm_references
 from scorer.versions import METRIC_COLUMNS, MetricVersion, get_version
 
 POSES_SHAPE = (8, 3)
@@ -117,7 +117,7 @@ def _checked_poses(poses: object) -> FloatArray:
     return array
 
 
-def _row(token: str, seed: int | None, scores: object, index: int) -> TokenResult:
+def _row(token: str, seed: int | None, scores: object, index: tuple[int, int]) -> TokenResult:
     metrics = {column: float(getattr(scores, column)[index]) for column in METRIC_COLUMNS}
     return TokenResult(token=token, seed=seed, valid=True, metrics=metrics)
 
@@ -125,35 +125,35 @@ def _row(token: str, seed: int | None, scores: object, index: int) -> TokenResul
 def score_caches(
     caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion, seed: int | None = None
 ) -> list[TokenResult]:
-    """Score one agent trajectory per cache; proposals of all tokens are simulated in one batch."""
+    """Score one agent trajectory per cache: the tokens' PDM and agent proposals go through one batch."""
     if not caches:
         return []
-    references = np.concatenate(
+    initial = np.stack([initial_state(cache.ego) for cache in caches])
+    t0_us = np.array([cache.t0_us for cache in caches], dtype=np.int64)
+    references = np.stack(
         [
-            np.stack([pdm_reference(c.ego, c.t0_us, c.trajectory), agent_reference(c.ego, c.t0_us, p)])
-            for c, p in zip(caches, poses)
-        ]
+            pdm_references(t0_us, np.stack([cache.trajectory for cache in caches])),
+            agent_references(initial, t0_us, np.stack(poses)),
+        ],
+        axis=1,
     )
-    initial = np.repeat(np.stack([initial_state(c.ego) for c in caches]), 2, axis=0)
     try:
-        simulated = simulate(references, initial).reshape(len(caches), 2, *references.shape[1:])
+        simulated = simulate(references.reshape(-1, *references.shape[2:]), np.repeat(initial, 2, axis=0))
+        scores = score_batch(
+            simulated.reshape(references.shape),
+            [cache.observation for cache in caches],
+            [cache.drivable_map for cache in caches],
+            [cache.centerline[:, :2] for cache in caches],
+            [cache.route_lane_ids for cache in caches],
+            version.evaluation,
+        )
     except ValueError:
         if len(caches) == 1:
             raise
         # One diverging trajectory must not fail its neighbours: score them one by one.
         return [result for c, p in zip(caches, poses) for result in _score_one(c, p, version, seed)]
-    results = []
-    for cache, states in zip(caches, simulated):
-        scores = score_proposals(
-            states,
-            cache.observation,
-            cache.drivable_map,
-            cache.centerline[:, :2],
-            cache.route_lane_ids,
-            version.evaluation,
-        )
-        results.append(_row(cache.token, seed, scores, 1))
-    return results
+    # Proposal 0 is the PDM-Closed reference (it sets the progress normaliser); 1 is the agent.
+    return [_row(cache.token, seed, scores, (index, 1)) for index, cache in enumerate(caches)]
 
 
 def _score_one(cache: MetricCache, poses: FloatArray, version: MetricVersion, seed: int | None) -> list[TokenResult]:

@@ -105,7 +105,9 @@ def _fused_multiply_add(
     """Return a * b + c rounded once, as the FMA instruction does, from float64 operations only.
 
     Exact product (Dekker) and exact sum, then the low parts added with rounding to odd, which makes
-    the final rounding correct (Boldo & Melquiond, IEEE Trans. Computers 57(4), 2008).
+    the final rounding correct (Boldo & Melquiond, IEEE Trans. Computers 57(4), 2008). Exact for
+    operands whose product does not underflow (|a|, |b| >= 1e-100 or zero), which covers every
+    coordinate and angle the engine handles.
     """
     product = a * b
     a_high, a_low = _veltkamp_split(a)

@@ -44,20 +44,24 @@ class MetricVersion:
 _V1_0_SCORER = ScorerConfig(ddc_role="multiplier", ddc_window_axis="proposal")
 _V1_1_SCORER = ScorerConfig(ddc_role="weighted", ddc_window_axis="time")
 
+# The devkit v1.0 result CSV column order; v1.1 moves DDC after comfort.
+METRIC_COLUMNS = (
+    "no_at_fault_collisions",
+    "drivable_area_compliance",
+    "driving_direction_compliance",
+    "ego_progress",
+    "time_to_collision_within_bound",
+    "comfort",
+    "score",
+)
+
+
 VERSIONS: dict[str, MetricVersion] = {
     "v1.0": MetricVersion(
         name="v1.0",
         evaluation=_V1_0_SCORER,
         planner=replace(_V1_0_SCORER, progress_distance_threshold=0.1),
-        result_columns=(
-            "no_at_fault_collisions",
-            "drivable_area_compliance",
-            "driving_direction_compliance",
-            "ego_progress",
-            "time_to_collision_within_bound",
-            "comfort",
-            "score",
-        ),
+        result_columns=METRIC_COLUMNS,
     ),
     "v1.1": MetricVersion(
         name="v1.1",
@@ -74,17 +78,6 @@ VERSIONS: dict[str, MetricVersion] = {
         ),
     ),
 }
-
-METRIC_COLUMNS = (
-    "no_at_fault_collisions",
-    "drivable_area_compliance",
-    "driving_direction_compliance",
-    "ego_progress",
-    "time_to_collision_within_bound",
-    "comfort",
-    "score",
-)
-
 
 def get_version(name: str) -> MetricVersion:
     """Return the registered metric version `name`, or raise with the list of known versions."""

@@ -18,6 +18,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 from sqlalchemy.orm import Session, sessionmaker
 
+from scorer.versions import METRIC_COLUMNS
 from server.db import make_engine, make_session_factory, transaction
 from server.main import create_app
 from server.migrate import upgrade
@@ -188,15 +189,6 @@ def phase_row(session: Session, name: str) -> Phase:
     return session.query(Phase).filter_by(name=name).one()
 
 
-METRIC_NAMES = (
-    "no_at_fault_collisions",
-    "drivable_area_compliance",
-    "driving_direction_compliance",
-    "ego_progress",
-    "time_to_collision_within_bound",
-    "comfort",
-    "score",
-)
 
 
 def token_results(scores: dict[str, float | None], seed: int = 0) -> list[object]:
@@ -206,7 +198,7 @@ def token_results(scores: dict[str, float | None], seed: int = 0) -> list[object
     from scorer.evaluate import TokenResult
 
     return [
-        TokenResult(token, seed, True, {name: score for name in METRIC_NAMES})
+        TokenResult(token, seed, True, {name: score for name in METRIC_COLUMNS})
         if score is not None
         else TokenResult(token, seed, False, {}, "poses: non-finite value")
         for token, score in scores.items()

@@ -23,18 +23,12 @@ from scorer.pdm_scorer import (
     score_proposals,
 )
 from scorer.scene import load_scene
-from scorer.versions import get_version
+from scorer.versions import METRIC_COLUMNS, get_version
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 FAMILIES = ("human", "swerve_left", "zigzag", "hard_brake")
 RESULTS = (
-    "no_at_fault_collisions",
-    "drivable_area_compliance",
-    "driving_direction_compliance",
-    "ego_progress",
-    "time_to_collision_within_bound",
-    "comfort",
-    "score",
+    *METRIC_COLUMNS,
     "progress_raw",
     "collision_index",
     "ttc_index",
