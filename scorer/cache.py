@@ -1,7 +1,8 @@
 """The per-scene metric cache: what scoring needs from a scene, built once and kept on disk.
 
-One `.npz` file per (metric version, token) holds numeric arrays only (loaded with
-`allow_pickle=False`, so a cache file can never execute code) and a JSON `meta` entry. A file is
+One `.nlc` file per (metric version, token) holds a JSON header (metadata, and the dtype, shape and
+offset of each array) followed by the arrays' raw bytes: numbers only, so a cache file can never
+execute code, and read in one call (npz spent more time parsing its per-array headers than scoring). A file is
 reused only while its key (scene file hash, engine version, metric version) matches; otherwise it is
 rebuilt. Every scene is built in isolation: PDM-Closed's collided-track list starts empty for each
 scene, unlike the devkit, whose planner instance carries it across the scenes of a worker batch.
@@ -13,7 +14,7 @@ import json
 import os
 import tempfile
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +26,13 @@ from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.geometry import FloatArray
 from scorer.observation import Observation, observe_scene
 from scorer.pdm_closed import plan_references
+from scorer.pdm_scorer import ProposalMeasures, measure_batch
 from scorer.scene import EgoStatus, Scene
+from scorer.simulation import simulate
+from scorer.trajectory import initial_state, pdm_references
 from scorer.versions import MetricVersion
+
+_MEASURES_PREFIX = "reference_"
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,8 @@ class MetricCache:
     idm_target_velocities: FloatArray
     drivable_map: DrivableMap
     observation: Observation
+    # The PDM-Closed proposal simulated and measured (1, 1) once: every submission is scored against it.
+    reference_measures: ProposalMeasures
 
 
 def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, MetricCache]:
@@ -63,7 +71,13 @@ def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, M
     caches = {}
     # One PDM-Closed unroll serves every version; only the proposal selection differs.
     plans = plan_references(scene, drivable_map, [version.planner for version in versions])
+    t0_us = np.array([frame.timestamp_us])
     for version, plan in zip(versions, plans, strict=True):
+        reference = pdm_references(t0_us, plan.trajectory[None])
+        states = simulate(reference, initial_state(frame.ego)[None])
+        measures = measure_batch(
+            states[None], [observation], [drivable_map], [plan.centerline[:, :2]], [plan.route_lane_ids], version.evaluation
+        )
         caches[version.name] = MetricCache(
             token=scene.token,
             key=CacheKey(scene.content_hash, ENGINE_VERSION, version.name),
@@ -76,13 +90,14 @@ def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, M
             idm_target_velocities=np.asarray(plan.idm_target_velocities, dtype=np.float64),
             drivable_map=drivable_map,
             observation=observation,
+            reference_measures=measures,
         )
     return caches
 
 
 def cache_path(cache_dir: Path, version: str, token: str) -> Path:
     """Return where the cache of `token` under `version` is stored."""
-    return Path(cache_dir) / version / f"{token}.npz"
+    return Path(cache_dir) / version / f"{token}.nlc"
 
 
 def _pack_polygons(polygons: Iterable[shapely.Polygon]) -> tuple[FloatArray, np.ndarray]:
@@ -93,9 +108,12 @@ def _pack_polygons(polygons: Iterable[shapely.Polygon]) -> tuple[FloatArray, np.
 
 
 def _unpack_polygons(coords: FloatArray, counts: np.ndarray) -> np.ndarray:
-    ring_index = np.repeat(np.arange(len(counts)), counts)
-    rings = shapely.linearrings(coords, indices=ring_index) if len(counts) else np.empty(0, dtype=object)
-    return np.asarray(shapely.polygons(rings), dtype=object).reshape(len(counts))
+    """Return one single-ring polygon per count, in one call (the fastest way shapely builds many)."""
+    if not len(counts):
+        return np.empty(0, dtype=object)
+    ring_offsets = np.concatenate([[0], np.cumsum(counts)])
+    polygon_offsets = np.arange(len(counts) + 1)
+    return shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_offsets, polygon_offsets))
 
 
 def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
@@ -115,37 +133,62 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
         "object_tokens": list(observation.tokens),
         "object_types": list(observation.object_types),
     }
+    arrays = {
+        "trajectory": cache.trajectory,
+        "centerline": cache.centerline,
+        "idm_target_velocities": cache.idm_target_velocities,
+        "map_coords": map_coords,
+        "map_counts": map_counts,
+        "object_present": observation.present,
+        "object_is_agent": observation.is_agent,
+        "object_first_speed": observation.first_speed,
+        "object_coords": object_coords,
+        "object_counts": object_counts,
+        **{_MEASURES_PREFIX + f.name: getattr(cache.reference_measures, f.name) for f in fields(ProposalMeasures)},
+    }
     path = cache_path(cache_dir, cache.key.metric_version, cache.token)
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
-        np.savez(
-            handle,
-            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
-            trajectory=cache.trajectory,
-            centerline=cache.centerline,
-            idm_target_velocities=cache.idm_target_velocities,
-            map_coords=map_coords,
-            map_counts=map_counts,
-            object_present=observation.present,
-            object_is_agent=observation.is_agent,
-            object_first_speed=observation.first_speed,
-            object_coords=object_coords,
-            object_counts=object_counts,
-        )
+        handle.write(_pack(meta, arrays))
     os.replace(handle.name, path)
     return path
+
+
+def _pack(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> bytes:
+    """Return header length (8 bytes, little endian), JSON header, then each array's C-order bytes."""
+    layout, blobs, offset = {}, [], 0
+    for name, array in arrays.items():
+        blob = np.ascontiguousarray(array).tobytes()
+        layout[name] = [np.asarray(array).dtype.str, list(np.shape(array)), offset]
+        blobs.append(blob)
+        offset += len(blob)
+    header = json.dumps({"meta": meta, "arrays": layout}).encode()
+    return len(header).to_bytes(8, "little") + header + b"".join(blobs)
+
+
+def _unpack(data: bytes | bytearray) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Invert `_pack`; raise ValueError on anything malformed."""
+    size = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + size])
+    body = memoryview(data)[8 + size :]
+    arrays = {}
+    for name, (dtype, shape, offset) in header["arrays"].items():
+        dtype = np.dtype(dtype)
+        if dtype.hasobject:
+            raise ValueError(f"{name}: object arrays are not allowed")
+        count = int(np.prod(shape))
+        arrays[name] = np.frombuffer(body, dtype=dtype, count=count, offset=offset).reshape(shape)
+    return header["meta"], arrays
 
 
 def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> MetricCache | None:
     """Return the stored cache of `token`, or None when it is missing or was built from other inputs."""
     path = cache_path(cache_dir, version, token)
     try:
-        with np.load(path, allow_pickle=False) as stored:
-            arrays = {name: stored[name] for name in stored.files}
-    except (OSError, ValueError, KeyError):
+        meta, arrays = _unpack(bytearray(path.read_bytes()))  # writable arrays, as np.load gave
+        key = CacheKey(**meta["key"])
+    except (OSError, ValueError, KeyError, TypeError):
         return None  # missing, truncated or foreign: rebuild
-    meta: dict[str, Any] = json.loads(arrays["meta"].tobytes())
-    key = CacheKey(**meta["key"])
     if key != CacheKey(scene_hash, ENGINE_VERSION, version):
         return None
     present = arrays["object_present"]
@@ -173,5 +216,8 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
             first_speed=arrays["object_first_speed"],
             present=present,
             polygons=polygons,
+        ),
+        reference_measures=ProposalMeasures(
+            **{f.name: arrays[_MEASURES_PREFIX + f.name] for f in fields(ProposalMeasures)}
         ),
     )

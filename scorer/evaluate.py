@@ -16,10 +16,10 @@ import numpy as np
 
 from scorer.cache import MetricCache, build_caches, load_cache, save_cache
 from scorer.geometry import FloatArray
-from scorer.pdm_scorer import score_batch
+from scorer.pdm_scorer import join_measures, measure_batch, score_measures
 from scorer.scene import SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
-from scorer.trajectory import agent_references, initial_state, pdm_references
+from scorer.trajectory import agent_references, initial_state
 from scorer.versions import METRIC_COLUMNS, MetricVersion, get_version
 
 POSES_SHAPE = (8, 3)
@@ -125,22 +125,16 @@ def _row(token: str, seed: int | None, scores: object, index: tuple[int, int]) -
 def score_caches(
     caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion, seed: int | None = None
 ) -> list[TokenResult]:
-    """Score one agent trajectory per cache: the tokens' PDM and agent proposals go through one batch."""
+    """Score one agent trajectory per cache, all tokens in one batch, against the cached PDM-Closed measures."""
     if not caches:
         return []
     initial = np.stack([initial_state(cache.ego) for cache in caches])
     t0_us = np.array([cache.t0_us for cache in caches], dtype=np.int64)
-    references = np.stack(
-        [
-            pdm_references(t0_us, np.stack([cache.trajectory for cache in caches])),
-            agent_references(initial, t0_us, np.stack(poses)),
-        ],
-        axis=1,
-    )
+    references = agent_references(initial, t0_us, np.stack(poses))
     try:
-        simulated = simulate(references.reshape(-1, *references.shape[2:]), np.repeat(initial, 2, axis=0))
-        scores = score_batch(
-            simulated.reshape(references.shape),
+        states = simulate(references, initial)
+        agent = measure_batch(
+            states[:, None],
             [cache.observation for cache in caches],
             [cache.drivable_map for cache in caches],
             [cache.centerline[:, :2] for cache in caches],
@@ -152,7 +146,9 @@ def score_caches(
             raise
         # One diverging trajectory must not fail its neighbours: score them one by one.
         return [result for c, p in zip(caches, poses) for result in _score_one(c, p, version, seed)]
-    # Proposal 0 is the PDM-Closed reference (it sets the progress normaliser); 1 is the agent.
+    # Proposal 0 is PDM-Closed (it sets the progress normaliser, as in the devkit); 1 is the agent.
+    reference = join_measures([cache.reference_measures for cache in caches], axis=0)
+    scores = score_measures(join_measures([reference, agent]), version.evaluation)
     return [_row(cache.token, seed, scores, (index, 1)) for index, cache in enumerate(caches)]
 
 

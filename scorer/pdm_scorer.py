@@ -89,11 +89,11 @@ class ProposalMeasures:
     ego_areas: npt.NDArray[np.bool_]  # (B, P, 41, 3)
 
 
-def join_measures(parts: Sequence[ProposalMeasures]) -> ProposalMeasures:
-    """Return the measures of the proposals of `parts` side by side (concatenated along the proposal axis)."""
+def join_measures(parts: Sequence[ProposalMeasures], axis: int = 1) -> ProposalMeasures:
+    """Return the measures of `parts` side by side: as more proposals (axis 1) or more tokens (axis 0)."""
     return ProposalMeasures(
         **{
-            field.name: np.concatenate([getattr(part, field.name) for part in parts], axis=1)
+            field.name: np.concatenate([getattr(part, field.name) for part in parts], axis=axis)
             for field in fields(ProposalMeasures)
         }
     )
