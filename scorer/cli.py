@@ -11,6 +11,7 @@ from typing import Annotated, Callable
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
@@ -46,7 +47,8 @@ def progress_bar(description: str, total: int) -> Iterator[Callable[[int], None]
 
 
 def fail(message: str) -> typer.Exit:
-    console.print(f"[red]error:[/red] {message}")
+    """Print `message` (plain text, never markup: it may quote user data) and return the exit to raise."""
+    console.print(f"[red]error:[/red] {escape(message)}")
     return typer.Exit(code=2)
 
 
@@ -100,7 +102,7 @@ def cache(
     with progress_bar(f"caching {', '.join(versions)}", total) as advance:
         failures = build_split_cache(split, cache_dir or default_cache_dir(split), versions, workers, advance)
     for name, error in failures.items():
-        console.print(f"[red]{name}[/red]: {error}")
+        console.print(f"[red]{escape(name)}[/red]: {escape(error)}")
     console.print(f"cached {total - len(failures)} of {total} scenes")
     if failures:
         raise typer.Exit(code=1)
@@ -129,7 +131,7 @@ def score(
     except SubmissionError as error:
         raise fail(f"{submission}: {error}") from None
     for problem in validate_submission(loaded, tokens):
-        console.print(f"[yellow]warning:[/yellow] {problem}")
+        console.print(f"[yellow]warning:[/yellow] {escape(str(problem))}")
     results = []
     with progress_bar(f"scoring {version}", len(tokens) * len(loaded.seeds)) as advance:
         for index, predictions in enumerate(loaded.seeds):

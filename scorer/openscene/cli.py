@@ -9,6 +9,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from scorer.cli import fail, console, default_cache_dir, progress_bar
@@ -58,7 +59,7 @@ def import_openscene(
         f"{report['scenes']} scenes in {out / 'scenes'}"
     )
     for failure in report["failed_logs"]:
-        console.print(f"[red]{failure['log']}[/red]: {failure['reason']}")
+        console.print(f"[red]{escape(failure['log'])}[/red]: {escape(failure['reason'])}")
     reasons = Counter(entry["reason"] for entry in report["skipped"])
     if reasons:
         table = Table(title="skipped tokens by reason")

@@ -1,0 +1,80 @@
+"""The engine's command line end to end: synth, baseline, cache, score (CSV and summary), and its errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from navsim_lb.cli import app
+from scorer.evaluate import TokenResult, score_tokens
+from scorer.report import summary_rows
+from scorer.submission import load_submission
+from scorer.versions import VERSIONS
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def split(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("cli") / "split"
+    result = runner.invoke(app, ["synth", str(out), "--scenes", "6", "--seed", "4"])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_synth_refuses_a_used_directory(split: Path) -> None:
+    result = runner.invoke(app, ["synth", str(split), "--scenes", "2"])
+    assert result.exit_code == 2 and "choose an empty directory" in result.output
+
+
+def test_baseline_cache_and_score_write_the_devkit_csv(split: Path, tmp_path: Path) -> None:
+    submission = tmp_path / "human.json"
+    assert runner.invoke(app, ["baseline", "human", str(split), "--out", str(submission)]).exit_code == 0
+    cache_dir = tmp_path / "cache"
+    result = runner.invoke(app, ["cache", str(split), "--cache-dir", str(cache_dir)])
+    assert result.exit_code == 0 and "cached 6 of 6 scenes" in result.output
+    csv = tmp_path / "results.csv"
+    result = runner.invoke(
+        app, ["score", str(split), str(submission), "--version", "v1.0", "--out", str(csv), "--cache-dir", str(cache_dir)]
+    )
+    assert result.exit_code == 0, result.output
+    table = pd.read_csv(csv, index_col=0)
+    assert list(table.columns) == ["token", "valid", *VERSIONS["v1.0"].result_columns, "error"]
+    assert table["token"].iloc[-1] == "average" and len(table) == 7
+    predictions = load_submission(submission.read_bytes()).seeds[0]
+    direct = {r.token: r.metrics["score"] for r in score_tokens(split, cache_dir, predictions, "v1.0")}
+    scores = dict(zip(table["token"].iloc[:-1], table["score"].iloc[:-1], strict=True))
+    assert scores == pytest.approx(direct, abs=0, rel=1e-15)
+    assert table["score"].iloc[-1] == pytest.approx(np.mean(list(direct.values())), rel=1e-12)
+
+
+def test_score_explains_a_broken_submission(split: Path, tmp_path: Path) -> None:
+    broken = tmp_path / "broken.json"
+    broken.write_text(json.dumps({"format": "navsim-lb/submission", "version": 1, "predictions": {"x": [[0, 0]]}}))
+    result = runner.invoke(app, ["score", str(split), str(broken), "--cache-dir", str(tmp_path / "c")])
+    assert result.exit_code == 2
+    assert "expected 8 poses of [x, y, heading], got shape (1, 2)" in result.output
+    result = runner.invoke(app, ["score", str(split), str(broken), "--version", "v9"])
+    assert result.exit_code == 2 and "unknown version 'v9'" in result.output
+
+
+def test_multi_seed_summary_has_per_seed_rows_and_mean_std_max() -> None:
+    def rows(seed: int, score: float, valid: bool = True) -> list[TokenResult]:
+        metrics = {column: score for column in VERSIONS["v1.1"].result_columns}
+        return [
+            TokenResult("a", seed, True, metrics),
+            TokenResult("b", seed, valid, metrics if valid else {}, None if valid else "broken"),
+        ]
+
+    table = summary_rows(rows(0, 0.5) + rows(1, 0.9, valid=False), VERSIONS["v1.1"])
+    header, *body = table
+    score = header.index("score")
+    assert [row[0] for row in body] == ["0", "1", "mean", "std", "max"]
+    # Seed 1 has an unscored token: it counts 0 in the mean and is reported.
+    assert body[1][score] == "0.450000" and body[1][header.index("unscored")] == "1"
+    assert body[2][score] == "0.475000" and body[3][score] == "0.025000" and body[4][score] == "0.500000"
