@@ -108,7 +108,7 @@ def _pack_polygons(polygons: Iterable[shapely.Polygon]) -> tuple[FloatArray, np.
 
 
 def _unpack_polygons(coords: FloatArray, counts: np.ndarray) -> np.ndarray:
-    """Return one single-ring polygon per count, in one call (the fastest way shapely builds many)."""
+    """Return one single-ring polygon per count, in one call (faster than rings, then polygons)."""
     if not len(counts):
         return np.empty(0, dtype=object)
     ring_offsets = np.concatenate([[0], np.cumsum(counts)])
@@ -119,7 +119,6 @@ def _unpack_polygons(coords: FloatArray, counts: np.ndarray) -> np.ndarray:
 def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
     """Write `cache` atomically (temporary file, then rename) and return its path."""
     observation, drivable_map = cache.observation, cache.drivable_map
-    object_coords, object_counts = _pack_polygons(observation.polygons[observation.present])
     map_coords, map_counts = _pack_polygons(drivable_map.polygons)
     meta = {
         "token": cache.token,
@@ -142,8 +141,7 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
         "object_present": observation.present,
         "object_is_agent": observation.is_agent,
         "object_first_speed": observation.first_speed,
-        "object_coords": object_coords,
-        "object_counts": object_counts,
+        "object_corners": observation.corners[observation.present],
         **{_MEASURES_PREFIX + f.name: getattr(cache.reference_measures, f.name) for f in fields(ProposalMeasures)},
     }
     path = cache_path(cache_dir, cache.key.metric_version, cache.token)
@@ -192,8 +190,8 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
     if key != CacheKey(scene_hash, ENGINE_VERSION, version):
         return None
     present = arrays["object_present"]
-    polygons = np.full(present.shape, None, dtype=object)
-    polygons[present] = _unpack_polygons(arrays["object_coords"], arrays["object_counts"])
+    corners = np.full((*present.shape, 4, 2), np.nan)
+    corners[present] = arrays["object_corners"]
     return MetricCache(
         token=meta["token"],
         key=key,
@@ -215,7 +213,7 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
             is_agent=arrays["object_is_agent"],
             first_speed=arrays["object_first_speed"],
             present=present,
-            polygons=polygons,
+            corners=corners,
         ),
         reference_measures=ProposalMeasures(
             **{f.name: arrays[_MEASURES_PREFIX + f.name] for f in fields(ProposalMeasures)}

@@ -36,30 +36,30 @@ RED_LIGHT_TOKEN = "red_light"
 
 @dataclass(frozen=True, eq=False)
 class Observation:
-    """Occupancy maps (T time indices x n objects) and each object's first appearance."""
+    """Occupancy maps (T time indices x n objects) and each object's first appearance.
+
+    Objects are boxes, held as corners: shapely polygons cost more to build than most scoring steps,
+    and the scorer needs them only for the few pairs its exact box tests cannot decide.
+    """
 
     tokens: tuple[str, ...]  # n track tokens, first-appearance order
     object_types: tuple[str, ...]  # nuPlan type at first appearance, e.g. "VEHICLE", "TRAFFIC_CONE"
     is_agent: BoolArray  # (n,) vehicle, pedestrian or bicycle at first appearance (nuPlan `Agent`)
     first_speed: FloatArray  # (n,) |velocity| at first appearance (0 for static objects)
     present: BoolArray  # (T, n) the object is in occupancy map k
-    polygons: npt.NDArray[np.object_]  # (T, n) box polygons (ring FL, RL, RR, FR), None where absent
+    corners: FloatArray  # (T, n, 4, 2) box corners FL, RL, RR, FR (the devkit's ring order); NaN where absent
+
+    @cached_property
+    def polygons(self) -> npt.NDArray[np.object_]:
+        """Return the box polygons (T, n), None where absent."""
+        polygons = np.full(self.present.shape, None, dtype=object)
+        polygons[self.present] = shapely.polygons(self.corners[self.present])
+        return polygons
 
     @cached_property
     def bounds(self) -> FloatArray:
-        """Return the polygons' bounding boxes (T, n, 4) xmin, ymin, xmax, ymax; NaN where absent."""
-        return shapely.bounds(self.polygons)
-
-    @cached_property
-    def corners(self) -> FloatArray:
-        """Return the 4 ring corners (T, n, 4, 2) of box polygons; NaN where absent or not a 4-corner ring."""
-        corners = np.full((*self.polygons.shape, 4, 2), np.nan)
-        rings = shapely.get_exterior_ring(self.polygons[self.present])
-        boxes = shapely.get_num_coordinates(rings) == 5
-        coords = shapely.get_coordinates(rings[boxes]).reshape(-1, 5, 2)[:, :4]
-        present = np.argwhere(self.present)[boxes]
-        corners[present[:, 0], present[:, 1]] = coords
-        return corners
+        """Return the boxes' bounding boxes (T, n, 4) xmin, ymin, xmax, ymax; NaN where absent."""
+        return np.concatenate([self.corners.min(axis=-2), self.corners.max(axis=-2)], axis=-1)
 
     @cached_property
     def extent(self) -> FloatArray:
@@ -76,13 +76,23 @@ class Observation:
         return np.array([RED_LIGHT_TOKEN in token for token in self.tokens], dtype=bool)
 
 
+def polygon_corners(polygons: npt.NDArray[np.object_]) -> FloatArray:
+    """Return the 4 ring corners (..., 4, 2) of box polygons (...); NaN where None. Raise on other shapes."""
+    corners = np.full((*polygons.shape, 4, 2), np.nan)
+    present = polygons != None  # noqa: E711 - elementwise test of an object array
+    rings = shapely.get_exterior_ring(polygons[present])
+    if not (shapely.get_num_coordinates(rings) == 5).all():
+        raise ValueError("observation objects must be 4-corner boxes")
+    corners[present] = shapely.get_coordinates(rings).reshape(-1, 5, 2)[:, :4]
+    return corners
+
+
 @dataclass(frozen=True, eq=False)
 class ObservationBatch:
     """The observations of several scene tokens side by side: object j of token b is column start[b] + j."""
 
-    polygons: npt.NDArray[np.object_]  # (T, N)
     bounds: FloatArray  # (T, N, 4), NaN where absent
-    corners: FloatArray  # (T, N, 4, 2) box corners, NaN where absent or not a box
+    corners: FloatArray  # (T, N, 4, 2) box corners, NaN where absent
     extent: FloatArray  # (N, 4) over all steps
     is_agent: BoolArray  # (N,)
     first_speed: FloatArray  # (N,)
@@ -99,7 +109,6 @@ class ObservationBatch:
             return np.concatenate([getattr(observation, name) for observation in observations], axis=axis)
 
         return cls(
-            polygons=joined("polygons", axis=1),
             bounds=joined("bounds", axis=1),
             corners=joined("corners", axis=1),
             extent=joined("extent").reshape(-1, 4),
@@ -144,15 +153,14 @@ def observe_scene(scene: Scene) -> Observation:
     half_length = boxes[first_rows, 3] / 2.0
     half_width = boxes[first_rows, 4] / 2.0
     corners = box_corners(states[..., 0], states[..., 1], states[..., 2], half_length, half_width)
-    polygons = np.full(present.shape, None, dtype=object)
-    polygons[present] = shapely.polygons(corners[present])
+    corners[~present] = np.nan
     return Observation(
         tokens=tuple(tracks[first_rows].tolist()),
         object_types=tuple(category.upper() for category in categories[first_rows]),
         is_agent=is_agent,
         first_speed=np.where(is_agent, np.hypot(*velocities[first_rows].T), 0.0),
         present=present,
-        polygons=polygons,
+        corners=corners,
     )
 
 

@@ -27,7 +27,7 @@ from scorer.geometry import (
     ego_center,
     normalize_angle,
 )
-from scorer.observation import Observation
+from scorer.observation import Observation, polygon_corners
 from scorer.scene import AGENT_CATEGORIES, Lane, Scene
 
 BoolArray = npt.NDArray[np.bool_]
@@ -152,5 +152,5 @@ def scoring_observation(observation: PlannerObservation) -> Observation:
         is_agent=observation.is_agent[kept],
         first_speed=observation.speeds[kept],
         present=np.ones((SCORING_STEPS, len(kept)), dtype=bool),
-        polygons=observation.polygons[time_to_map][:, kept],
+        corners=polygon_corners(observation.polygons[time_to_map][:, kept]),
     )

@@ -54,11 +54,9 @@ def track(
 
 def observe(*tracks: tuple) -> Observation:
     """Return an observation in which every object is present at all 51 steps."""
-    polygons = np.empty((OBSERVATION_STEPS, len(tracks)), dtype=object)
+    corners = np.empty((OBSERVATION_STEPS, len(tracks), 4, 2))
     for index, (_, _, xs, y, _, length, width) in enumerate(tracks):
-        polygons[:, index] = shapely.polygons(
-            box_corners(xs, np.full_like(xs, y), 0.0, length / 2.0, width / 2.0)
-        )
+        corners[:, index] = box_corners(xs, np.full_like(xs, y), 0.0, length / 2.0, width / 2.0)
     is_agent = np.array(
         [category in ("vehicle", "pedestrian", "bicycle") for _, category, *_ in tracks], bool
     )
@@ -68,7 +66,7 @@ def observe(*tracks: tuple) -> Observation:
         is_agent=is_agent,
         first_speed=np.array([speed for *_, speed, _, _ in tracks], dtype=np.float64),
         present=np.ones((OBSERVATION_STEPS, len(tracks)), dtype=bool),
-        polygons=polygons,
+        corners=corners,
     )
 
 

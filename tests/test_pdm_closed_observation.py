@@ -134,7 +134,7 @@ def test_the_scoring_view_has_51_steps_reading_map_k_half_and_leaves_out_collide
     assert scoring.is_agent.tolist() == [False, True] and scoring.first_speed.tolist() == [0.0, 5.0]
     assert scoring.present.shape == (51, 2) and scoring.present.all()
     for k in (0, 1, 2, 7, 49, 50):
-        assert scoring.polygons[k, 1] is observation.polygons[k // 2, 2]
+        assert shapely.equals_exact(scoring.polygons[k, 1], observation.polygons[k // 2, 2], tolerance=0.0)
 
 
 def test_without_objects_or_map_polygons_the_proposals_drive_free() -> None:

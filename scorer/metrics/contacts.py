@@ -32,8 +32,8 @@ class Contacts:
     row: IntArray  # (K,) proposal row
     step: IntArray  # (K,) box index along the row's second axis
     obj: IntArray  # (K,) object column in the observation batch
-    polygons: npt.NDArray[np.object_]  # (K,) the object's polygon in the queried map
-    corners: FloatArray  # (K, 4, 2) its box corners (NaN if not a box)
+    polygons: npt.NDArray[np.object_]  # (K,) the object's box polygon in the queried map
+    corners: FloatArray  # (K, 4, 2) its box corners
 
 
 def find_contacts(
@@ -56,11 +56,14 @@ def find_contacts(
             row=pair, step=step, obj=pair, polygons=np.empty(0, dtype=object), corners=np.empty((0, 4, 2))
         )
     row, obj = rows[pair], objects[pair]
-    polygons = observations.polygons[map_index[step], obj]
     object_corners = observations.corners[map_index[step], obj]
-    hit = _boxes_meet(corners[row, step], object_corners, polygons)
+    hit = _boxes_meet(corners[row, step], object_corners)
     return Contacts(
-        row=row[hit], step=step[hit], obj=obj[hit], polygons=polygons[hit], corners=object_corners[hit]
+        row=row[hit],
+        step=step[hit],
+        obj=obj[hit],
+        polygons=shapely.polygons(object_corners[hit]),
+        corners=object_corners[hit],
     )
 
 
@@ -73,15 +76,15 @@ def _exact_pairs(ego_corners: FloatArray, object_corners: FloatArray) -> BoolArr
     return valid
 
 
-def _boxes_meet(
-    ego_corners: FloatArray, object_corners: FloatArray, polygons: npt.NDArray[np.object_]
-) -> BoolArray:
-    """Return whether ego boxes (K, 4, 2) meet the objects' polygons (exact box test, else shapely, whose
-    polygon from the 4 corners is the devkit's ring FL, RL, RR, FR, FL)."""
+def _boxes_meet(ego_corners: FloatArray, object_corners: FloatArray) -> BoolArray:
+    """Return whether ego boxes (K, 4, 2) meet object boxes (exact box test, else shapely, whose polygon
+    from the 4 corners is the devkit's ring FL, RL, RR, FR, FL)."""
     exact = _exact_pairs(ego_corners, object_corners)
-    meet = np.empty(len(polygons), dtype=bool)
+    meet = np.empty(len(object_corners), dtype=bool)
     meet[exact] = quads_intersect(ego_corners[exact], object_corners[exact])
-    meet[~exact] = shapely.intersects(shapely.polygons(ego_corners[~exact]), polygons[~exact])
+    meet[~exact] = shapely.intersects(
+        shapely.polygons(ego_corners[~exact]), shapely.polygons(object_corners[~exact])
+    )
     return meet
 
 
