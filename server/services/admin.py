@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 
 from server.models import ApiToken, AuditEntry, Phase, Rescore, Status, Submission, Summary, Team
 from server.services.errors import Conflict, NotFound
-from server.services.leaderboard import leaderboard, rank_change_report, subscore_columns
+from server.services.leaderboard import leaderboard, phase_summaries, rank_change_report, subscore_columns
 from server.services.scoring import cancel, reset_for_rerun
 from server.services.submissions import get_submission
 
@@ -168,12 +168,7 @@ def export_rows(session: Session, phase: Phase, version: str, subset: str) -> li
         select(Summary, Submission, Team.name)
         .join(Submission, Summary.submission_id == Submission.id)
         .join(Team, Team.id == Submission.team_id)
-        .where(
-            Summary.metric_version == version,
-            Summary.subset == subset,
-            Submission.split_id == phase.split_id,
-            or_(Submission.phase_id == phase.id, Submission.is_baseline.is_(True)),
-        )
+        .where(*phase_summaries(phase, version, subset))
         .order_by(Submission.id)
     )
     return [

@@ -161,6 +161,16 @@ def _row(entry: Any, columns: tuple[str, ...]) -> dict[str, Any]:
     }
 
 
+def phase_summaries(phase: Phase, version: str, subset: str) -> tuple[Any, ...]:
+    """Return the conditions selecting a phase's summaries for (version, subset): its entries and the split's baselines."""
+    return (
+        Summary.metric_version == version,
+        Summary.subset == subset,
+        Submission.split_id == phase.split_id,
+        or_(Submission.phase_id == phase.id, Submission.is_baseline.is_(True)),
+    )
+
+
 def _entries(session: Session, phase: Phase, version: str, subset: str) -> Sequence[Any]:
     """Return the visible entries of a phase, best first: per team its selected, else best, submission; baselines."""
     # Each baseline is its own entry: partition it by its negated id, which no team id can equal.
@@ -187,10 +197,7 @@ def _entries(session: Session, phase: Phase, version: str, subset: str) -> Seque
         .join(Submission, Summary.submission_id == Submission.id)
         .join(Team, Team.id == Submission.team_id)
         .where(
-            Summary.metric_version == version,
-            Summary.subset == subset,
-            Submission.split_id == phase.split_id,
-            or_(Submission.phase_id == phase.id, Submission.is_baseline.is_(True)),
+            *phase_summaries(phase, version, subset),
             Submission.hidden.is_(False),
             Submission.admin_hidden.is_(False),
             Submission.disqualified.is_(False),
