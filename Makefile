@@ -18,8 +18,10 @@ install: $(BIN)/navsim-lb
 demo: install
 	PORT=$(PORT) $(BIN)/navsim-lb demo
 
-## make test: everything CI runs (.ci/run calls exactly this).
+## make test: everything CI runs (.ci/run calls exactly this): lint, the tests, the regression goldens.
 test: install services
+	$(BIN)/ruff check --quiet .
+	$(BIN)/ruff format --check --quiet .
 	$(BIN)/pytest -q -p no:cacheprovider
 	$(BIN)/navsim-lb regress
 

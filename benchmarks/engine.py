@@ -72,9 +72,13 @@ def main() -> None:
         parts = [tokens[i :: args.workers] for i in range(args.workers)]
         start = time.perf_counter()
         with ProcessPoolExecutor(args.workers) as pool:
-            valid = sum(pool.map(_score_part, [(split, cache_dir, predictions, version, part) for part in parts]))
+            valid = sum(
+                pool.map(_score_part, [(split, cache_dir, predictions, version, part) for part in parts])
+            )
         elapsed = time.perf_counter() - start
-        print(f"score {version}: {len(tokens) / elapsed:8.1f} tokens/s with {args.workers} processes ({valid} valid)")
+        print(
+            f"score {version}: {len(tokens) / elapsed:8.1f} tokens/s with {args.workers} processes ({valid} valid)"
+        )
     print(f"peak RSS: {_peak_rss_mib():.0f} MiB")
 
 

@@ -76,7 +76,12 @@ def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, M
         reference = pdm_references(t0_us, plan.trajectory[None])
         states = simulate(reference, initial_state(frame.ego)[None])
         measures = measure_batch(
-            states[None], [observation], [drivable_map], [plan.centerline[:, :2]], [plan.route_lane_ids], version.evaluation
+            states[None],
+            [observation],
+            [drivable_map],
+            [plan.centerline[:, :2]],
+            [plan.route_lane_ids],
+            version.evaluation,
         )
         caches[version.name] = MetricCache(
             token=scene.token,
@@ -142,7 +147,10 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
         "object_is_agent": observation.is_agent,
         "object_first_speed": observation.first_speed,
         "object_corners": observation.corners[observation.present],
-        **{_MEASURES_PREFIX + f.name: getattr(cache.reference_measures, f.name) for f in fields(ProposalMeasures)},
+        **{
+            _MEASURES_PREFIX + f.name: getattr(cache.reference_measures, f.name)
+            for f in fields(ProposalMeasures)
+        },
     }
     path = cache_path(cache_dir, cache.key.metric_version, cache.token)
     path.parent.mkdir(parents=True, exist_ok=True)

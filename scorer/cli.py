@@ -3,16 +3,23 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Callable
+from typing import Annotated
 
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
 
 from scorer.versions import VERSIONS
@@ -136,7 +143,9 @@ def score(
     with progress_bar(f"scoring {version}", len(tokens) * len(loaded.seeds)) as advance:
         for index, predictions in enumerate(loaded.seeds):
             seed = index if len(loaded.seeds) > 1 else None
-            results += score_tokens(split, cache_dir or default_cache_dir(split), predictions, version, tokens, seed, advance)
+            results += score_tokens(
+                split, cache_dir or default_cache_dir(split), predictions, version, tokens, seed, advance
+            )
     frame = results_table(results, VERSIONS[version])
     if out is not None:
         frame.to_csv(out)

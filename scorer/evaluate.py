@@ -70,7 +70,11 @@ def _load_or_build(path: Path, cache_dir: Path, version: str) -> MetricCache:
 
 def _build_missing(task: tuple[Path, Path, tuple[str, ...]]) -> tuple[str, str | None]:
     path, cache_dir, versions = task
-    missing = [v for v in versions if load_cache(cache_dir, v, path.name.split(".")[0], scene_file_hash(path)) is None]
+    missing = [
+        v
+        for v in versions
+        if load_cache(cache_dir, v, path.name.split(".")[0], scene_file_hash(path)) is None
+    ]
     try:
         if missing:
             _build_and_save(path, cache_dir, missing)
@@ -123,7 +127,10 @@ def _row(token: str, seed: int | None, scores: object, index: tuple[int, int]) -
 
 
 def score_caches(
-    caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion, seed: int | None = None
+    caches: Sequence[MetricCache],
+    poses: Sequence[FloatArray],
+    version: MetricVersion,
+    seed: int | None = None,
 ) -> list[TokenResult]:
     """Score one agent trajectory per cache, all tokens in one batch, against the cached PDM-Closed measures."""
     if not caches:
@@ -152,7 +159,9 @@ def score_caches(
     return [_row(cache.token, seed, scores, (index, 1)) for index, cache in enumerate(caches)]
 
 
-def _score_one(cache: MetricCache, poses: FloatArray, version: MetricVersion, seed: int | None) -> list[TokenResult]:
+def _score_one(
+    cache: MetricCache, poses: FloatArray, version: MetricVersion, seed: int | None
+) -> list[TokenResult]:
     try:
         return score_caches([cache], [poses], version, seed)
     except ValueError as error:

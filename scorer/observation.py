@@ -79,7 +79,7 @@ class Observation:
 def polygon_corners(polygons: npt.NDArray[np.object_]) -> FloatArray:
     """Return the 4 ring corners (..., 4, 2) of box polygons (...); NaN where None. Raise on other shapes."""
     corners = np.full((*polygons.shape, 4, 2), np.nan)
-    present = polygons != None  # noqa: E711 - elementwise test of an object array
+    present = polygons != None
     rings = shapely.get_exterior_ring(polygons[present])
     if not (shapely.get_num_coordinates(rings) == 5).all():
         raise ValueError("observation objects must be 4-corner boxes")

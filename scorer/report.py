@@ -27,7 +27,9 @@ def results_table(results: Sequence[TokenResult], version: MetricVersion) -> pd.
         row.update({column: result.metrics.get(column, np.nan) for column in version.result_columns})
         row["error"] = result.error or ""
         rows.append(row)
-    frame = pd.DataFrame(rows, columns=["token", *(["seed"] if multi_seed else []), "valid", *version.result_columns, "error"])
+    frame = pd.DataFrame(
+        rows, columns=["token", *(["seed"] if multi_seed else []), "valid", *version.result_columns, "error"]
+    )
     average: dict[str, object] = {"token": "average", "valid": bool(frame["valid"].all()), "error": ""}
     average.update({column: frame[column].mean() for column in version.result_columns})
     return pd.concat([frame, pd.DataFrame([average])], ignore_index=True)

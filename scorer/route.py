@@ -291,9 +291,7 @@ def correct_route(
     for index in range(len(blocks) - 1):
         if any(block.id == blocks[index].id for block in graph.block_predecessors.get(blocks[index + 1], ())):
             continue
-        path = search_blocks(
-            graph, blocks[index], [blocks[index + 1].id], FORWARD_SEARCH_DEPTH, forward=True
-        )
+        path = search_blocks(graph, blocks[index], [blocks[index + 1].id], FORWARD_SEARCH_DEPTH, forward=True)
         if path is not None and len(path) >= 3:
             insertions[index] = path[1:-1]
     offset = 1

@@ -198,7 +198,10 @@ def _shape_text(shape: tuple[int | None, ...]) -> str:
 
 
 def _read_ego(reader: _Reader, raw: Any, where: str) -> EgoStatus:
-    values = {key: reader.number(reader.get(raw, key, where), f"{where}.{key}") for key in EgoStatus.__dataclass_fields__}
+    values = {
+        key: reader.number(reader.get(raw, key, where), f"{where}.{key}")
+        for key in EgoStatus.__dataclass_fields__
+    }
     if not -math.pi <= values["heading"] <= math.pi:
         raise reader.fail(f"{where}.heading", f"angle {values['heading']} outside [-pi, pi]")
     # NAVSIM holds the ego dynamics as float32 (Scene._build_ego_status); the last bits decide NC/TTC.
@@ -227,7 +230,9 @@ def _read_frame(reader: _Reader, raw: Any, where: str) -> Frame:
         tracks.append(reader.string(raw_object, "track", at))
         category = reader.get(raw_object, "category", at)
         if category not in CATEGORIES:
-            raise reader.fail(f"{at}.category", f"unknown category {category!r}; expected one of {CATEGORIES}")
+            raise reader.fail(
+                f"{at}.category", f"unknown category {category!r}; expected one of {CATEGORIES}"
+            )
         categories.append(category)
         box = reader.array(reader.get(raw_object, "box", at), f"{at}.box", (7,))
         if box[3] <= 0 or box[4] <= 0:
@@ -242,7 +247,12 @@ def _read_frame(reader: _Reader, raw: Any, where: str) -> Frame:
     lights = []
     for index, light in enumerate(raw_lights):
         at = f"{where}.traffic_lights[{index}]"
-        if not (isinstance(light, list) and len(light) == 2 and isinstance(light[0], str) and isinstance(light[1], bool)):
+        if not (
+            isinstance(light, list)
+            and len(light) == 2
+            and isinstance(light[0], str)
+            and isinstance(light[1], bool)
+        ):
             raise reader.fail(at, f"expected [lane_connector_id, is_red], got {light!r}")
         reader.check_id(light[0], at)
         lights.append((light[0], light[1]))
@@ -347,7 +357,9 @@ def _read_map(reader: _Reader, raw: Any) -> MapExcerpt:
         lanes=_read_lanes(reader, layer("lanes", True), "lanes"),
         lane_connectors=_read_lanes(reader, layer("lane_connectors", True), "lane_connectors"),
         roadblocks=_read_roadblocks(reader, layer("roadblocks", True), "roadblocks"),
-        roadblock_connectors=_read_roadblocks(reader, layer("roadblock_connectors", True), "roadblock_connectors"),
+        roadblock_connectors=_read_roadblocks(
+            reader, layer("roadblock_connectors", True), "roadblock_connectors"
+        ),
         **{name: _read_areas(reader, layer(name, False), name) for name in AREA_LAYERS},
     )
     _check_map_ids(reader, excerpt)
@@ -375,9 +387,13 @@ def _check_lane_graph(reader: _Reader, excerpt: MapExcerpt) -> None:
             for key in ("incoming", "outgoing"):
                 ids = getattr(connector, key)
                 if len(ids) != 1:
-                    raise reader.fail(f"map.{layer}[{index}].{key}", f"a connector joins exactly one, got {list(ids)}")
+                    raise reader.fail(
+                        f"map.{layer}[{index}].{key}", f"a connector joins exactly one, got {list(ids)}"
+                    )
                 if ids[0] in connector_ids:
-                    raise reader.fail(f"map.{layer}[{index}].{key}", "a connector cannot join another connector")
+                    raise reader.fail(
+                        f"map.{layer}[{index}].{key}", "a connector cannot join another connector"
+                    )
     _check_edges(reader, "lanes", excerpt.lanes, excerpt.lane_connectors)
     _check_edges(reader, "roadblocks", excerpt.roadblocks, excerpt.roadblock_connectors)
     for layer, owners, members in (
@@ -436,7 +452,9 @@ def parse_scene(raw: Any, source: str, content_hash: str = "") -> Scene:
         if frames[index].timestamp_us <= frames[index - 1].timestamp_us:
             raise reader.fail(f"frames[{index}].timestamp_us", "timestamps must increase")
     if frames[current_index].token != token:
-        raise reader.fail("token", f"{token!r} differs from the current frame's token {frames[current_index].token!r}")
+        raise reader.fail(
+            "token", f"{token!r} differs from the current frame's token {frames[current_index].token!r}"
+        )
     return Scene(
         token=token,
         log_name=reader.string(raw, "log_name", ""),

@@ -43,7 +43,9 @@ PICKLE_METADATA_KEYS = {
 }
 _XZ_MAGIC = b"\xfd7zXZ\x00"
 _GZIP_MAGIC = b"\x1f\x8b"
-_HTML_LINK = re.compile(r"""^\s*<a\s+href\s*=\s*["']?([^"'>\s]+)["']?[^>]*>(.*?)</a>\s*$""", re.IGNORECASE | re.DOTALL)
+_HTML_LINK = re.compile(
+    r"""^\s*<a\s+href\s*=\s*["']?([^"'>\s]+)["']?[^>]*>(.*?)</a>\s*$""", re.IGNORECASE | re.DOTALL
+)
 
 
 @dataclass(frozen=True)
@@ -55,7 +57,9 @@ class Problem:
     message: str
 
     def __str__(self) -> str:
-        where = ", ".join(part for part in (self.field, f"token {self.token}" if self.token else None) if part)
+        where = ", ".join(
+            part for part in (self.field, f"token {self.token}" if self.token else None) if part
+        )
         return f"{where}: {self.message}" if where else self.message
 
 
@@ -155,13 +159,20 @@ def _text(value: Any, field: str, problems: _Problems) -> str:
 
 
 def _check_sampling(
-    num_poses: Any, time_horizon: Any, interval_length: Any, token: str | None, field: str, problems: _Problems
+    num_poses: Any,
+    time_horizon: Any,
+    interval_length: Any,
+    token: str | None,
+    field: str,
+    problems: _Problems,
 ) -> bool:
     # The leaderboard scores NAVSIM's default sampling only, as the official leaderboard does.
     expected = (NUM_POSES, TIME_HORIZON_S, INTERVAL_LENGTH_S)
     actual = (num_poses, time_horizon, interval_length)
     numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in actual)
-    if not numbers or not all(math.isclose(a, e, abs_tol=1e-9) for a, e in zip(actual, expected, strict=True)):
+    if not numbers or not all(
+        math.isclose(a, e, abs_tol=1e-9) for a, e in zip(actual, expected, strict=True)
+    ):
         problems.add(
             token,
             field,
@@ -191,7 +202,13 @@ def _object_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return result
 
 
-JSON_FIELDS = {"format", "version", "trajectory_sampling", "predictions", *(f.name for f in fields(SubmissionMetadata))}
+JSON_FIELDS = {
+    "format",
+    "version",
+    "trajectory_sampling",
+    "predictions",
+    *(f.name for f in fields(SubmissionMetadata)),
+}
 
 
 def _load_json(data: bytes) -> Submission:
@@ -212,7 +229,9 @@ def _load_json(data: bytes) -> Submission:
     metadata = SubmissionMetadata(
         **{f.name: _text(document.get(f.name), f.name, problems) for f in fields(SubmissionMetadata)}
     )
-    sampling = document.get("trajectory_sampling", {"time_horizon": TIME_HORIZON_S, "interval_length": INTERVAL_LENGTH_S})
+    sampling = document.get(
+        "trajectory_sampling", {"time_horizon": TIME_HORIZON_S, "interval_length": INTERVAL_LENGTH_S}
+    )
     if isinstance(sampling, dict):
         horizon, interval = sampling.get("time_horizon"), sampling.get("interval_length")
         is_number = all(isinstance(v, int | float) for v in (horizon, interval))
@@ -234,7 +253,11 @@ def _json_predictions(
     elif isinstance(predictions, list) and predictions:
         per_seed = predictions
     else:
-        problems.add(None, "predictions", "must be an object token -> poses, or a non-empty list of them (one per seed)")
+        problems.add(
+            None,
+            "predictions",
+            "must be an object token -> poses, or a non-empty list of them (one per seed)",
+        )
         return (), []
     seeds = []
     seed_tokens = []
@@ -245,7 +268,10 @@ def _json_predictions(
             continue
         for token in getattr(mapping, "duplicates", []):
             problems.add(token, field, "token appears more than once")
-        poses = {token: _check_poses(values, token, f"{field}[{token!r}]", problems) for token, values in mapping.items()}
+        poses = {
+            token: _check_poses(values, token, f"{field}[{token!r}]", problems)
+            for token, values in mapping.items()
+        }
         seeds.append({token: value for token, value in poses.items() if value is not None})
         seed_tokens.append(list(mapping))
     return tuple(seeds), seed_tokens
@@ -277,11 +303,13 @@ class _TrajectorySampling(_Record):
 class _DType:
     """numpy.dtype(code, align, copy) restricted to float codes; BUILD gives the byte order."""
 
-    ALLOWED = {"f2", "f4", "f8"}
+    ALLOWED = frozenset({"f2", "f4", "f8"})
 
     def __init__(self, code: Any, align: Any = False, copy: Any = True) -> None:
         if code not in self.ALLOWED:
-            raise pickle.UnpicklingError(f"array dtype {code!r} is not allowed; poses must be float32 or float64")
+            raise pickle.UnpicklingError(
+                f"array dtype {code!r} is not allowed; poses must be float32 or float64"
+            )
         self.dtype = np.dtype(code)
 
     def __setstate__(self, state: Any) -> None:
@@ -297,7 +325,9 @@ class _NDArrayType:
 def _array(raw: Any, dtype: Any, shape: Any, fortran: bool) -> FloatArray:
     if not isinstance(dtype, _DType):
         raise pickle.UnpicklingError("array dtype must come from numpy.dtype")
-    if not (isinstance(shape, tuple) and all(isinstance(n, int) and n >= 0 for n in shape) and len(shape) <= 4):
+    if not (
+        isinstance(shape, tuple) and all(isinstance(n, int) and n >= 0 for n in shape) and len(shape) <= 4
+    ):
         raise pickle.UnpicklingError("malformed array shape")
     count = math.prod(shape)
     if count > MAX_ARRAY_ELEMENTS:
@@ -367,9 +397,19 @@ class _RestrictedUnpickler(pickle.Unpickler):
 def _unpickle(data: bytes) -> Any:
     try:
         return _RestrictedUnpickler(io.BytesIO(data)).load()
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError) as error:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        ValueError,
+        TypeError,
+        AttributeError,
+        IndexError,
+        KeyError,
+    ) as error:
         # Any failure inside the stream is the file's fault: report it, never execute around it.
-        raise SubmissionError([Problem(None, None, f"not a readable NAVSIM submission pickle: {error}")]) from None
+        raise SubmissionError(
+            [Problem(None, None, f"not a readable NAVSIM submission pickle: {error}")]
+        ) from None
 
 
 def _pickle_trajectory(value: Any, token: Any, field: str, problems: _Problems) -> FloatArray | None:
@@ -401,16 +441,23 @@ def _load_pickle(data: bytes) -> Submission:
     document = _unpickle(data)
     problems = _Problems()
     if not isinstance(document, dict):
-        raise SubmissionError([Problem(None, None, f"the pickle must hold a dict, got {type(document).__name__}")])
+        raise SubmissionError(
+            [Problem(None, None, f"the pickle must hold a dict, got {type(document).__name__}")]
+        )
     if "first_stage_predictions" in document:
-        raise SubmissionError([Problem(None, "first_stage_predictions", "NAVSIM v2 submissions are not scored here")])
+        raise SubmissionError(
+            [Problem(None, "first_stage_predictions", "NAVSIM v2 submissions are not scored here")]
+        )
     for key in sorted(set(map(str, document)) - {*PICKLE_METADATA_KEYS, "predictions"}):
         problems.add(None, key, "unknown key")
     values = {name: _text(document.get(key), key, problems) for key, name in PICKLE_METADATA_KEYS.items()}
     # The leaderboard rules ask for team_name as `<a href=URL>Method</a>`: split it into method and link.
     link = _HTML_LINK.match(values["team_name"])
     if link:
-        values["tech_report_url"], values["method"] = link.group(1), re.sub(r"<[^>]*>", "", link.group(2)).strip()
+        values["tech_report_url"], values["method"] = (
+            link.group(1),
+            re.sub(r"<[^>]*>", "", link.group(2)).strip(),
+        )
     metadata = SubmissionMetadata(**values)
     predictions = document.get("predictions")
     # v1.0 pickles hold one dict; v1.1 a list of dicts, one per seed.
@@ -425,7 +472,10 @@ def _load_pickle(data: bytes) -> Submission:
         if not isinstance(mapping, dict):
             problems.add(None, field, f"must be a dict token -> Trajectory, got {type(mapping).__name__}")
             continue
-        poses = {token: _pickle_trajectory(value, token, f"{field}[{token!r}]", problems) for token, value in mapping.items()}
+        poses = {
+            token: _pickle_trajectory(value, token, f"{field}[{token!r}]", problems)
+            for token, value in mapping.items()
+        }
         seeds.append({token: value for token, value in poses.items() if value is not None})
         seed_tokens.append([token for token in mapping if isinstance(token, str)])
     problems.raise_if_any(seed_tokens)
@@ -451,7 +501,9 @@ def _decompress(data: bytes) -> bytes:
     except (lzma.LZMAError, zlib.error) as error:
         raise SubmissionError([Problem(None, None, f"corrupt compressed file: {error}")]) from None
     if len(inflated) > MAX_DECOMPRESSED_BYTES:
-        raise SubmissionError([Problem(None, None, f"decompresses to more than {MAX_DECOMPRESSED_BYTES} bytes")])
+        raise SubmissionError(
+            [Problem(None, None, f"decompresses to more than {MAX_DECOMPRESSED_BYTES} bytes")]
+        )
     return inflated
 
 

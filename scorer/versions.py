@@ -79,6 +79,7 @@ VERSIONS: dict[str, MetricVersion] = {
     ),
 }
 
+
 def get_version(name: str) -> MetricVersion:
     """Return the registered metric version `name`, or raise with the list of known versions."""
     try:

@@ -2,32 +2,61 @@
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Any
 
 from celery import Celery
+from sqlalchemy.pool import NullPool
 
 from server.settings import Settings, get_settings
 
 SCORE_TASK = "worker.tasks.score_submission"
+SQLITE_BROKER_TIMEOUT_S = 30.0
+_clients: dict[tuple[str, str, float], Celery] = {}
 
 
-@lru_cache(maxsize=4)
-def celery_client(broker_url: str) -> Celery:
-    """Return a Celery app used only to send tasks to `broker_url`."""
-    return Celery("navsim-lb-api", broker=broker_url)
+def broker_transport_options(settings: Settings) -> dict[str, Any]:
+    """Return the kombu transport options for the configured broker."""
+    scheme = settings.broker_url.split("://", 1)[0]
+    if scheme.startswith(("sqla+", "sqlalchemy+")):
+        # Every option reaches create_engine. No pool: a pooled SQLite connection must not cross a fork
+        # into the worker's pool processes. The timeout lets writers queue instead of failing at once.
+        return {"poolclass": NullPool, "connect_args": {"timeout": SQLITE_BROKER_TIMEOUT_S}}
+    if scheme in ("redis", "rediss"):
+        # An unacknowledged task is redelivered after this long: it must outlast the hard time limit of
+        # the task it carries (plus the wait of a prefetched one), or a slow chunk would run twice at once.
+        return {"visibility_timeout": 2 * settings.task_time_limit + 60}
+    return {}
+
+
+def celery_config(settings: Settings) -> dict[str, Any]:
+    """Return the Celery settings the API (sender) and the workers share: broker, its options, the queue."""
+    return {
+        "broker_url": settings.broker_url,
+        "broker_transport_options": broker_transport_options(settings),
+        "broker_connection_retry_on_startup": True,
+        "task_default_queue": settings.queue_name,
+    }
+
+
+def celery_client(settings: Settings) -> Celery:
+    """Return a Celery app used only to send tasks to the configured broker and queue."""
+    key = (settings.broker_url, settings.queue_name, settings.task_time_limit)
+    if key not in _clients:
+        client = Celery("navsim-lb-api")
+        client.conf.update(celery_config(settings))
+        _clients[key] = client
+    return _clients[key]
 
 
 def enqueue_submission(submission_id: int, settings: Settings | None = None) -> None:
     """Ask a worker to score the current run of a submission."""
-    settings = settings or get_settings()
-    celery_client(settings.broker_url).send_task(SCORE_TASK, args=[submission_id])
+    celery_client(settings or get_settings()).send_task(SCORE_TASK, args=[submission_id])
 
 
 def broker_status(settings: Settings) -> dict[str, Any]:
     """Return whether the broker accepts a connection, with the error when it does not."""
     try:
-        with celery_client(settings.broker_url).connection_for_write() as connection:
+        with celery_client(settings).connection_for_write() as connection:
             connection.ensure_connection(max_retries=1, timeout=2)
     except Exception as error:  # noqa: BLE001 - any failure means "broker down", reported as text
         return {"ok": False, "detail": f"{type(error).__name__}: {error}"}
@@ -36,7 +65,7 @@ def broker_status(settings: Settings) -> dict[str, Any]:
 
 def live_workers(settings: Settings) -> dict[str, Any]:
     """Return the workers answering a ping; `ok` is None when the transport cannot broadcast (embedded broker)."""
-    app = celery_client(settings.broker_url)
+    app = celery_client(settings)
     try:
         with app.connection_for_read() as connection:
             can_broadcast = "fanout" in connection.transport.implements.exchange_type

@@ -29,6 +29,14 @@ class Settings(BaseSettings):
     bootstrap_samples: int = Field(2000, validation_alias="BOOTSTRAP_SAMPLES")
     # The public leaderboard is served from memory for this long (0 disables the cache).
     leaderboard_cache_seconds: float = Field(2.0, validation_alias="LEADERBOARD_CACHE_SECONDS")
+    # Workers: the broker queue shared by API and workers, and how a submission is cut into tasks.
+    queue_name: str = Field("navsim-lb", validation_alias="QUEUE_NAME")
+    chunk_size: int = Field(128, ge=1, validation_alias="CHUNK_SIZE")  # (token, seed) pairs per chunk task
+    # Hard limit of one task; the soft limit (the task's own clean failure) comes 30 s earlier.
+    task_time_limit: float = Field(600.0, gt=30, validation_alias="TASK_TIME_LIMIT")
+    reaper_interval: float = Field(30.0, gt=0, validation_alias="REAPER_INTERVAL")
+    # Claims of one run (first try, then re-queues after lost leases) before it fails as infrastructure.
+    max_attempts: int = Field(3, ge=1, validation_alias="MAX_ATTEMPTS")
 
     @model_validator(mode="after")
     def _derive_defaults(self) -> Settings:

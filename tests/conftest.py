@@ -1,10 +1,13 @@
-"""Suite-wide settings: property tests are derandomised in CI so a red run is reproducible."""
+"""Suite-wide settings: the shared fixture modules; property tests derandomised in CI (a red run reproduces)."""
 
 from __future__ import annotations
 
 import os
 
 from hypothesis import settings
+
+# The shared fixtures, registered here (before any test module imports them) so their asserts are rewritten.
+pytest_plugins = ["server_testing", "worker_testing"]
 
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):

@@ -7,17 +7,18 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import create_engine, text
+from sqlalchemy import create_engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from navsim_lb.scratch import scratch_postgres_database
 from scorer.versions import METRIC_COLUMNS
 from server.db import make_engine, make_session_factory, transaction
 from server.main import create_app
@@ -156,20 +157,23 @@ def world(server_settings: Settings) -> Iterator[World]:
 @pytest.fixture
 def postgres_url() -> Iterator[str]:
     """A fresh, empty PostgreSQL database on the CI server, dropped afterwards."""
-    name = f"navsim_lb_test_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(POSTGRES_URL, isolation_level="AUTOCOMMIT")
+    with fresh_postgres_database() as url:
+        yield url
+
+
+@contextmanager
+def fresh_postgres_database() -> Iterator[str]:
+    """Create a uniquely named, empty PostgreSQL database on the CI server; yield its URL; drop it afterwards."""
+    server = create_engine(POSTGRES_URL)
     try:
-        with admin.connect() as connection:
-            connection.execute(text(f'CREATE DATABASE "{name}"'))
+        with server.connect():
+            pass
     except Exception as error:  # noqa: BLE001 - a missing server is a failure of a services test, said plainly
         pytest.fail(f"PostgreSQL at {POSTGRES_URL} is not usable: {error}")
-    url = POSTGRES_URL.rsplit("/", 1)[0] + f"/{name}"
-    try:
-        yield url
     finally:
-        with admin.connect() as connection:
-            connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
+        server.dispose()
+    with scratch_postgres_database(POSTGRES_URL, "navsim_lb_test") as url:
+        yield url
 
 
 def factory_for(url: str) -> sessionmaker[Session]:
@@ -187,8 +191,6 @@ def team_row(session: Session, team_id: int) -> Team:
 def phase_row(session: Session, name: str) -> Phase:
     """Return a phase row."""
     return session.query(Phase).filter_by(name=name).one()
-
-
 
 
 def token_results(scores: dict[str, float | None], seed: int = 0) -> list[object]:

@@ -23,8 +23,6 @@ from server.db import transaction
 from server.models import Approval, Submission
 from server.services.submissions import create_submission
 
-pytest_plugins = ["server_testing"]
-
 
 def _audit_actions(world: World) -> list[str]:
     entries = world.client.get("/api/v1/admin/audit", headers=world.admin_headers()).json()

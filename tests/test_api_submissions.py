@@ -11,8 +11,6 @@ from pathlib import Path
 import pytest
 from server_testing import REFERENCE_SUBMISSIONS, World, add_phase
 
-pytest_plugins = ["server_testing"]
-
 pytest.importorskip("scorer.submission")
 
 HUMAN = (REFERENCE_SUBMISSIONS / "human.json").read_bytes()

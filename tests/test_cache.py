@@ -39,10 +39,14 @@ def test_round_trip_is_exact(tmp_path: Path, built: tuple[str, dict[str, MetricC
         assert np.array_equal(loaded.observation.present, present)
         assert np.array_equal(loaded.observation.corners, cache.observation.corners, equal_nan=True)
         for field in fields(ProposalMeasures):
-            assert np.array_equal(getattr(loaded.reference_measures, field.name), getattr(cache.reference_measures, field.name))
+            assert np.array_equal(
+                getattr(loaded.reference_measures, field.name), getattr(cache.reference_measures, field.name)
+            )
 
 
-def test_stale_or_damaged_files_are_rebuilt(tmp_path: Path, built: tuple[str, dict[str, MetricCache]]) -> None:
+def test_stale_or_damaged_files_are_rebuilt(
+    tmp_path: Path, built: tuple[str, dict[str, MetricCache]]
+) -> None:
     token, caches = built
     path = scene_paths(REFERENCE)[token]
     written = save_cache(caches["v1.1"], tmp_path)

@@ -40,7 +40,18 @@ def test_baseline_cache_and_score_write_the_devkit_csv(split: Path, tmp_path: Pa
     assert result.exit_code == 0 and "cached 6 of 6 scenes" in result.output
     csv = tmp_path / "results.csv"
     result = runner.invoke(
-        app, ["score", str(split), str(submission), "--version", "v1.0", "--out", str(csv), "--cache-dir", str(cache_dir)]
+        app,
+        [
+            "score",
+            str(split),
+            str(submission),
+            "--version",
+            "v1.0",
+            "--out",
+            str(csv),
+            "--cache-dir",
+            str(cache_dir),
+        ],
     )
     assert result.exit_code == 0, result.output
     table = pd.read_csv(csv, index_col=0)
@@ -55,7 +66,9 @@ def test_baseline_cache_and_score_write_the_devkit_csv(split: Path, tmp_path: Pa
 
 def test_score_explains_a_broken_submission(split: Path, tmp_path: Path) -> None:
     broken = tmp_path / "broken.json"
-    broken.write_text(json.dumps({"format": "navsim-lb/submission", "version": 1, "predictions": {"x": [[0, 0]]}}))
+    broken.write_text(
+        json.dumps({"format": "navsim-lb/submission", "version": 1, "predictions": {"x": [[0, 0]]}})
+    )
     result = runner.invoke(app, ["score", str(split), str(broken), "--cache-dir", str(tmp_path / "c")])
     assert result.exit_code == 2
     assert "expected 8 poses of [x, y, heading], got shape (1, 2)" in result.output

@@ -14,8 +14,6 @@ from server.models import utc_now
 from server.services.leaderboard import bootstrap_ci, rank_change_report
 from server.services.submissions import add_baselines
 
-pytest_plugins = ["server_testing"]
-
 TOKENS = reference_tokens()
 
 

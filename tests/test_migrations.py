@@ -16,8 +16,6 @@ from server.migrate import NotMigratedError, current_revision, downgrade, head_r
 from server.models import Base
 from server.settings import Settings
 
-pytest_plugins = ["server_testing"]
-
 MODEL_TABLES = set(Base.metadata.tables)
 
 

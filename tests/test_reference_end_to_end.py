@@ -59,7 +59,9 @@ def _mismatches(results: list[TokenResult], expected: dict[str, dict[str, object
 @pytest.mark.parametrize("version", list(VERSIONS))
 @pytest.mark.parametrize("family", FAMILIES)
 def test_family_matches_the_devkit(cache_dir: Path, family: str, version: str) -> None:
-    submission = load_submission((REFERENCE / "submissions" / f"{family}.json").read_bytes(), f"{family}.json")
+    submission = load_submission(
+        (REFERENCE / "submissions" / f"{family}.json").read_bytes(), f"{family}.json"
+    )
     results = score_tokens(REFERENCE, cache_dir, submission.seeds[0], version)
     assert len(results) == 40
     assert _mismatches(results, _expected(family, version)) == []

@@ -5,8 +5,9 @@ from __future__ import annotations
 import copy
 import gzip
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -92,7 +93,9 @@ BROKEN = [
 
 
 @pytest.mark.parametrize(("mutate", "field"), BROKEN)
-def test_broken_rule_names_file_and_field(tmp_path: Path, mutate: Callable[[dict[str, Any]], None], field: str) -> None:
+def test_broken_rule_names_file_and_field(
+    tmp_path: Path, mutate: Callable[[dict[str, Any]], None], field: str
+) -> None:
     raw = copy.deepcopy(_raw_scene())
     mutate(raw)
     path = _write(tmp_path, raw)

@@ -12,8 +12,6 @@ from server.db import transaction
 from server.models import ApiToken, Approval, Scope, utc_now
 from server.services.tokens import create_token, hash_token, revoke_token
 
-pytest_plugins = ["server_testing"]
-
 
 def _bearer(secret: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {secret}"}

@@ -16,8 +16,6 @@ from server.main import create_app
 from server.models import Split
 from server.settings import get_settings
 
-pytest_plugins = ["server_testing"]
-
 Cli = tuple[Callable[..., str], typer.Typer, CliRunner]  # invoke(*args) -> stdout, the app, the runner
 
 

@@ -17,7 +17,6 @@ from server.db import transaction
 from server.services.scoring import claim_submission, mark_scored, write_chunk_results
 from server.services.submissions import create_submission
 
-pytest_plugins = ["server_testing"]
 FAMILY = "lane_change"
 
 

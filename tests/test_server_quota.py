@@ -21,8 +21,6 @@ from server.services.scoring import cancel, claim_submission, mark_failed
 from server.services.submissions import create_submission
 from server.services.teams import set_team_quota
 
-pytest_plugins = ["server_testing"]
-
 
 def _submit(
     world: World, payload: bytes, phase: str = "test", key: str | None = None, now=None

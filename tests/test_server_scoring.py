@@ -39,8 +39,6 @@ from server.services.scoring import (
 )
 from server.services.submissions import create_submission
 
-pytest_plugins = ["server_testing"]
-
 TOKENS = reference_tokens()
 
 

@@ -85,21 +85,25 @@ def test_json_non_finite_values_and_duplicates_are_refused() -> None:
     document = _document()
     document["predictions"]["b2"][0][0] = float("nan")  # type: ignore[index]
     text = json.dumps(document)
-    assert _problems(text.encode()) == [("b2", "predictions['b2'][0][0]", "values must be finite (no NaN or infinity)")]
+    assert _problems(text.encode()) == [
+        ("b2", "predictions['b2'][0][0]", "values must be finite (no NaN or infinity)")
+    ]
     row = "[[1e400, 0.0, 0.0]" + ", [0.0, 0.0, 0.0]" * 7 + "]"
-    text = json.dumps(_document(predictions={})).replace('"predictions": {}', f'"predictions": {{"a1": {row}}}')
-    assert _problems(text.encode()) == [("a1", "predictions['a1'][0][0]", "values must be finite (no NaN or infinity)")]
-    text = '{"format": "navsim-lb/submission", "version": 1, "predictions": {"a1": %s, "a1": %s}}' % (
-        json.dumps(_poses(0).tolist()),
-        json.dumps(_poses(1).tolist()),
+    text = json.dumps(_document(predictions={})).replace(
+        '"predictions": {}', f'"predictions": {{"a1": {row}}}'
     )
+    assert _problems(text.encode()) == [
+        ("a1", "predictions['a1'][0][0]", "values must be finite (no NaN or infinity)")
+    ]
+    first, second = json.dumps(_poses(0).tolist()), json.dumps(_poses(1).tolist())
+    text = f'{{"format": "navsim-lb/submission", "version": 1, "predictions": {{"a1": {first}, "a1": {second}}}}}'
     assert _problems(text.encode()) == [("a1", "predictions", "token appears more than once")]
 
 
 def test_wrong_sampling_is_refused() -> None:
     document = _document(trajectory_sampling={"time_horizon": 4.0, "interval_length": 0.1})
     ((token, field, message),) = _problems(json.dumps(document).encode())
-    assert field == "trajectory_sampling" and "interval_length 0.5" in message
+    assert token is None and field == "trajectory_sampling" and "interval_length 0.5" in message
 
 
 def test_garbage_is_refused_with_a_message() -> None:
@@ -181,7 +185,9 @@ def _navsim_pickle(predictions: object, protocol: int, **metadata: object) -> by
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_navsim_pickle_every_protocol(devkit_classes: None, protocol: int, dtype: type) -> None:
     sampling = TrajectorySampling()
-    seeds = [{t: Trajectory(_poses(i + s).astype(dtype), sampling) for i, t in enumerate(TOKENS)} for s in range(2)]
+    seeds = [
+        {t: Trajectory(_poses(i + s).astype(dtype), sampling) for i, t in enumerate(TOKENS)} for s in range(2)
+    ]
     submission = load_submission(_navsim_pickle(seeds, protocol), "submission.pkl")
     assert len(submission.seeds) == 2
     np.testing.assert_array_equal(submission.seeds[1]["c3"], _poses(3).astype(dtype).astype(np.float64))
@@ -221,7 +227,9 @@ class Exploit:
         return (print, ("executed",))
 
 
-def test_pickle_with_foreign_globals_is_refused_without_running_them(capsys: pytest.CaptureFixture[str]) -> None:
+def test_pickle_with_foreign_globals_is_refused_without_running_them(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     for payload in (pickle.dumps({"predictions": Exploit()}), pickle.dumps({"predictions": {"a": object}})):
         with pytest.raises(SubmissionError) as error:
             load_submission(payload, "evil.pkl")

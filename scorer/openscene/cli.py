@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from scorer.cli import fail, console, default_cache_dir, progress_bar
+from scorer.cli import console, default_cache_dir, fail, progress_bar
 from scorer.versions import VERSIONS
 
 SHOWN_REASONS = 10

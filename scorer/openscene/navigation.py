@@ -22,13 +22,13 @@ from scorer.route import (
     RoadGraph,
     Route,
     RouteError,
-    roadblock_candidates,
-    search_blocks,
     build_road_graph,
     centerline_lanes,
     correct_route,
     discrete_centerline,
     load_route,
+    roadblock_candidates,
+    search_blocks,
 )
 from scorer.scene import Lane, MapExcerpt
 

@@ -26,7 +26,9 @@ TOLERANCE = 1e-9
 Change = tuple[str, str, str, str, object, object]
 
 
-def compute_results(work_dir: Path, progress: Callable[[str, int], AbstractContextManager[Callable[[int], None]]]) -> dict[str, list[dict[str, object]]]:
+def compute_results(
+    work_dir: Path, progress: Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
+) -> dict[str, list[dict[str, object]]]:
     """Return version -> rows (family, token, valid, metrics) of the regression split."""
     from scorer.synth import synthesize_split
 
@@ -55,7 +57,9 @@ def _read_golden(version: str) -> dict[tuple[str, str], dict[str, object]]:
     return {(row["family"], row["token"]): row for row in rows}
 
 
-def compare(version: str, golden: dict[tuple[str, str], dict[str, object]], rows: list[dict[str, object]]) -> list[Change]:
+def compare(
+    version: str, golden: dict[tuple[str, str], dict[str, object]], rows: list[dict[str, object]]
+) -> list[Change]:
     """Return (version, family, token, metric, old, new) for every difference above the tolerance."""
     changes: list[Change] = []
     seen = set()
@@ -77,7 +81,9 @@ def compare(version: str, golden: dict[tuple[str, str], dict[str, object]], rows
     return changes
 
 
-def run_regression(update: bool, progress: Callable[[str, int], AbstractContextManager[Callable[[int], None]]]) -> list[Change]:
+def run_regression(
+    update: bool, progress: Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
+) -> list[Change]:
     """Score the regression split; rewrite the goldens when `update`, else return the changes."""
     with tempfile.TemporaryDirectory() as work_dir:
         results = compute_results(Path(work_dir), progress)
@@ -89,7 +95,9 @@ def run_regression(update: bool, progress: Callable[[str, int], AbstractContextM
                 handle.write("".join(json.dumps(row, sort_keys=True) + "\n" for row in rows).encode())
             continue
         if not _golden_path(version).exists():
-            changes.append((version, "-", "-", "(golden file)", "missing", "run `navsim-lb regress --update`"))
+            changes.append(
+                (version, "-", "-", "(golden file)", "missing", "run `navsim-lb regress --update`")
+            )
             continue
         changes.extend(compare(version, _read_golden(version), rows))
     return changes

@@ -37,6 +37,7 @@ class ScoringJob:
     run: int
     filename: str
     data: bytes
+    sha256: str  # of the upload: the stored bytes must still match it
     split_name: str
     split_dir: Path
     split_hash: str
@@ -73,6 +74,7 @@ def load_job(session: Session, submission_id: int, storage_dir: Path) -> Scoring
         run=submission.run,
         filename=submission.filename,
         data=read_file(storage_dir, submission.stored_name),
+        sha256=submission.sha256,
         split_name=split.name,
         split_dir=Path(split.directory),
         split_hash=split.content_hash,
@@ -102,6 +104,31 @@ def claim_submission(
 def expected_rows(submission: Submission) -> int:
     """Return how many per-token rows a complete run holds: tokens x seeds x metric versions."""
     return submission.token_count * submission.seed_count * len(VERSIONS)
+
+
+def rows_written(session: Session, submission_id: int, run: int) -> int:
+    """Return how many per-token rows of `run` are stored."""
+    query = select(func.count()).where(
+        TokenResultRow.submission_id == submission_id, TokenResultRow.run == run
+    )
+    return session.scalar(query) or 0
+
+
+def completed_tokens(session: Session, submission_id: int, run: int) -> set[str] | None:
+    """Return the tokens of `run` with every version and seed written; None when the run is no longer wanted.
+
+    A redelivered or re-dispatched chunk scores only the tokens missing here.
+    """
+    submission = session.get(Submission, submission_id)
+    if submission is None or not _current(submission, run):
+        return None
+    query = (
+        select(TokenResultRow.token)
+        .where(TokenResultRow.submission_id == submission_id, TokenResultRow.run == run)
+        .group_by(TokenResultRow.token)
+        .having(func.count() == submission.seed_count * len(VERSIONS))
+    )
+    return set(session.scalars(query).all())
 
 
 def _insert(session: Session) -> Any:
@@ -153,11 +180,9 @@ def write_chunk_results(
         statement = _insert(session)(TokenResultRow).values(rows)
         updated = {name: statement.excluded[name] for name in rows[0] if name not in UPSERT_KEY}
         session.execute(statement.on_conflict_do_update(index_elements=list(UPSERT_KEY), set_=updated))
-    done = session.scalar(
-        select(func.count()).where(TokenResultRow.submission_id == submission_id, TokenResultRow.run == run)
-    )
+    done = rows_written(session, submission_id, run)
     # 100 only once the results are aggregated (mark_scored).
-    submission.progress = min(99, int(100 * (done or 0) / max(expected_rows(submission), 1)))
+    submission.progress = min(99, int(100 * done / max(expected_rows(submission), 1)))
     submission.lease_expires_at = now + timedelta(seconds=lease_seconds)
     session.flush()
     return True
@@ -175,9 +200,7 @@ def mark_scored(
     submission = _locked(session, submission_id)
     if not _current(submission, run):
         return False
-    done = session.scalar(
-        select(func.count()).where(TokenResultRow.submission_id == submission_id, TokenResultRow.run == run)
-    )
+    done = rows_written(session, submission_id, run)
     if done != expected_rows(submission):
         raise Conflict(
             f"submission {submission_id} run {run}: {done} of {expected_rows(submission)} token rows written"
@@ -191,6 +214,17 @@ def mark_scored(
     submission.lease_expires_at = None
     session.flush()
     return True
+
+
+def finish_if_complete(
+    session: Session, submission_id: int, run: int, engine_version: str, bootstrap_samples: int
+) -> bool:
+    """Mark the run scored when every row is written (the chunk that writes the last rows aggregates)."""
+    submission = _locked(session, submission_id)
+    complete = rows_written(session, submission_id, run) == expected_rows(submission)
+    if not (_current(submission, run) and complete):
+        return False
+    return mark_scored(session, submission_id, run, engine_version, bootstrap_samples)
 
 
 def mark_failed(
@@ -242,7 +276,9 @@ def requeue(session: Session, submission_id: int) -> bool:
 
 def stale_queued(session: Session, queued_before: datetime) -> list[int]:
     """Return the ids of submissions still queued since before `queued_before` (their task may be lost)."""
-    query = select(Submission.id).where(Submission.status == Status.queued, Submission.queued_at < queued_before)
+    query = select(Submission.id).where(
+        Submission.status == Status.queued, Submission.queued_at < queued_before
+    )
     return list(session.scalars(query.order_by(Submission.id)).all())
 
 

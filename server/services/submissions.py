@@ -104,7 +104,6 @@ def add_baselines(session: Session, split: Split, storage_dir: Path) -> list[Sub
     """Create the queued constant-velocity and human baseline submissions of a split (the caller enqueues them)."""
     from scorer.baselines import baseline_submission
     from scorer.submission import dump_submission_json
-
     from server.services.splits import split_tokens
     from server.services.validation import validate_upload
 

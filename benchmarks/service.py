@@ -1,0 +1,231 @@
+"""The service end to end: a submission from POST to its leaderboard row, and leaderboard GET latency.
+
+For each backend (embedded: SQLite + SQLite broker; services: PostgreSQL + Redis) and each worker size
+(1 and 2 scoring processes), on a fresh database with the split's metric cache already built:
+- POST one submission of every token (both metric versions are always scored), then time until it is
+  scored (GET /submissions/{id}) and until its row is on the leaderboard (GET /leaderboard, whose 2 s
+  cache is on as in production);
+- with the workers idle, GET /leaderboard at a fixed rate from one open-loop client on loopback and report
+  p50/p99 latency, measured from each request's scheduled start (a slow answer delays no later request).
+
+Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--rate 200] [--seconds 10]
+       [--backends embedded,services] [--workers 1,2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import socket
+import tempfile
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from navsim_lb.processes import api_command, child_process
+from navsim_lb.scratch import scratch_postgres_database, scratch_redis_queue
+from scorer.baselines import baseline_submission
+from scorer.evaluate import build_split_cache
+from scorer.submission import Submission, SubmissionMetadata, dump_submission_json
+from scorer.synth import synthesize_split
+from scorer.versions import VERSIONS
+from server.db import make_engine, make_session_factory, transaction
+from server.migrate import upgrade
+from server.models import Approval, Scope
+from server.services.splits import create_phase, register_split
+from server.services.teams import create_team
+from server.services.tokens import create_token
+from server.settings import Settings
+from worker.cli import worker_command
+
+DATA = Path(__file__).parent / ".data"
+POSTGRES_URL = os.environ.get("NAVSIM_LB_BENCH_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+REDIS_URL = os.environ.get("NAVSIM_LB_BENCH_REDIS", "redis://127.0.0.1:6379/0")
+SPLIT_SEED = 11
+
+
+def prepared_split(tokens: int) -> tuple[Path, Path]:
+    """Return a synthetic split of `tokens` scenes and its cache directory, both built on first use."""
+    split, cache = DATA / f"server_split_{tokens}_{SPLIT_SEED}", DATA / f"server_cache_{tokens}_{SPLIT_SEED}"
+    if not (split / "scenes").is_dir():
+        started = time.perf_counter()
+        synthesize_split(split, tokens, SPLIT_SEED)
+        print(f"synthesised {tokens} scenes in {time.perf_counter() - started:.0f} s")
+    started = time.perf_counter()
+    failures = build_split_cache(split, cache, list(VERSIONS), workers=os.cpu_count() or 1)
+    assert not failures, failures
+    print(f"metric cache ready in {time.perf_counter() - started:.0f} s (built where missing)")
+    return split, cache
+
+
+def entry_file(split: Path, out: Path) -> Path:
+    """Write a one-seed submission (the human trajectories with noise) covering every token of the split."""
+    rng = np.random.default_rng(0)
+    human = baseline_submission(split, "human", "bench").seeds[0]
+    noisy = {token: poses + rng.normal(0.0, 0.2, poses.shape) for token, poses in human.items()}
+    out.write_bytes(dump_submission_json(Submission(SubmissionMetadata(method="bench"), (noisy,))))
+    return out
+
+
+@contextmanager
+def backend(kind: str, root: Path) -> Iterator[dict[str, str]]:
+    """Yield the environment variables of a fresh database and broker of `kind` under `root`."""
+    if kind == "embedded":
+        yield {"DATA_DIR": str(root), "QUEUE_NAME": f"navsim-lb-bench-{uuid.uuid4().hex[:8]}"}
+        return
+    with (
+        scratch_postgres_database(POSTGRES_URL, "navsim_lb_bench") as database_url,
+        scratch_redis_queue(REDIS_URL, "navsim-lb-bench") as queue,
+    ):
+        yield {
+            "DATA_DIR": str(root),
+            "QUEUE_NAME": queue,
+            "DATABASE_URL": database_url,
+            "BROKER_URL": REDIS_URL,
+        }
+
+
+def set_up(database_url: str, split: Path) -> str:
+    """Migrate, register the split (no baselines: nothing may compete), open a phase; return a team token."""
+    upgrade(database_url)
+    engine = make_engine(database_url)
+    with transaction(make_session_factory(engine)) as session:
+        create_phase(session, "bench", register_split(session, "bench", split))
+        team = create_team(session, "bench-team", [], "", Approval.approved)
+        _, token = create_token(session, Scope.team, team, "bench")
+    engine.dispose()
+    return token
+
+
+def wait_until(condition: Callable[[], bool], timeout: float = 600.0, poll_s: float = 0.05) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise TimeoutError("the service did not get there in time")
+        time.sleep(poll_s)
+
+
+def post_to_row(client: httpx.Client, entry: Path) -> tuple[float, float]:
+    """POST the entry; return seconds until it is scored and until its leaderboard row is served."""
+    started = time.perf_counter()
+    response = client.post("/api/v1/submissions", files={"file": (entry.name, entry.read_bytes())})
+    assert response.status_code == 202, response.text
+    submission_id = response.json()["id"]
+    wait_until(
+        lambda: client.get(f"/api/v1/submissions/{submission_id}").json()["status"] in ("scored", "failed")
+    )
+    scored = time.perf_counter() - started
+    state = client.get(f"/api/v1/submissions/{submission_id}").json()
+    assert state["status"] == "scored", state["error"]
+
+    def on_board() -> bool:
+        rows = [client.get("/api/v1/leaderboard", params={"version": v}).json()["rows"] for v in VERSIONS]
+        return all(any(row["submission_id"] == submission_id for row in board) for board in rows)
+
+    wait_until(on_board)
+    return scored, time.perf_counter() - started
+
+
+async def leaderboard_latency(url: str, rate: float, seconds: float) -> tuple[float, float, int, int]:
+    """GET /leaderboard open-loop at `rate` per second; return p50 and p99 in ms, answers and errors."""
+    count = int(rate * seconds)
+    latencies: list[float] = []
+    errors = 0
+    limits = httpx.Limits(max_connections=200, max_keepalive_connections=200)
+    async with httpx.AsyncClient(base_url=url, limits=limits, timeout=30) as client:
+        start = time.perf_counter() + 0.2
+
+        async def one(index: int) -> None:
+            nonlocal errors
+            scheduled = start + index / rate
+            await asyncio.sleep(max(0.0, scheduled - time.perf_counter()))
+            try:
+                response = await client.get("/api/v1/leaderboard", params={"version": "v1.1"})
+                if response.status_code != 200:
+                    errors += 1
+                    return
+            except httpx.HTTPError:
+                errors += 1
+                return
+            latencies.append(time.perf_counter() - scheduled)
+
+        await asyncio.gather(*(one(index) for index in range(count)))
+    p50, p99 = np.percentile(np.array(latencies) * 1000, [50, 99])
+    return float(p50), float(p99), len(latencies), errors
+
+
+def measure(
+    kind: str, workers: int, split: Path, cache: Path, latency_load: tuple[float, float] | None
+) -> tuple[float, float, tuple[float, float, int, int] | None]:
+    """Run one configuration on a fresh backend: POST-to-row times, then leaderboard latency if asked."""
+    with tempfile.TemporaryDirectory(prefix="navsim-lb-bench-") as tmp, ExitStack() as stack:
+        root = Path(tmp)
+        variables = stack.enter_context(backend(kind, root)) | {"CACHE_DIR": str(cache)}
+        env = {**os.environ, **variables}
+        token = set_up(Settings(**variables).database_url, split)
+        entry = entry_file(split, root / "entry.json")
+        worker_log = root / "worker.log"
+        stack.enter_context(child_process(worker_command(workers, beat=False), env, worker_log))
+        port = free_port()
+        stack.enter_context(child_process(api_command("127.0.0.1", port), env, root / "api.log"))
+        url = f"http://127.0.0.1:{port}"
+        client = stack.enter_context(
+            httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=60)
+        )
+        wait_until(lambda: _answers(client), timeout=60)
+        wait_until(lambda: "ready." in worker_log.read_text(errors="replace"), timeout=60)
+        scored, on_board = post_to_row(client, entry)
+        latency = asyncio.run(leaderboard_latency(url, *latency_load)) if latency_load else None
+    return scored, on_board, latency
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--tokens", type=int, default=2000)
+    parser.add_argument("--rate", type=float, default=200.0)
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--backends", default="embedded,services")
+    parser.add_argument("--workers", default="1,2")
+    args = parser.parse_args()
+
+    split, cache = prepared_split(args.tokens)
+    sizes = [int(n) for n in args.workers.split(",")]
+    print(f"{args.tokens} tokens, both metric versions; seconds from POST to:")
+    print(f"{'backend':10} {'workers':>7} {'scored':>8} {'on board':>9}")
+    latencies = {}
+    for kind in args.backends.split(","):
+        for workers in sizes:
+            # Leaderboard latency once per backend, with the largest worker idle beside the API.
+            load = (args.rate, args.seconds) if workers == max(sizes) else None
+            scored, on_board, latency = measure(kind, workers, split, cache, load)
+            print(f"{kind:10} {workers:>7} {scored:>8.1f} {on_board:>9.1f}", flush=True)
+            if latency is not None:
+                latencies[kind] = latency
+    for kind, (p50, p99, answered, errors) in latencies.items():
+        print(
+            f"GET /leaderboard {kind}: {args.rate:.0f}/s for {args.seconds:.0f} s: "
+            f"p50 {p50:.1f} ms, p99 {p99:.1f} ms ({answered} answered, {errors} errors)"
+        )
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def _answers(client: httpx.Client) -> bool:
+    try:
+        return client.get("/api/v1/health").status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Celery workers that score submissions: `worker.app` (configuration), `worker.tasks`, `worker.cli`."""
