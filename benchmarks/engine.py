@@ -1,6 +1,8 @@
 """Engine speed and memory: cache building and warm-cache scoring on a synthetic split.
 
-Prints tokens per second per version for one process and for all cores, and the peak RSS.
+Prints scenes per second of cache building (every version at once, as the CLI and the server build them,
+and each version alone) and tokens per second of warm-cache scoring per version, for one process and for
+all cores, and the peak RSS.
 Usage: .venv/bin/python benchmarks/engine.py [--scenes 1000] [--seed 1] [--workers 2]
 """
 
@@ -62,6 +64,17 @@ def main() -> None:
             f" ({len(VERSIONS) * len(tokens) / elapsed:.1f} scene-versions/s) with {workers} process(es)"
             f" ({elapsed:.1f} s, {len(failures)} failed)"
         )
+
+    for version in VERSIONS:
+        cache_dir = DATA / f"cache_{args.scenes}_{args.seed}_{version}"
+        shutil.rmtree(cache_dir, ignore_errors=True)
+        start = time.perf_counter()
+        build_split_cache(split, cache_dir, [version])
+        elapsed = time.perf_counter() - start
+        print(
+            f"cache {version} alone: {len(tokens) / elapsed:8.1f} scenes/s with 1 process ({elapsed:.1f} s)"
+        )
+        shutil.rmtree(cache_dir)
 
     cache_dir = DATA / f"cache_{args.scenes}_{args.seed}_w1"
     for version in VERSIONS:

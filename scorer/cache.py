@@ -25,7 +25,7 @@ from scorer import ENGINE_VERSION
 from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.geometry import FloatArray
 from scorer.observation import Observation, observe_scene
-from scorer.pdm_closed import plan_references
+from scorer.pdm_closed import plan_references_batch
 from scorer.pdm_scorer import ProposalMeasures, measure_batch
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
@@ -65,38 +65,55 @@ class MetricCache:
 
 def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, MetricCache]:
     """Return the metric cache of `scene` for each version; observation and map are shared between them."""
-    drivable_map = build_drivable_map(scene)
-    observation = observe_scene(scene)
-    frame = scene.current_frame
-    caches = {}
+    return build_cache_batch([scene], versions)[0]
+
+
+def build_cache_batch(
+    scenes: Sequence[Scene], versions: Sequence[MetricVersion]
+) -> list[dict[str, MetricCache]]:
+    """Return each scene's metric cache per version, as `build_caches` gives it for the scene alone.
+
+    The scenes share the array calls of the PDM-Closed unroll, the simulations and the measures (numpy's
+    per-call cost is most of a scene's), nothing else: every scene is planned and measured on its own.
+    """
+    drivable_maps = [build_drivable_map(scene) for scene in scenes]
+    observations = [observe_scene(scene) for scene in scenes]
+    frames = [scene.current_frame for scene in scenes]
     # One PDM-Closed unroll serves every version; only the proposal selection differs.
-    plans = plan_references(scene, drivable_map, [version.planner for version in versions])
-    t0_us = np.array([frame.timestamp_us])
-    for version, plan in zip(versions, plans, strict=True):
-        reference = pdm_references(t0_us, plan.trajectory[None])
-        states = simulate(reference, initial_state(frame.ego)[None])
+    plans = plan_references_batch(scenes, drivable_maps, [version.planner for version in versions])
+    # Every (version, scene) reference trajectory in one simulation, version-major.
+    t0_us = np.tile([frame.timestamp_us for frame in frames], len(versions))
+    trajectories = np.stack([plan[column].trajectory for column in range(len(versions)) for plan in plans])
+    initial = np.tile([initial_state(frame.ego) for frame in frames], (len(versions), 1))
+    states = simulate(pdm_references(t0_us, trajectories), initial).reshape(
+        len(versions), len(scenes), 1, -1, initial.shape[-1]
+    )
+    caches: list[dict[str, MetricCache]] = [{} for _ in scenes]
+    for column, version in enumerate(versions):
+        version_plans = [plan[column] for plan in plans]
         measures = measure_batch(
-            states[None],
-            [observation],
-            [drivable_map],
-            [plan.centerline[:, :2]],
-            [plan.route_lane_ids],
+            states[column],
+            observations,
+            drivable_maps,
+            [plan.centerline[:, :2] for plan in version_plans],
+            [plan.route_lane_ids for plan in version_plans],
             version.evaluation,
         )
-        caches[version.name] = MetricCache(
-            token=scene.token,
-            key=CacheKey(scene.content_hash, ENGINE_VERSION, version.name),
-            t0_us=frame.timestamp_us,
-            ego=frame.ego,
-            trajectory=plan.trajectory,
-            centerline=plan.centerline,
-            route_lane_ids=tuple(plan.route_lane_ids),
-            route_roadblocks=tuple(plan.route_roadblocks),
-            idm_target_velocities=np.asarray(plan.idm_target_velocities, dtype=np.float64),
-            drivable_map=drivable_map,
-            observation=observation,
-            reference_measures=measures,
-        )
+        for index, (scene, plan) in enumerate(zip(scenes, version_plans, strict=True)):
+            caches[index][version.name] = MetricCache(
+                token=scene.token,
+                key=CacheKey(scene.content_hash, ENGINE_VERSION, version.name),
+                t0_us=frames[index].timestamp_us,
+                ego=frames[index].ego,
+                trajectory=plan.trajectory,
+                centerline=plan.centerline,
+                route_lane_ids=tuple(plan.route_lane_ids),
+                route_roadblocks=tuple(plan.route_roadblocks),
+                idm_target_velocities=np.asarray(plan.idm_target_velocities, dtype=np.float64),
+                drivable_map=drivable_maps[index],
+                observation=observations[index],
+                reference_measures=measures.token(index),
+            )
     return caches
 
 

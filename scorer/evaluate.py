@@ -7,6 +7,7 @@ text. Summaries count such a token as 0 (the devkit's average row skips it) and 
 from __future__ import annotations
 
 import hashlib
+import logging
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -14,16 +15,19 @@ from pathlib import Path
 
 import numpy as np
 
-from scorer.cache import MetricCache, build_caches, load_cache, save_cache
+from scorer.cache import MetricCache, build_cache_batch, load_cache, save_cache
 from scorer.geometry import FloatArray
 from scorer.pdm_scorer import join_measures, measure_batch, score_measures
-from scorer.scene import SceneFormatError, load_scene, scene_file_hash, scene_paths
+from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state
-from scorer.versions import METRIC_COLUMNS, MetricVersion, get_version
+from scorer.versions import METRIC_COLUMNS, VERSIONS, MetricVersion, get_version
 
 POSES_SHAPE = (8, 3)
 CHUNK_SIZE = 256  # tokens per batched simulation; bounds memory on large splits
+CACHE_BATCH_SIZE = 16  # scenes whose caches are built together (a wider batch gains little)
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -49,38 +53,60 @@ def split_content_hash(split_dir: Path) -> str:
     return digest.hexdigest()
 
 
-def _build_and_save(path: Path, cache_dir: Path, version_names: Sequence[str]) -> dict[str, MetricCache]:
-    scene = load_scene(path)
-    caches = build_caches(scene, [get_version(name) for name in version_names])
-    for cache in caches.values():
-        save_cache(cache, cache_dir)
+def _build_and_save(
+    scenes: Sequence[Scene], cache_dir: Path, versions: Sequence[str]
+) -> list[dict[str, MetricCache]]:
+    caches = build_cache_batch(scenes, [get_version(name) for name in versions])
+    for scene_caches in caches:
+        for cache in scene_caches.values():
+            save_cache(cache, cache_dir)
     return caches
 
 
-def _load_or_build(path: Path, cache_dir: Path, version: str) -> MetricCache:
-    """Return the cache of one token, building it when missing or stale."""
-    cache = load_cache(cache_dir, version, path.name.split(".")[0], scene_file_hash(path))
-    if cache is not None:
-        return cache
-    try:
-        return _build_and_save(path, cache_dir, [version])[version]
-    except SceneFormatError as error:
-        raise TokenError(f"hidden scene is unreadable: {error}") from None
+def build_missing_caches(
+    paths: Sequence[Path], cache_dir: Path, versions: Sequence[str]
+) -> tuple[dict[str, dict[str, MetricCache]], dict[str, Exception]]:
+    """Build and save whatever the cache lacks of `versions` for the scenes at `paths`, in batches.
 
-
-def _build_missing(task: tuple[Path, Path, tuple[str, ...]]) -> tuple[str, str | None]:
-    path, cache_dir, versions = task
-    missing = [
-        v
-        for v in versions
-        if load_cache(cache_dir, v, path.name.split(".")[0], scene_file_hash(path)) is None
-    ]
-    try:
+    Return the caches built, by scene file name, and the error of each scene that failed, by file name:
+    a batch that fails is built again scene by scene, so an error names its scene and the others go on.
+    """
+    built: dict[str, dict[str, MetricCache]] = {}
+    errors: dict[str, Exception] = {}
+    lacking: dict[tuple[str, ...], list[tuple[str, Scene]]] = {}  # scenes grouped by what they lack
+    for path in paths:
+        token, scene_hash = path.name.split(".")[0], scene_file_hash(path)
+        missing = tuple(v for v in versions if load_cache(cache_dir, v, token, scene_hash) is None)
         if missing:
-            _build_and_save(path, cache_dir, missing)
-    except Exception as error:  # noqa: BLE001 - reported per token, the other scenes go on
-        return path.name, f"{type(error).__name__}: {error}"
-    return path.name, None
+            try:
+                lacking.setdefault(missing, []).append((path.name, load_scene(path)))
+            except SceneFormatError as error:
+                errors[path.name] = error
+    for missing, named in lacking.items():
+        for start in range(0, len(named), CACHE_BATCH_SIZE):
+            batch = named[start : start + CACHE_BATCH_SIZE]
+            try:
+                results = list(
+                    zip(
+                        batch, _build_and_save([scene for _, scene in batch], cache_dir, missing), strict=True
+                    )
+                )
+            except Exception:  # noqa: BLE001 - a scene broke the batch: build each alone to find it
+                results = []
+                for item in batch:
+                    try:
+                        results.append((item, _build_and_save([item[1]], cache_dir, missing)[0]))
+                    except Exception as error:
+                        log.exception("metric cache of %s could not be built", item[0])
+                        errors[item[0]] = error
+            built |= {name: caches for (name, _), caches in results}
+    return built, errors
+
+
+def _build_split_part(task: tuple[tuple[Path, ...], Path, tuple[str, ...]]) -> tuple[int, dict[str, str]]:
+    paths, cache_dir, versions = task
+    _, errors = build_missing_caches(paths, cache_dir, versions)
+    return len(paths), {name: f"{type(error).__name__}: {error}" for name, error in errors.items()}
 
 
 def build_split_cache(
@@ -91,25 +117,35 @@ def build_split_cache(
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, str]:
     """Build every missing or stale cache of a split; return file name -> error of scenes that failed."""
-    tasks = [(path, Path(cache_dir), tuple(versions)) for path in scene_paths(split_dir).values()]
+    paths = list(scene_paths(split_dir).values())
+    tasks = [
+        (tuple(paths[start : start + CACHE_BATCH_SIZE]), Path(cache_dir), tuple(versions))
+        for start in range(0, len(paths), CACHE_BATCH_SIZE)
+    ]
     failures: dict[str, str] = {}
-    results: Iterator[tuple[str, str | None]]
+    results: Iterator[tuple[int, dict[str, str]]]
     if workers > 1:
         executor = ProcessPoolExecutor(max_workers=workers)
-        results = executor.map(_build_missing, tasks, chunksize=8)
+        results = executor.map(_build_split_part, tasks)
     else:
         executor = None
-        results = map(_build_missing, tasks)
+        results = map(_build_split_part, tasks)
     try:
-        for name, error in results:
-            if error is not None:
-                failures[name] = error
+        for count, errors in results:
+            failures |= errors
             if progress is not None:
-                progress(1)
+                progress(count)
     finally:
         if executor is not None:
             executor.shutdown()
     return failures
+
+
+def _build_error_text(error: Exception) -> str:
+    """Return what a team may read of why a hidden scene's cache is missing (never the scene's content)."""
+    if isinstance(error, SceneFormatError):
+        return f"hidden scene is unreadable: {error}"
+    return f"the metric cache of this hidden scene could not be built ({type(error).__name__})"
 
 
 def _checked_poses(poses: object) -> FloatArray:
@@ -183,20 +219,37 @@ def score_tokens(
     tokens = list(paths) if tokens is None else list(tokens)
     results: list[TokenResult] = []
     for start in range(0, len(tokens), CHUNK_SIZE):
+        chunk = tokens[start : start + CHUNK_SIZE]
         ready: list[tuple[MetricCache, FloatArray]] = []
-        for token in tokens[start : start + CHUNK_SIZE]:
+        unbuilt: list[tuple[str, FloatArray]] = []
+        for token in chunk:
             try:
                 if token not in paths:
                     raise TokenError("token is not part of the split")
                 if token not in predictions:
                     raise TokenError("no prediction for this token")
                 poses = _checked_poses(predictions[token])
-                ready.append((_load_or_build(paths[token], Path(cache_dir), version), poses))
             except TokenError as error:
                 results.append(TokenResult(token, seed, False, error=str(error)))
+                continue
+            cache = load_cache(Path(cache_dir), version, token, scene_file_hash(paths[token]))
+            if cache is None:
+                unbuilt.append((token, poses))
+            else:
+                ready.append((cache, poses))
+        # Every version at once: one PDM-Closed unroll serves them all, and the others are scored next.
+        built, errors = build_missing_caches(
+            [paths[token] for token, _ in unbuilt], Path(cache_dir), list(VERSIONS)
+        )
+        for token, poses in unbuilt:
+            name = paths[token].name
+            if name in built:
+                ready.append((built[name][version], poses))
+            else:
+                results.append(TokenResult(token, seed, False, error=_build_error_text(errors[name])))
         results.extend(score_caches([c for c, _ in ready], [p for _, p in ready], metric_version, seed))
         if progress is not None:
-            progress(min(CHUNK_SIZE, len(tokens) - start))
+            progress(len(chunk))
     order = {token: index for index, token in enumerate(tokens)}
     return sorted(results, key=lambda result: order[result.token])
 

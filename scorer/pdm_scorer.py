@@ -88,6 +88,12 @@ class ProposalMeasures:
     off_route_steps: FloatArray  # (B, P, 41) centre displacement per step while off route
     ego_areas: npt.NDArray[np.bool_]  # (B, P, 41, 3)
 
+    def token(self, index: int) -> ProposalMeasures:
+        """Return the measures of token `index` as a batch of one (1, P)."""
+        return ProposalMeasures(
+            **{field.name: getattr(self, field.name)[index : index + 1] for field in fields(self)}
+        )
+
 
 def join_measures(parts: Sequence[ProposalMeasures], axis: int = 1) -> ProposalMeasures:
     """Return the measures of `parts` side by side: as more proposals (axis 1) or more tokens (axis 0)."""

@@ -1,19 +1,22 @@
-"""The metric cache file: exact round trip, rebuilt when its key changes or the file is damaged."""
+"""The metric cache: scenes built together as alone, a failing scene isolated, the file's exact round trip,
+rebuilt when its key changes or the file is damaged."""
 
 from __future__ import annotations
 
 from dataclasses import fields
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
 import pytest
 import shapely
 
-from scorer.cache import MetricCache, build_caches, cache_path, load_cache, save_cache
+from scorer import evaluate
+from scorer.cache import MetricCache, build_cache_batch, build_caches, cache_path, load_cache, save_cache
 from scorer.evaluate import score_tokens
 from scorer.pdm_scorer import ProposalMeasures
-from scorer.scene import iter_scenes, scene_file_hash, scene_paths
-from scorer.versions import VERSIONS
+from scorer.scene import Scene, iter_scenes, scene_file_hash, scene_paths
+from scorer.versions import VERSIONS, MetricVersion
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 
@@ -24,24 +27,68 @@ def built() -> tuple[str, dict[str, MetricCache]]:
     return scene.token, build_caches(scene, list(VERSIONS.values()))
 
 
+def assert_same_cache(loaded: MetricCache, cache: MetricCache) -> None:
+    """Every field of two caches equal, bit for bit."""
+    assert loaded.key == cache.key and loaded.ego == cache.ego and loaded.t0_us == cache.t0_us
+    for name in ("trajectory", "centerline", "idm_target_velocities"):
+        assert np.array_equal(getattr(loaded, name), getattr(cache, name)), name
+    assert loaded.route_lane_ids == cache.route_lane_ids
+    assert loaded.route_roadblocks == cache.route_roadblocks
+    assert loaded.drivable_map.tokens == cache.drivable_map.tokens
+    assert shapely.equals_exact(loaded.drivable_map.polygons, cache.drivable_map.polygons, 0.0).all()
+    assert loaded.observation.tokens == cache.observation.tokens
+    assert np.array_equal(loaded.observation.present, cache.observation.present)
+    assert np.array_equal(loaded.observation.corners, cache.observation.corners, equal_nan=True)
+    for field in fields(ProposalMeasures):
+        assert np.array_equal(
+            getattr(loaded.reference_measures, field.name), getattr(cache.reference_measures, field.name)
+        ), field.name
+
+
 def test_round_trip_is_exact(tmp_path: Path, built: tuple[str, dict[str, MetricCache]]) -> None:
     token, caches = built
     path = scene_paths(REFERENCE)[token]
     for version, cache in caches.items():
         save_cache(cache, tmp_path)
         loaded = load_cache(tmp_path, version, token, scene_file_hash(path))
-        assert loaded is not None and loaded.key == cache.key and loaded.ego == cache.ego
-        for name in ("trajectory", "centerline", "idm_target_velocities"):
-            assert np.array_equal(getattr(loaded, name), getattr(cache, name))
-        assert loaded.route_lane_ids == cache.route_lane_ids
-        assert shapely.equals_exact(loaded.drivable_map.polygons, cache.drivable_map.polygons, 0.0).all()
-        present = cache.observation.present
-        assert np.array_equal(loaded.observation.present, present)
-        assert np.array_equal(loaded.observation.corners, cache.observation.corners, equal_nan=True)
-        for field in fields(ProposalMeasures):
-            assert np.array_equal(
-                getattr(loaded.reference_measures, field.name), getattr(cache.reference_measures, field.name)
-            )
+        assert loaded is not None
+        assert_same_cache(loaded, cache)
+
+
+def test_scenes_built_together_get_the_caches_each_gets_alone() -> None:
+    versions = list(VERSIONS.values())
+    scenes = list(islice(iter_scenes(REFERENCE), 12))
+    together = build_cache_batch(scenes, versions)
+    for scene, caches in zip(scenes, together, strict=True):
+        alone = build_caches(scene, versions)
+        for version in VERSIONS:
+            assert caches[version].token == scene.token
+            assert_same_cache(caches[version], alone[version])
+
+
+def test_a_scene_that_breaks_its_batch_fails_alone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    paths = list(scene_paths(REFERENCE).values())[:5]
+    broken = paths[2].name.split(".")[0]
+
+    def build_unless_broken(
+        scenes: list[Scene], versions: list[MetricVersion]
+    ) -> list[dict[str, MetricCache]]:
+        if any(scene.token == broken for scene in scenes):
+            raise RuntimeError("engine bug")
+        return build_cache_batch(scenes, versions)
+
+    monkeypatch.setattr(evaluate, "build_cache_batch", build_unless_broken)
+    built, errors = evaluate.build_missing_caches(paths, tmp_path, list(VERSIONS))
+    assert set(errors) == {paths[2].name} and isinstance(errors[paths[2].name], RuntimeError)
+    assert set(built) == {path.name for path in paths} - {paths[2].name}
+    poses = {path.name.split(".")[0]: np.zeros((8, 3)) for path in paths}
+    results = {
+        result.token: result
+        for result in evaluate.score_tokens(REFERENCE, tmp_path, poses, "v1.0", list(poses))
+    }
+    assert not results[broken].valid
+    assert results[broken].error == "the metric cache of this hidden scene could not be built (RuntimeError)"
+    assert all(result.valid for token, result in results.items() if token != broken)
 
 
 def test_stale_or_damaged_files_are_rebuilt(
