@@ -5,19 +5,27 @@ from __future__ import annotations
 from typing import Any
 
 from celery import Celery
+from sqlalchemy import create_engine, inspect, text
 from sqlalchemy.pool import NullPool
 
 from server.settings import Settings, get_settings
 
 SCORE_TASK = "worker.tasks.score_submission"
 SQLITE_BROKER_TIMEOUT_S = 30.0
+KOMBU_MESSAGE_TABLE = "kombu_message"  # kombu's default; we never set `message_tablename`
 _clients: dict[tuple[str, str, float], Celery] = {}
+
+
+def _embedded_broker_database(broker_url: str) -> str | None:
+    """Return the SQLAlchemy URL of an embedded (kombu SQL transport) broker, None for any other broker."""
+    scheme, _, rest = broker_url.partition("+")
+    return rest if scheme in ("sqla", "sqlalchemy") and rest else None
 
 
 def broker_transport_options(settings: Settings) -> dict[str, Any]:
     """Return the kombu transport options for the configured broker."""
     scheme = settings.broker_url.split("://", 1)[0]
-    if scheme.startswith(("sqla+", "sqlalchemy+")):
+    if _embedded_broker_database(settings.broker_url):
         # Every option reaches create_engine. No pool: a pooled SQLite connection must not cross a fork
         # into the worker's pool processes. The timeout lets writers queue instead of failing at once.
         return {"poolclass": NullPool, "connect_args": {"timeout": SQLITE_BROKER_TIMEOUT_S}}
@@ -51,6 +59,26 @@ def celery_client(settings: Settings) -> Celery:
 def enqueue_submission(submission_id: int, settings: Settings | None = None) -> None:
     """Ask a worker to score the current run of a submission."""
     celery_client(settings or get_settings()).send_task(SCORE_TASK, args=[submission_id])
+
+
+def prune_embedded_broker(settings: Settings) -> int:
+    """Delete the messages the embedded broker handed out already; return how many.
+
+    kombu's SQL transport only hides a message it delivers (it has no acknowledgement to wait for), so
+    without this its file grows with every task ever sent. Other brokers delete messages themselves.
+    """
+    database = _embedded_broker_database(settings.broker_url)
+    if database is None:
+        return 0
+    engine = create_engine(database, poolclass=NullPool, connect_args={"timeout": SQLITE_BROKER_TIMEOUT_S})
+    try:
+        with engine.begin() as connection:
+            if not inspect(connection).has_table(KOMBU_MESSAGE_TABLE):
+                return 0
+            deleted = connection.execute(text(f"DELETE FROM {KOMBU_MESSAGE_TABLE} WHERE visible = 0"))
+            return deleted.rowcount
+    finally:
+        engine.dispose()
 
 
 def broker_status(settings: Settings) -> dict[str, Any]:

@@ -38,7 +38,7 @@ from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionError, load_submission, validate_submission
 from server.db import make_engine, make_session_factory, transaction
 from server.models import FailureKind, Submission, utc_now
-from server.queue import SCORE_TASK
+from server.queue import SCORE_TASK, prune_embedded_broker
 from server.services.errors import NotFound
 from server.services.scoring import (
     ScoringJob,
@@ -249,12 +249,15 @@ def _waiting_tasks() -> int:
 @app.task(name=REAP_TASK)
 def reap_leases() -> dict[str, list[int]]:
     """Re-queue runs whose lease expired (failing those out of attempts) and re-send long-queued ones."""
+    settings = get_settings()
+    pruned = prune_embedded_broker(settings)
+    if pruned:
+        log.info("reaper: deleted %d delivered messages from the embedded broker", pruned)
     # Tasks still waiting in the queue may be the chunks of an expired lease that are merely late behind
     # other work: only an idle queue proves a run lost. Redis hands lost messages back by itself; the
     # embedded broker cannot, so this is how its runs recover.
     if _waiting_tasks():
         return {"postponed": []}
-    settings = get_settings()
     now = utc_now()
     failed, resend = [], []
     with transaction(_sessions(settings.database_url)) as session:
