@@ -1,3 +1,10 @@
-"""PDM Score engine for NAVSIM v1.0 and v1.1: a pure library (numpy, shapely 2, scipy)."""
+"""PDM Score engine for NAVSIM v1.0 and v1.1: a pure library (numpy, shapely 2, scipy).
+
+Importing it first selects the OpenBLAS kernels the official results were made with (`scorer.blas`).
+"""
 
 ENGINE_VERSION = "0.3.0"
+
+from scorer.blas import select_devkit_kernels  # after ENGINE_VERSION, which it imports
+
+select_devkit_kernels()

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import shapely
 
-from scorer import ENGINE_VERSION
+from scorer.blas import engine_provenance
 from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.geometry import FloatArray
 from scorer.observation import Observation, observe_scene
@@ -40,7 +40,7 @@ class CacheKey:
     """What a cache file was built from; any change invalidates it."""
 
     scene_hash: str
-    engine_version: str
+    engine_version: str  # with the OpenBLAS kernels, which move last bits (scorer.blas.engine_provenance)
     metric_version: str
 
 
@@ -102,7 +102,7 @@ def build_cache_batch(
         for index, (scene, plan) in enumerate(zip(scenes, version_plans, strict=True)):
             caches[index][version.name] = MetricCache(
                 token=scene.token,
-                key=CacheKey(scene.content_hash, ENGINE_VERSION, version.name),
+                key=CacheKey(scene.content_hash, engine_provenance(), version.name),
                 t0_us=frames[index].timestamp_us,
                 ego=frames[index].ego,
                 trajectory=plan.trajectory,
@@ -212,7 +212,7 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
         key = CacheKey(**meta["key"])
     except (OSError, ValueError, KeyError, TypeError):
         return None  # missing, truncated or foreign: rebuild
-    if key != CacheKey(scene_hash, ENGINE_VERSION, version):
+    if key != CacheKey(scene_hash, engine_provenance(), version):
         return None
     present = arrays["object_present"]
     corners = np.full((*present.shape, 4, 2), np.nan)

@@ -59,6 +59,15 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
+def warn_about_kernels() -> None:
+    """Say so when the OpenBLAS kernels are not the official results' (last bits may differ)."""
+    from scorer.blas import kernel_warning
+
+    warning = kernel_warning()
+    if warning is not None:
+        console.print(f"[yellow]warning:[/yellow] {escape(warning)}")
+
+
 def synth(
     out: Annotated[Path, typer.Argument(help="directory of the new split (scenes/ is created inside)")],
     scenes: Annotated[int, typer.Option(help="number of scenes")] = 200,
@@ -106,6 +115,7 @@ def cache(
         total = len(scene_paths(split))
     except SceneFormatError as error:
         raise fail(str(error)) from None
+    warn_about_kernels()
     with progress_bar(f"caching {', '.join(versions)}", total) as advance:
         failures = build_split_cache(split, cache_dir or default_cache_dir(split), versions, workers, advance)
     for name, error in failures.items():
@@ -139,6 +149,7 @@ def score(
         raise fail(f"{submission}: {error}") from None
     for problem in validate_submission(loaded, tokens):
         console.print(f"[yellow]warning:[/yellow] {escape(str(problem))}")
+    warn_about_kernels()
     results = []
     with progress_bar(f"scoring {version}", len(tokens) * len(loaded.seeds)) as advance:
         for index, predictions in enumerate(loaded.seeds):
@@ -165,6 +176,7 @@ def regress(
     """Compare the engine with the versioned golden results of the regression split (fails above 1e-9)."""
     from scorer.regression import run_regression
 
+    warn_about_kernels()
     changes = run_regression(update=update, progress=progress_bar)
     if update:
         console.print("golden results rewritten")

@@ -6,6 +6,8 @@ import os
 
 from hypothesis import settings
 
+import scorer  # noqa: F401 - before the test modules load numpy: the official results' OpenBLAS kernels
+
 # The shared fixtures, registered here (before any test module imports them) so their asserts are rewritten.
 pytest_plugins = ["server_testing", "worker_testing"]
 

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 import shapely
+from devkit_kernels import devkit_tolerance
 from test_openscene_builders import Table, write_gpkg, write_log
 
 from scorer.geometry import rear_axle_round_trip
@@ -300,7 +301,7 @@ def test_imported_reference_scenes_score_as_the_originals(imported, version: str
             assert result.metrics == originals[result.token].metrics, (family, result.token)
             for column in METRIC_COLUMNS:
                 # Discrete results are exact; the engine's own last-bit differences in EP are not the importer's.
-                tolerance = 1e-9 if column in CONTINUOUS else 0.0
+                tolerance = devkit_tolerance(1e-9) if column in CONTINUOUS else 0.0
                 expected = official[result.token][column]
                 assert result.metrics[column] == pytest.approx(expected, rel=0, abs=tolerance), (
                     family,

@@ -29,10 +29,11 @@ import kombu.exceptions
 import sqlalchemy.exc
 from celery import Task
 from celery.exceptions import SoftTimeLimitExceeded
+from celery.signals import worker_ready
 from celery.utils.log import get_task_logger
 from sqlalchemy.orm import Session, sessionmaker
 
-from scorer import ENGINE_VERSION
+from scorer.blas import engine_provenance, kernel_warning
 from scorer.evaluate import TokenResult, score_tokens
 from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionError, load_submission, validate_submission
@@ -75,6 +76,13 @@ class Rejected(Exception):
     def __init__(self, kind: FailureKind, message: str, detail: str | None = None) -> None:
         super().__init__(message)
         self.kind, self.message, self.detail = kind, message, detail
+
+
+@worker_ready.connect
+def _warn_about_kernels(**_: object) -> None:
+    warning = kernel_warning()
+    if warning is not None:
+        log.warning("%s (results record their kernels: %s)", warning, engine_provenance())
 
 
 @lru_cache(maxsize=2)
@@ -188,7 +196,9 @@ def score_submission(self: Task, submission_id: int) -> str:
         predictions = _predictions(job)
         if not missing:  # every row was written before an interruption: only the aggregation is left
             with transaction(sessions) as session:
-                finish_if_complete(session, submission_id, run, ENGINE_VERSION, settings.bootstrap_samples)
+                finish_if_complete(
+                    session, submission_id, run, engine_provenance(), settings.bootstrap_samples
+                )
             return "finished"
         # A chunk holds about chunk_size (token, seed) pairs, whatever the number of seeds.
         size = max(1, settings.chunk_size // len(predictions.seeds))
@@ -231,7 +241,7 @@ def score_chunk(self: Task, submission_id: int, run: int, tokens: list[str]) -> 
                 if not wanted:
                     return "dropped"
             finished = finish_if_complete(
-                session, submission_id, run, ENGINE_VERSION, settings.bootstrap_samples
+                session, submission_id, run, engine_provenance(), settings.bootstrap_samples
             )
         return "scored" if finished else f"{len(todo)} tokens"
 

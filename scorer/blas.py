@@ -1,0 +1,84 @@
+"""OpenBLAS kernels: the last bits of the official results depend on which ones run.
+
+numpy's and SciPy's OpenBLAS choose their kernels when they load (by CPU, or as OPENBLAS_CORETYPE says),
+and `pinv` (the tracker's velocity and curvature fits) rounds differently under each. The official
+results were made with the SkylakeX kernels OpenBLAS picks on AVX-512 CPUs: under them the engine gives
+every reference number bit for bit; under others (Haswell, say) ego progress and the score moved by up to
+3e-13 on the reference scenes. So where the CPU can run them, importing `scorer` asks for the SkylakeX
+kernels before numpy loads, whatever OPENBLAS_CORETYPE said (NAVSIM_LB_KEEP_OPENBLAS_CORETYPE=1 keeps
+the environment's choice), and `kernel_warning` says when other kernels run, e.g. when numpy was loaded
+before `scorer`.
+"""
+
+from __future__ import annotations
+
+import os
+from functools import lru_cache
+from pathlib import Path
+
+from scorer import ENGINE_VERSION
+
+DEVKIT_KERNELS = "SkylakeX"
+KEEP_VARIABLE = "NAVSIM_LB_KEEP_OPENBLAS_CORETYPE"
+# What OpenBLAS's SkylakeX kernels execute (AVX-512 foundation, byte/word, double/quad word, vector length).
+_SKYLAKEX_CPU_FLAGS = frozenset({"avx512f", "avx512cd", "avx512bw", "avx512dq", "avx512vl"})
+
+
+def _cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> frozenset[str]:
+    """Return the CPU's feature flags as Linux lists them; empty where there is no /proc/cpuinfo."""
+    try:
+        lines = cpuinfo.read_text().splitlines()
+    except OSError:
+        return frozenset()
+    flags = next((line.split(":", 1)[1] for line in lines if line.startswith("flags")), "")
+    return frozenset(flags.split())
+
+
+def select_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> None:
+    """Ask OpenBLAS (when it loads later) for the devkit's kernels if this CPU can run them."""
+    if os.environ.get(KEEP_VARIABLE):
+        return
+    if _SKYLAKEX_CPU_FLAGS <= (_cpu_flags() if cpu_flags is None else cpu_flags):
+        os.environ["OPENBLAS_CORETYPE"] = DEVKIT_KERNELS
+
+
+@lru_cache(maxsize=1)
+def blas_kernels() -> tuple[str, ...]:
+    """Return the kernel sets the loaded OpenBLAS libraries run (numpy's and SciPy's, both loaded here)."""
+    import numpy  # noqa: F401 - load both libraries the engine calls before asking
+    import scipy.linalg  # noqa: F401
+    from threadpoolctl import threadpool_info
+
+    return tuple(
+        sorted(
+            {
+                str(library.get("architecture") or "unknown")
+                for library in threadpool_info()
+                if library.get("internal_api") == "openblas"
+            }
+        )
+    )
+
+
+def kernel_warning() -> str | None:
+    """Return why results may differ from the devkit's in the last bits, or None under the devkit's kernels."""
+    kernels = blas_kernels()
+    if kernels == (DEVKIT_KERNELS,):
+        return None
+    forced = os.environ.get("OPENBLAS_CORETYPE")
+    cause = f" (OPENBLAS_CORETYPE={forced})" if forced and forced != DEVKIT_KERNELS else ""
+    remedy = (
+        f"unset {KEEP_VARIABLE}"
+        if os.environ.get(KEEP_VARIABLE)
+        else f"import scorer before numpy on a CPU with AVX-512 ({', '.join(sorted(_SKYLAKEX_CPU_FLAGS))})"
+    )
+    return (
+        f"OpenBLAS runs its {'+'.join(kernels)} kernels{cause}, not the {DEVKIT_KERNELS} ones of the official "
+        f"results: ego progress and scores can differ from the devkit's in the last bits (up to 3e-13 on "
+        f"the reference scenes). For bit-exact results, {remedy}."
+    )
+
+
+def engine_provenance() -> str:
+    """Return what produced a number: the engine version and the OpenBLAS kernels it ran."""
+    return f"{ENGINE_VERSION} OpenBLAS {'+'.join(blas_kernels())}"

@@ -1,0 +1,115 @@
+"""`scorer.blas`: importing the engine selects the official results' OpenBLAS kernels where the CPU runs
+them, says so when other kernels run, and the kernels are part of every result's and cache's provenance."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from scorer import ENGINE_VERSION
+from scorer import cache as scorer_cache
+from scorer.blas import (
+    _SKYLAKEX_CPU_FLAGS,
+    DEVKIT_KERNELS,
+    KEEP_VARIABLE,
+    _cpu_flags,
+    engine_provenance,
+    select_devkit_kernels,
+)
+from scorer.cache import build_caches, load_cache, save_cache
+from scorer.scene import load_scene, scene_file_hash, scene_paths
+from scorer.versions import VERSIONS
+
+REFERENCE = Path(__file__).parent / "fixtures" / "reference"
+
+AVX512_HOST = _SKYLAKEX_CPU_FLAGS <= _cpu_flags()
+PROBE = """
+import json, sys
+if sys.argv[1] == "numpy-first":
+    import numpy
+import scorer
+from scorer.blas import blas_kernels, kernel_warning
+print(json.dumps({"kernels": blas_kernels(), "warning": kernel_warning()}))
+"""
+
+
+def _probe(order: str, **environment: str) -> dict[str, object]:
+    """Return the kernels and warning of a fresh interpreter importing numpy and scorer in `order`."""
+    env = {
+        name: value for name, value in os.environ.items() if name not in ("OPENBLAS_CORETYPE", KEEP_VARIABLE)
+    }
+    done = subprocess.run(
+        [sys.executable, "-c", PROBE, order],
+        capture_output=True,
+        text=True,
+        check=False,
+        env=env | environment,
+    )
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_cpu_flags_are_read_from_cpuinfo(tmp_path: Path) -> None:
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f\nbugs\t\t: spectre\n")
+    assert _cpu_flags(cpuinfo) == {"fpu", "sse2", "avx2", "avx512f"}
+    assert _cpu_flags(tmp_path / "absent") == frozenset()
+
+
+def test_selection_asks_for_skylakex_only_where_the_cpu_runs_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("OPENBLAS_CORETYPE", "Haswell")
+    monkeypatch.delenv(KEEP_VARIABLE, raising=False)
+    select_devkit_kernels(frozenset({"avx2", "fma"}))
+    assert os.environ["OPENBLAS_CORETYPE"] == "Haswell"
+    select_devkit_kernels(_SKYLAKEX_CPU_FLAGS | {"avx2"})
+    assert os.environ["OPENBLAS_CORETYPE"] == DEVKIT_KERNELS
+    monkeypatch.setenv("OPENBLAS_CORETYPE", "Haswell")
+    monkeypatch.setenv(KEEP_VARIABLE, "1")
+    select_devkit_kernels(_SKYLAKEX_CPU_FLAGS)
+    assert os.environ["OPENBLAS_CORETYPE"] == "Haswell"
+
+
+def test_importing_scorer_first_overrides_another_coretype() -> None:
+    probed = _probe("scorer-first", OPENBLAS_CORETYPE="Haswell")
+    if AVX512_HOST:
+        assert probed == {"kernels": [DEVKIT_KERNELS], "warning": None}
+    else:  # the devkit's kernels cannot run here: the other ones are used, and said so
+        assert probed["kernels"] != [DEVKIT_KERNELS] and "kernels" in str(probed["warning"])
+
+
+def test_other_kernels_are_kept_on_request_and_warned_about() -> None:
+    probed = _probe("scorer-first", OPENBLAS_CORETYPE="Haswell", **{KEEP_VARIABLE: "1"})
+    assert probed["kernels"] == ["Haswell"]
+    assert "OpenBLAS runs its Haswell kernels (OPENBLAS_CORETYPE=Haswell)" in str(probed["warning"])
+    assert f"unset {KEEP_VARIABLE}" in str(probed["warning"])
+
+
+def test_numpy_loaded_before_scorer_is_warned_about() -> None:
+    probed = _probe("numpy-first", OPENBLAS_CORETYPE="Haswell")
+    assert "Haswell" in probed["kernels"]  # type: ignore[operator]
+    assert "import scorer before numpy" in str(probed["warning"])
+
+
+def test_provenance_names_the_engine_and_its_kernels() -> None:
+    provenance = engine_provenance()
+    kernels = provenance.removeprefix(f"{ENGINE_VERSION} OpenBLAS ")
+    assert kernels != provenance and kernels
+    if AVX512_HOST:
+        assert kernels == DEVKIT_KERNELS
+
+
+def test_a_cache_built_under_other_kernels_is_rebuilt(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = next(iter(scene_paths(REFERENCE).values()))
+    scene = load_scene(path)
+    cache = build_caches(scene, [VERSIONS["v1.1"]])["v1.1"]
+    save_cache(cache, tmp_path)
+    assert load_cache(tmp_path, "v1.1", scene.token, scene_file_hash(path)) is not None
+    monkeypatch.setattr(scorer_cache, "engine_provenance", lambda: f"{ENGINE_VERSION} OpenBLAS Haswell")
+    assert load_cache(tmp_path, "v1.1", scene.token, scene_file_hash(path)) is None
