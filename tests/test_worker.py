@@ -29,11 +29,12 @@ from worker_testing import (
 )
 
 from navsim_lb.scratch import scratch_redis_queue
+from scorer.blas import engine_provenance
 from scorer.submission import Submission as Predictions
 from scorer.submission import dump_submission_json
 from scorer.versions import VERSIONS
 from server.db import transaction
-from server.models import FailureKind, Phase, Status, Submission, Team, TokenResultRow, utc_now
+from server.models import FailureKind, Phase, Result, Status, Submission, Team, TokenResultRow, utc_now
 from server.queue import celery_client, enqueue_submission
 from server.services.leaderboard import subscore_columns
 from server.services.scoring import claim_submission
@@ -144,6 +145,11 @@ def test_submit_cli_upload_is_scored_as_the_engine_scores_it(
     submission = _submission(service, submission_id)
     assert (submission.status, submission.progress, submission.seed_count) == (Status.scored, 100, 2)
     assert _rows(service, submission_id) == len(entry.seeds[0]) * 2 * len(VERSIONS)
+    with service.factory() as session:  # the worker processes ran the kernels this process runs
+        provenances = session.scalars(
+            select(Result.engine_version).where(Result.submission_id == submission_id)
+        )
+        assert set(provenances) == {engine_provenance()}
     with service.client() as client:  # the team's entry on the leaderboard, whatever else it submitted
         assert (
             client.patch(f"/api/v1/submissions/{submission_id}", json={"selected": True}).status_code == 200
