@@ -57,10 +57,22 @@ class RoadGraph:
 
     def discrete_paths(self, lanes: Sequence[Lane]) -> list[FloatArray]:
         """Return each lane's discrete path (n, 3); the ones not yet known are computed in one call."""
-        missing = [lane for lane in dict.fromkeys(lanes) if lane not in self._paths]
+        degenerate = [lane.id for lane in lanes if self.lane_length(lane) == 0.0]
+        if degenerate:
+            # nuPlan asserts on it (`extract_discrete_polyline`): the devkit cannot cache such a scene.
+            raise RouteError(
+                f"lane {degenerate[0]}: its baseline has zero length, so it has no discrete path"
+            )
+        self.prefetch(lanes)
+        return [self._paths[lane] for lane in lanes]
+
+    def prefetch(self, lanes: Sequence[Lane]) -> None:
+        """Compute in one call the discrete paths of lanes read soon (a degenerate one fails only when read)."""
+        missing = [
+            lane for lane in dict.fromkeys(lanes) if lane not in self._paths and self.lane_length(lane)
+        ]
         if missing:
             self._paths.update(zip(missing, baseline_poses([lane.baseline for lane in missing])))
-        return [self._paths[lane] for lane in lanes]
 
     def lane_length(self, lane: Lane) -> float:
         """Return the baseline length as shapely measures it (nuPlan's `baseline_path.length`)."""
@@ -190,7 +202,7 @@ def roadblock_candidates(
     off_route: list[tuple[Roadblock, float]] = []
     best_lane_distances = []
     # One call for the candidates' lanes and the route's (the centerline's, in the usual case).
-    graph.discrete_paths(
+    graph.prefetch(
         [lane for block in candidates for lane in graph.interior.get(block, ())] + list(route.lanes)
     )
     for block in candidates:

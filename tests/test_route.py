@@ -103,6 +103,26 @@ def test_a_route_roadblock_missing_from_the_excerpt_is_an_error_naming_it() -> N
         load_route(build_road_graph(_straight_road()), ["1", "7"], "token")
 
 
+def test_a_lane_with_a_zero_length_baseline_fails_only_where_it_is_read() -> None:
+    """nuPlan's discrete path asserts on a zero-length polyline: the devkit cannot cache such a scene."""
+    road = _straight_road()
+    degenerate = _lane("20", "2", [[15, 0], [15, 0]])  # the lane of roadblock 2: both vertices equal
+    excerpt = MapExcerpt(
+        lanes=(road.lanes[0], degenerate, road.lanes[2]),
+        lane_connectors=road.lane_connectors,
+        roadblocks=road.roadblocks,
+        roadblock_connectors=road.roadblock_connectors,
+    )
+    graph = build_road_graph(excerpt)
+    route = load_route(graph, ["1", "12", "2", "23", "3"], "token")
+    corrected = correct_route(graph, excerpt, route, (5.0, 0.0, 0.0), "token")  # roadblock 1: not read
+    assert corrected.block_ids == route.block_ids
+    with pytest.raises(RouteError, match="lane 20: its baseline has zero length"):
+        correct_route(
+            graph, excerpt, route, (15.0, 0.0, 0.0), "token"
+        )  # roadblock 2: its lane is a candidate
+
+
 def test_a_missing_connector_is_inserted_and_a_route_starting_behind_the_ego_is_kept() -> None:
     excerpt = _straight_road()
     graph = build_road_graph(excerpt)
