@@ -330,3 +330,55 @@ def test_an_empty_observation_and_map() -> None:
     assert scores.time_to_collision_within_bound[0] == 1.0
     assert scores.drivable_area_compliance[0] == 0.0
     assert scores.ego_areas[0, :, EgoArea.ONCOMING_TRAFFIC].all()
+
+
+# Branches the reference scenes do not pin. NAVSIM calls nuPlan's `is_agent_ahead` and `is_track_stopped`
+# with their defaults: 30 degrees and 0.05 m/s in nuplan-devkit v1.2 (older nuPlan had 20 degrees and
+# 5e-3, which would flip the first two cases).
+
+
+def test_ttc_counts_an_object_25_degrees_off_the_heading_as_ahead() -> None:
+    # Ego at 5 m/s along +x in the right lane (one lane, drivable, no intersection). A 1 x 0.5 m vehicle
+    # moves with it, centroid 2.8 m ahead of and 1.3 m left of the rear axle: atan2(1.3, 2.8) = 24.9 deg.
+    # Its box (y in [-0.7, -0.2]) overlaps the ego box (top y = -0.6015) at every step.
+    # NC: moving vehicle, not behind, front bumper (x = +4.049) misses it (x <= +3.3) -> lateral, single
+    # lane -> not at fault -> ignored; NC = 1.
+    # TTC at k = 0, f = 0: speed 5 >= 5e-3, angle 24.9 deg < 30 deg -> is_agent_ahead -> TTC = 0 at k = 0.
+    # (With nuPlan's old 20 deg default: not ahead, not in a critical area -> ignored -> TTC = 1.)
+    assert math.degrees(math.atan2(1.3, 2.8)) < 30.0
+    xs = 2.8 + 0.5 * np.arange(OBSERVATION_STEPS)
+    buddy = track("buddy", xs, RIGHT_LANE_Y + 1.3, speed=5.0, length=1.0, width=0.5)
+    scores = score(drive(5.0), objects=observe(buddy))
+    assert scores.no_at_fault_collisions[0] == 1.0
+    assert scores.time_to_collision_within_bound[0] == 0.0
+    assert scores.ttc_index[0] == 0
+
+
+def test_a_vehicle_creeping_at_0_03_m_s_is_a_stopped_track() -> None:
+    # A 5 x 2 m vehicle beside the ego (centre x = ego centre, 0.1 m overlap on the left), first-sighting
+    # speed 0.03 m/s. get_collision_type: ego 5 m/s > 0.05 (not stopped); is_track_stopped: 0.03 <= 0.05
+    # -> STOPPED_TRACK_COLLISION -> at fault, vehicle -> NC = 0 at k = 0.
+    # (With nuPlan's old 5e-03 default: lateral in one lane -> not at fault -> NC = 1.)
+    neighbour = track("creeper", REAR_AXLE_TO_CENTER, RIGHT_LANE_Y + 1.1485 + 1.0 - 0.1, speed=0.03)
+    scores = score(drive(5.0), objects=observe(neighbour))
+    assert scores.no_at_fault_collisions[0] == 0.0
+    assert scores.collision_index[0] == 0
+
+
+def test_a_centroid_on_the_rear_axle_gives_a_nan_angle_and_a_lateral_contact() -> None:
+    # A 1 x 1 m pedestrian moving with the ego, centred exactly on the rear axle: get_agent_relative_angle
+    # divides by a zero norm -> NaN; is_agent_behind(NaN > 150 deg) is False; the front bumper misses it ->
+    # ACTIVE_LATERAL; single lane, drivable -> not at fault -> NC = 1. TTC: NaN < 30 deg is False, not in a
+    # critical area -> ignored -> TTC = 1.
+    walker = track(
+        "walker",
+        0.5 * np.arange(OBSERVATION_STEPS),
+        RIGHT_LANE_Y,
+        speed=5.0,
+        category="pedestrian",
+        length=1.0,
+        width=1.0,
+    )
+    scores = score(drive(5.0), objects=observe(walker))
+    assert scores.no_at_fault_collisions[0] == 1.0
+    assert scores.time_to_collision_within_bound[0] == 1.0
