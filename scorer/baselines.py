@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scorer.geometry import FloatArray
+from scorer.geometry import FloatArray, normalize_angle
 from scorer.scene import Scene, iter_scenes
 from scorer.submission import INTERVAL_LENGTH_S, NUM_POSES, Submission, SubmissionMetadata
 
@@ -33,7 +33,7 @@ def human(scene: Scene) -> FloatArray:
     rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
     relative = poses[1:] - poses[:1]
     relative[:, :2] = relative[:, :2] @ rotation.T
-    relative[:, 2] = np.arctan2(np.sin(relative[:, 2]), np.cos(relative[:, 2]))
+    relative[:, 2] = normalize_angle(relative[:, 2])
     return relative
 
 

@@ -23,12 +23,6 @@ REAR_AXLE_TO_CENTER = EGO_HALF_LENGTH - EGO_REAR_LENGTH
 WHEEL_BASE = 3.089
 
 
-def normalize_angle(angle: npt.ArrayLike) -> FloatArray:
-    """Return the angle wrapped to (-pi, pi] via atan2 (PDM's `normalize_angle`)."""
-    angle = np.asarray(angle, dtype=np.float64)
-    return np.arctan2(np.sin(angle), np.cos(angle))
-
-
 # Constants of numpy's AVX-512 arctan2 (Intel SVML `__svml_atan28_ha`, table `__svml_datan2_ha_data_internal`):
 # |y/x| is reduced around c = 0.5, 1, 1.5 or infinity (bands split at 7/16, 11/16, 19/16, 39/16), atan(c) = hi + lo.
 _ATAN2_BAND_LIMITS = np.array([0.4375, 0.6875, 1.1875, 2.4375])
@@ -121,8 +115,8 @@ def _fused_multiply_add(
     return high + tail
 
 
-def arctan2_avx512(y: npt.ArrayLike, x: npt.ArrayLike) -> FloatArray:
-    """Return np.arctan2(y, x) as numpy computes it on AVX-512 machines, bit for bit.
+def svml_arctan2_emulated(y: npt.ArrayLike, x: npt.ArrayLike) -> FloatArray:
+    """Return np.arctan2(y, x) as numpy computes it on AVX-512 machines, from float64 operations only.
 
     There numpy (2.x) calls Intel SVML's `__svml_atan28_ha`, which is not correctly rounded: about 7 %
     of results differ by one ulp from the (correctly rounded) libm value numpy uses elsewhere, and
@@ -175,8 +169,34 @@ def arctan2_avx512(y: npt.ArrayLike, x: npt.ArrayLike) -> FloatArray:
     return np.where(main_path, result, np.arctan2(y, x))
 
 
-def normalize_angle_avx512(angle: npt.ArrayLike) -> FloatArray:
-    """Return `normalize_angle` as the devkit computed it on an AVX-512 machine (see `arctan2_avx512`)."""
+# Pairs where SVML's arctan2 is one ulp off the correctly rounded value, with SVML's results: numpy is SVML
+# here exactly when it gives these.
+_SVML_PROBE_Y = np.array([0.4204452380655215, -0.9582652054360887, -1.7321348424395848, -0.7133133716322436])
+_SVML_PROBE_X = np.array([-0.6751644318458926, -0.8558898003024131, 0.11223573050766027, 0.07973264584871048])
+_SVML_PROBE_ARCTAN2 = np.array(
+    [
+        float.fromhex(h)
+        for h in (
+            "0x1.4ad510f594a40p+1",
+            "-0x1.26609823b8df4p+1",
+            "-0x1.818f274220f8ap+0",
+            "-0x1.75a0841df7314p+0",
+        )
+    ]
+)
+NUMPY_ARCTAN2_IS_SVML = bool(np.array_equal(np.arctan2(_SVML_PROBE_Y, _SVML_PROBE_X), _SVML_PROBE_ARCTAN2))
+
+
+def arctan2_avx512(y: npt.ArrayLike, x: npt.ArrayLike) -> FloatArray:
+    """Return np.arctan2(y, x) as the devkit computed it on the AVX-512 machine of the official results:
+    numpy's own where numpy runs SVML (exact, and faster), the emulation elsewhere."""
+    if NUMPY_ARCTAN2_IS_SVML:
+        return np.arctan2(y, x)
+    return svml_arctan2_emulated(y, x)
+
+
+def normalize_angle(angle: npt.ArrayLike) -> FloatArray:
+    """Return the angle wrapped to (-pi, pi] via atan2 (PDM's `normalize_angle`), with the devkit's arctan2."""
     angle = np.asarray(angle, dtype=np.float64)
     return arctan2_avx512(np.sin(angle), np.cos(angle))
 

@@ -9,7 +9,7 @@ Quirks kept on purpose: a track seen in exactly one frame stands still at that b
 also before and after the frame it was seen in (pitfall 10); a track seen more often exists from its
 first to its last sighting, gaps bridged linearly; length, width and type come from the first
 sighting (pitfall 11). Interpolated headings are wrapped with the AVX-512 arctan2 of the machine that
-made the official results (`geometry.normalize_angle_avx512`).
+made the official results (`geometry.normalize_angle`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import FloatArray, box_corners, normalize_angle_avx512
+from scorer.geometry import FloatArray, box_corners, normalize_angle
 from scorer.scene import AGENT_CATEGORIES, Scene
 
 BoolArray = npt.NDArray[np.bool_]
@@ -208,5 +208,5 @@ def _interpolate_tracks(
         slope = (high - low) / (high_time - low_time)[..., None]
         interpolated = slope * (query[:, None] - low_time)[..., None] + low
     result = interpolated[..., :3]
-    result[..., 2] = normalize_angle_avx512(result[..., 2])
+    result[..., 2] = normalize_angle(result[..., 2])
     return present, result

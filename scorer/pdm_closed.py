@@ -12,7 +12,7 @@ the proposals of a path within a step, so values a proposal does not write are t
 proposal (the selected proposal's extension to 5 s runs alone, from a fresh buffer).
 
 Headings the devkit keeps (path poses, the leading agent's relative heading) are wrapped with numpy's
-AVX-512 arctan2, as on the machine that made the official results (`geometry.arctan2_avx512`).
+AVX-512 arctan2, as on the machine that made the official results (`geometry.normalize_angle`).
 Everything is arrays over proposals x time, for many scenes at once (`plan_references_batch`); only
 the selection differs per metric version, so the versions share everything else.
 
@@ -40,7 +40,6 @@ from scorer.geometry import (
     box_corners,
     ego_center,
     normalize_angle,
-    normalize_angle_avx512,
     rear_axle_round_trip,
 )
 from scorer.pdm_scorer import score_proposals
@@ -332,8 +331,8 @@ class IdmUnroll:
             # as is); its last bits follow the devkit's wraps, so these take numpy's AVX-512 arctan2.
             agent = has_lead & self.is_agent[lead]
             if agent.any():
-                ego_heading = normalize_angle_avx512(raw_heading[agent])
-                relative_heading = normalize_angle_avx512(self.headings[lead[agent]] - ego_heading)
+                ego_heading = normalize_angle(raw_heading[agent])
+                relative_heading = normalize_angle(self.headings[lead[agent]] - ego_heading)
                 lead_speed[agent] = self.speeds[lead[agent]] * np.cos(relative_heading)
 
         leading = np.empty((len(rows), 3))
@@ -405,7 +404,7 @@ class Proposals:
 
     def poses(self, rows: npt.NDArray[np.intp], steps: slice) -> FloatArray:
         """Return proposals' poses (len(rows), steps, 3) as the devkit stores them (AVX-512 heading wrap)."""
-        return self.unroll.poses(rows, steps, normalize_angle_avx512)
+        return self.unroll.poses(rows, steps, normalize_angle)
 
 
 def unroll_proposals(plans: Sequence[ScenePlan]) -> Proposals:

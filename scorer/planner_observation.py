@@ -23,6 +23,7 @@ import shapely
 
 from scorer.geometry import (
     FloatArray,
+    arctan2_avx512,
     box_corners,
     ego_center,
     normalize_angle,
@@ -93,7 +94,9 @@ def observe_for_planner(
     speeds = np.hypot(velocities[:, 0], velocities[:, 1])
     headings = boxes[:, 6]
     # Agents move along their heading, or against it when they drive backwards.
-    forward = np.abs(normalize_angle(headings - np.arctan2(velocities[:, 1], velocities[:, 0]))) < np.pi / 2
+    forward = (
+        np.abs(normalize_angle(headings - arctan2_avx512(velocities[:, 1], velocities[:, 0]))) < np.pi / 2
+    )
     track_headings = np.where(forward, headings, normalize_angle(headings + np.pi))
     agent_velocity = np.stack([np.cos(track_headings) * speeds, np.sin(track_headings) * speeds], axis=-1)[
         agents

@@ -13,7 +13,7 @@ from enum import IntEnum
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import FloatArray, principal_value, rear_axle_round_trip
+from scorer.geometry import FloatArray, arctan2_avx512, principal_value, rear_axle_round_trip
 from scorer.scene import EgoStatus
 
 IntArray = npt.NDArray[np.int64]
@@ -106,7 +106,7 @@ def _pose_matrices(poses: FloatArray) -> FloatArray:
 
 
 def _poses_of(matrices: FloatArray) -> FloatArray:
-    headings = np.arctan2(matrices[..., 1, 0], matrices[..., 0, 0])
+    headings = arctan2_avx512(matrices[..., 1, 0], matrices[..., 0, 0])
     return np.stack([matrices[..., 0, 2], matrices[..., 1, 2], headings], axis=-1)
 
 

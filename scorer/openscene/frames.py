@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from scorer.geometry import FloatArray, arctan2_avx512, normalize_angle_avx512, rear_axle_round_trip
+from scorer.geometry import FloatArray, arctan2_avx512, normalize_angle, rear_axle_round_trip
 from scorer.scene import AGENT_CATEGORIES, CATEGORIES
 
 NUM_HISTORY_FRAMES = 4  # NAVSIM's SceneFilter: 3 past frames plus the current one
@@ -71,7 +71,7 @@ def boxes_to_global(local_boxes: FloatArray, pose: EgoPose) -> FloatArray:
     boxes[:, 0] = (x * cos - y * sin) + rear_x
     boxes[:, 1] = (x * sin + y * cos) + rear_y
     # `rotate_state_se2` wraps the summed heading, then the caller wraps it once more.
-    boxes[:, 6] = normalize_angle_avx512(normalize_angle_avx512(local_boxes[:, 6] + pose.heading))
+    boxes[:, 6] = normalize_angle(normalize_angle(local_boxes[:, 6] + pose.heading))
     return boxes
 
 

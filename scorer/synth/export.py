@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from scorer.geometry import FloatArray, ego_center
+from scorer.geometry import FloatArray, ego_center, normalize_angle
 from scorer.scene import AREA_LAYERS, SCENE_FORMAT, SCENE_VERSION, STATIC_CATEGORIES
 from scorer.synth.draft import COMMANDS, Dice, SceneDraft
 from scorer.synth.motion import (
@@ -71,7 +71,7 @@ class Placement:
 
     def headings(self, headings: FloatArray) -> FloatArray:
         """Return local headings as global headings in (-pi, pi]."""
-        wrapped = np.arctan2(np.sin(headings + self.yaw), np.cos(headings + self.yaw))
+        wrapped = normalize_angle(headings + self.yaw)
         return np.where(wrapped <= -np.pi, np.pi, wrapped)
 
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import EGO_LENGTH, EGO_WIDTH, FloatArray, box_corners, ego_center
+from scorer.geometry import EGO_LENGTH, EGO_WIDTH, FloatArray, arctan2_avx512, box_corners, ego_center
 from scorer.synth.polyline import Polyline
 
 FRAME_COUNT = 14
@@ -99,7 +99,7 @@ def drive(
     along = speed.value(FRAME_TIMES)
     across = lateral.rate(FRAME_TIMES)
     path_heading = poses[:, 2].copy()
-    poses[:, 2] = path_heading + np.arctan2(across, np.maximum(along, 0.5))
+    poses[:, 2] = path_heading + arctan2_avx512(across, np.maximum(along, 0.5))
     cos_h, sin_h = np.cos(path_heading), np.sin(path_heading)
     velocity = np.stack([along * cos_h - across * sin_h, along * sin_h + across * cos_h], axis=-1)
     return poses, velocity

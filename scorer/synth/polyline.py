@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import FloatArray
+from scorer.geometry import FloatArray, arctan2_avx512
 
 GRID_STEP = 1.0  # m between vertices of reference lines and lane centres
 
@@ -28,7 +28,7 @@ class Polyline:
         keep = np.concatenate([[True], np.any(np.diff(points, axis=0) != 0.0, axis=1)])
         points = points[keep]
         segments = np.diff(points, axis=0)
-        segment_heading = np.arctan2(segments[:, 1], segments[:, 0])
+        segment_heading = arctan2_avx512(segments[:, 1], segments[:, 0])
         turns = np.diff(segment_heading)
         # Unwrapped: every turn between segments taken in (-pi, pi].
         segment_heading[1:] = segment_heading[0] + np.cumsum(
