@@ -3,9 +3,22 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, HttpUrl
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, HttpUrl, StringConstraints
+
+SQL_INT_MAX = 2**31 - 1  # PostgreSQL's INTEGER: ids and counts beyond it cannot be stored
+
+
+def _printable(text: str) -> str:
+    if any(ord(character) < 0x20 or ord(character) == 0x7F for character in text):
+        raise ValueError("must not contain control characters")
+    return text
+
+
+# Names shown in pages, file names and the audit log (whose target ids hold 64 characters for splits and phases).
+TeamName = Annotated[str, StringConstraints(min_length=1, max_length=200), AfterValidator(_printable)]
+ObjectName = Annotated[str, StringConstraints(min_length=1, max_length=64), AfterValidator(_printable)]
 
 
 class Problem(BaseModel):
@@ -200,7 +213,7 @@ class HealthOut(BaseModel):
 
 
 class TeamIn(BaseModel):
-    name: str = Field(min_length=1, max_length=200)
+    name: TeamName
     members: list[str] = []
     affiliation: str = Field("", max_length=300)
 
@@ -246,9 +259,9 @@ class TokenCreated(TokenOut):
 
 class QuotaIn(BaseModel):
     phase: str
-    per_day: int | None = Field(None, ge=0)
-    total: int | None = Field(None, ge=0)
-    in_flight: int | None = Field(None, ge=0)
+    per_day: int | None = Field(None, ge=0, le=SQL_INT_MAX)
+    total: int | None = Field(None, ge=0, le=SQL_INT_MAX)
+    in_flight: int | None = Field(None, ge=0, le=SQL_INT_MAX)
 
 
 class HideIn(BaseModel):
@@ -267,20 +280,20 @@ class RescoreIn(BaseModel):
 
 
 class SplitIn(BaseModel):
-    name: str
+    name: ObjectName
     directory: str
     public_tokens: list[str] | None = None
     baselines: bool = True
 
 
 class PhaseIn(BaseModel):
-    name: str
+    name: ObjectName
     split: str
     opens_at: datetime | None = None
     closes_at: datetime | None = None
-    per_day: int | None = Field(None, ge=0)
-    total: int | None = Field(None, ge=0)
-    in_flight: int | None = Field(None, ge=0)
+    per_day: int | None = Field(None, ge=0, le=SQL_INT_MAX)
+    total: int | None = Field(None, ge=0, le=SQL_INT_MAX)
+    in_flight: int | None = Field(None, ge=0, le=SQL_INT_MAX)
 
 
 class AuditOut(BaseModel):

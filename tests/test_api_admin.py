@@ -205,3 +205,55 @@ def test_register_split_scores_its_baselines(world: World) -> None:
         ).status_code
         == 409
     )
+
+
+def test_numbers_beyond_the_sql_integers_are_refused_naming_the_field(world: World) -> None:
+    huge = 2**63
+    headers = world.admin_headers()
+    answers = {
+        "team_id": world.client.post(f"/api/v1/admin/teams/{huge}/approve", headers=headers),
+        "rescore_id": world.client.get(f"/api/v1/admin/rescores/{huge}", headers=headers),
+        "offset": world.client.get("/api/v1/admin/submissions", params={"offset": huge}, headers=headers),
+        "total": world.client.put(
+            f"/api/v1/admin/teams/{world.team_id}/quotas",
+            json={"phase": "test", "total": huge},
+            headers=headers,
+        ),
+        "submission_id": world.client.get(f"/api/v1/submissions/{huge}", headers=world.team_headers()),
+    }
+    for field, answer in answers.items():
+        assert answer.status_code == 422, (field, answer.text)
+        assert field in answer.text and "2147483647" in answer.text, answer.text
+
+
+def test_unknown_status_and_control_characters_in_names_are_refused(world: World) -> None:
+    listed = world.client.get(
+        "/api/v1/admin/submissions", params={"status": "done"}, headers=world.admin_headers()
+    )
+    assert listed.status_code == 422 and "status" in listed.text and "scored" in listed.text
+    phase = world.client.post(
+        "/api/v1/admin/phases", json={"name": "test\x00", "split": "reference"}, headers=world.admin_headers()
+    )
+    assert phase.status_code == 422 and "control characters" in phase.text
+    team = world.client.post(
+        "/api/v1/admin/teams", json={"name": "\x1b[31mred"}, headers=world.admin_headers()
+    )
+    assert team.status_code == 422 and "control characters" in team.text
+
+
+def test_export_of_a_phase_with_a_non_ascii_name_downloads(world: World) -> None:
+    created = world.client.post(
+        "/api/v1/admin/phases",
+        json={"name": "Prüfung – 测试", "split": "reference"},
+        headers=world.admin_headers(),
+    )
+    assert created.status_code in (200, 201), created.text
+    answer = world.client.get(
+        "/api/v1/admin/export", params={"phase": "Prüfung – 测试"}, headers=world.admin_headers()
+    )
+    assert answer.status_code == 200, answer.text
+    disposition = answer.headers["content-disposition"]
+    assert 'filename="navsim-lb-Pr_fung_____-v1.1-all.csv"' in disposition
+    assert (
+        "filename*=UTF-8''navsim-lb-Pr%C3%BCfung%20%E2%80%93%20%E6%B5%8B%E8%AF%95-v1.1-all.csv" in disposition
+    )

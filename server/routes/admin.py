@@ -9,6 +9,7 @@ import logging
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated, Any, Literal
+from urllib.parse import quote
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, PlainTextResponse
@@ -16,7 +17,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from server.auth import AdminDep, SessionDep
-from server.models import Approval, Scope, Submission, Team
+from server.models import Approval, Scope, Status, Submission, Team
+from server.routes.params import Offset, OptionalRowId, RowId
 from server.routes.public import leaderboard_view
 from server.routes.views import phase_view, submission_views
 from server.schemas import (
@@ -70,7 +72,7 @@ def add_team(session: SessionDep, admin: AdminDep, team_in: TeamIn) -> Team:
 
 
 @router.post("/teams/{team_id}/approve", response_model=TeamOut)
-def approve(session: SessionDep, admin: AdminDep, team_id: int) -> Team:
+def approve(session: SessionDep, admin: AdminDep, team_id: RowId) -> Team:
     """Approve a team: its tokens may now submit."""
     team = set_approval(session, team_id, Approval.approved)
     actions.audit(session, admin, "approve_team", "team", team_id, name=team.name)
@@ -79,7 +81,7 @@ def approve(session: SessionDep, admin: AdminDep, team_id: int) -> Team:
 
 
 @router.post("/teams/{team_id}/reject", response_model=TeamOut)
-def reject(session: SessionDep, admin: AdminDep, team_id: int) -> Team:
+def reject(session: SessionDep, admin: AdminDep, team_id: RowId) -> Team:
     """Reject a team: its tokens may no longer submit."""
     team = set_approval(session, team_id, Approval.rejected)
     actions.audit(session, admin, "reject_team", "team", team_id, name=team.name)
@@ -88,13 +90,13 @@ def reject(session: SessionDep, admin: AdminDep, team_id: int) -> Team:
 
 
 @router.get("/teams/{team_id}/tokens", response_model=list[TokenOut])
-def team_tokens(session: SessionDep, _admin: AdminDep, team_id: int) -> list[Any]:
+def team_tokens(session: SessionDep, _admin: AdminDep, team_id: RowId) -> list[Any]:
     """A team's tokens (never their secrets)."""
     return list(get_team(session, team_id).tokens)
 
 
 @router.post("/teams/{team_id}/tokens", response_model=TokenCreated, status_code=201)
-def new_team_token(session: SessionDep, admin: AdminDep, team_id: int, token_in: TokenIn) -> dict[str, Any]:
+def new_team_token(session: SessionDep, admin: AdminDep, team_id: RowId, token_in: TokenIn) -> dict[str, Any]:
     """Issue a team token; the secret is in this answer only."""
     token, secret = create_token(
         session, Scope.team, get_team(session, team_id), token_in.name, token_in.expires_at
@@ -114,7 +116,7 @@ def new_admin_token(session: SessionDep, admin: AdminDep, token_in: TokenIn) -> 
 
 
 @router.delete("/tokens/{token_id}", response_model=TokenOut)
-def revoke(session: SessionDep, admin: AdminDep, token_id: int) -> Any:
+def revoke(session: SessionDep, admin: AdminDep, token_id: RowId) -> Any:
     """Revoke a token (team or admin)."""
     token = revoke_token(session, token_id)
     actions.audit(session, admin, "revoke_token", "token", token_id, prefix=token.prefix)
@@ -123,7 +125,7 @@ def revoke(session: SessionDep, admin: AdminDep, token_id: int) -> Any:
 
 
 @router.put("/teams/{team_id}/quotas")
-def quotas(session: SessionDep, admin: AdminDep, team_id: int, quota_in: QuotaIn) -> dict[str, Any]:
+def quotas(session: SessionDep, admin: AdminDep, team_id: RowId, quota_in: QuotaIn) -> dict[str, Any]:
     """Override a team's quotas in a phase (null keeps the phase default)."""
     phase = resolve_phase(session, quota_in.phase)
     set_team_quota(session, team_id, phase, quota_in.per_day, quota_in.total, quota_in.in_flight)
@@ -181,10 +183,10 @@ def add_phase(session: SessionDep, admin: AdminDep, phase_in: PhaseIn) -> dict[s
 def submissions(
     session: SessionDep,
     _admin: AdminDep,
-    team_id: int | None = None,
-    status: str | None = None,
+    team_id: OptionalRowId = None,
+    status: Status | None = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 200,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
 ) -> list[dict[str, Any]]:
     """Every submission, newest first, with the admin-only fields."""
     return submission_views(session, list_submissions(session, team_id, status, limit, offset), admin=True)
@@ -195,7 +197,7 @@ def _one(session: Session, submission: Submission) -> dict[str, Any]:
 
 
 @router.post("/submissions/{submission_id}/rerun", response_model=AdminSubmissionOut)
-def rerun(request: Request, session: SessionDep, admin: AdminDep, submission_id: int) -> dict[str, Any]:
+def rerun(request: Request, session: SessionDep, admin: AdminDep, submission_id: RowId) -> dict[str, Any]:
     """Score a submission again (a new run); its current results stay shown until the new run is scored."""
     submission = actions.rerun_submission(session, admin, submission_id)
     session.commit()
@@ -204,7 +206,7 @@ def rerun(request: Request, session: SessionDep, admin: AdminDep, submission_id:
 
 
 @router.post("/submissions/{submission_id}/cancel", response_model=AdminSubmissionOut)
-def cancel(session: SessionDep, admin: AdminDep, submission_id: int) -> dict[str, Any]:
+def cancel(session: SessionDep, admin: AdminDep, submission_id: RowId) -> dict[str, Any]:
     """Cancel a queued or running submission (refunded)."""
     submission = actions.cancel_submission(session, admin, submission_id)
     session.commit()
@@ -212,7 +214,7 @@ def cancel(session: SessionDep, admin: AdminDep, submission_id: int) -> dict[str
 
 
 @router.post("/submissions/{submission_id}/hide", response_model=AdminSubmissionOut)
-def hide(session: SessionDep, admin: AdminDep, submission_id: int, hide_in: HideIn) -> dict[str, Any]:
+def hide(session: SessionDep, admin: AdminDep, submission_id: RowId, hide_in: HideIn) -> dict[str, Any]:
     """Hide a submission from the leaderboard, or show it again."""
     submission = actions.hide_submission(session, admin, submission_id, hide_in.hidden)
     session.commit()
@@ -221,7 +223,7 @@ def hide(session: SessionDep, admin: AdminDep, submission_id: int, hide_in: Hide
 
 @router.post("/submissions/{submission_id}/disqualify", response_model=AdminSubmissionOut)
 def disqualify(
-    session: SessionDep, admin: AdminDep, submission_id: int, body: DisqualifyIn
+    session: SessionDep, admin: AdminDep, submission_id: RowId, body: DisqualifyIn
 ) -> dict[str, Any]:
     """Disqualify a submission with a reason, or lift the disqualification."""
     submission = actions.disqualify_submission(session, admin, submission_id, body.disqualified, body.reason)
@@ -243,7 +245,7 @@ def rescore(request: Request, session: SessionDep, admin: AdminDep, body: Rescor
 
 
 @router.get("/rescores/{rescore_id}", name="rescore_report_route")
-def rescore_report(session: SessionDep, _admin: AdminDep, rescore_id: int) -> dict[str, Any]:
+def rescore_report(session: SessionDep, _admin: AdminDep, rescore_id: RowId) -> dict[str, Any]:
     """Rank-change report of a rescore: moved entries and Kendall's tau; `complete` once every run finished."""
     return actions.rescore_report(session, rescore_id)
 
@@ -263,12 +265,16 @@ def export(
     name = f"navsim-lb-{view['phase']}-{version}-{view['subset']}"
     if format == "json":
         body = {"version": version, "phase": view["phase"], "subset": view["subset"], "rows": rows}
-        return JSONResponse(body, headers={"Content-Disposition": f'attachment; filename="{name}.json"'})
+        return JSONResponse(body, headers=_attachment(f"{name}.json"))
     return PlainTextResponse(
-        actions.rows_to_csv(rows),
-        media_type="text/csv",
-        headers={"Content-Disposition": f'attachment; filename="{name}.csv"'},
+        actions.rows_to_csv(rows), media_type="text/csv", headers=_attachment(f"{name}.csv")
     )
+
+
+def _attachment(filename: str) -> dict[str, str]:
+    """Return a Content-Disposition for a download: an ASCII name, and the real one as RFC 6266's filename*."""
+    fallback = "".join(c if c.isascii() and (c.isalnum() or c in "-_.") else "_" for c in filename)
+    return {"Content-Disposition": f"attachment; filename=\"{fallback}\"; filename*=UTF-8''{quote(filename)}"}
 
 
 @router.get("/audit", response_model=list[AuditOut])
@@ -283,6 +289,6 @@ def audit(
 
 
 @router.get("/submissions/{submission_id}", response_model=AdminSubmissionOut)
-def submission(session: SessionDep, _admin: AdminDep, submission_id: int) -> dict[str, Any]:
+def submission(session: SessionDep, _admin: AdminDep, submission_id: RowId) -> dict[str, Any]:
     """One submission with the admin-only fields."""
     return _one(session, get_submission(session, submission_id))

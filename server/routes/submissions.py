@@ -12,7 +12,8 @@ from sqlalchemy.orm import Session
 
 from scorer.versions import METRIC_COLUMNS
 from server.auth import ApprovedTeamDep, SessionDep, TeamDep, TokenDep
-from server.models import Phase, TokenResultRow
+from server.models import Phase, Status, TokenResultRow
+from server.routes.params import Offset, RowId
 from server.routes.views import submission_views
 from server.schemas import SubmissionAccepted, SubmissionOut, SubmissionPatch, TokenRow, ValidationReport
 from server.services.splits import resolve_phase, split_tokens, subset_tokens, visible_subsets
@@ -121,22 +122,22 @@ def validate(
 def my_submissions(
     session: SessionDep,
     team: TeamDep,
-    status: str | None = None,
+    status: Status | None = None,
     limit: Annotated[int, Query(ge=1, le=500)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
 ) -> list[dict[str, Any]]:
     """List the team's own submissions, newest first."""
     return submission_views(session, list_submissions(session, team.id, status, limit, offset), admin=False)
 
 
 @router.get("/submissions/{submission_id}", response_model=SubmissionOut, name="get_submission_route")
-def submission_status(session: SessionDep, team: TeamDep, submission_id: int) -> dict[str, Any]:
+def submission_status(session: SessionDep, team: TeamDep, submission_id: RowId) -> dict[str, Any]:
     """Status, progress, per-version results and error summary of one of the team's submissions."""
     return submission_views(session, [get_submission(session, submission_id, team.id)], admin=False)[0]
 
 
 @router.patch("/submissions/{submission_id}", response_model=SubmissionOut)
-def edit(session: SessionDep, team: TeamDep, submission_id: int, patch: SubmissionPatch) -> dict[str, Any]:
+def edit(session: SessionDep, team: TeamDep, submission_id: RowId, patch: SubmissionPatch) -> dict[str, Any]:
     """Edit metadata, hide or show, or select as the team's final entry."""
     submission = get_submission(session, submission_id, team.id)
     changes = {
@@ -150,7 +151,7 @@ def edit(session: SessionDep, team: TeamDep, submission_id: int, patch: Submissi
 
 @router.get("/submissions/{submission_id}/tokens", response_model=list[TokenRow])
 def token_rows(
-    session: SessionDep, team: TeamDep, submission_id: int, version: str = "v1.1", only_failed: bool = False
+    session: SessionDep, team: TeamDep, submission_id: RowId, version: str = "v1.1", only_failed: bool = False
 ) -> list[dict[str, Any]]:
     """Per-token results of the current run on the tokens the team may see (failed tokens carry their error)."""
     submission = get_submission(session, submission_id, team.id)

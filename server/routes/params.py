@@ -1,0 +1,14 @@
+"""Path and query parameters the routes share: row ids and counts within the SQL integer columns (a larger
+number cannot name a row, and the database would refuse it with a server error instead of a 422)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Path, Query
+
+from server.schemas import SQL_INT_MAX
+
+RowId = Annotated[int, Path(ge=1, le=SQL_INT_MAX, description="row id")]
+OptionalRowId = Annotated[int | None, Query(ge=1, le=SQL_INT_MAX, description="row id")]
+Offset = Annotated[int, Query(ge=0, le=SQL_INT_MAX)]
