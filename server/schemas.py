@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, HttpUrl, StringConstraints
+from pydantic import AfterValidator, AwareDatetime, BaseModel, ConfigDict, Field, HttpUrl, StringConstraints
 
 SQL_INT_MAX = 2**31 - 1  # PostgreSQL's INTEGER: ids and counts beyond it cannot be stored
 
@@ -14,6 +14,17 @@ def _printable(text: str) -> str:
     if any(ord(character) < 0x20 or ord(character) == 0x7F for character in text):
         raise ValueError("must not contain control characters")
     return text
+
+
+def _in_utc(value: datetime) -> datetime:
+    try:
+        return value.astimezone(UTC)
+    except OverflowError:
+        raise ValueError("out of range once converted to UTC") from None
+
+
+# A time given by a user: with its time zone (ISO 8601 offset), stored in UTC.
+Timestamp = Annotated[AwareDatetime, AfterValidator(_in_utc)]
 
 
 # Names shown in pages, file names and the audit log (whose target ids hold 64 characters for splits and phases).
@@ -235,8 +246,8 @@ class TeamRegistered(BaseModel):
 
 
 class TokenIn(BaseModel):
-    name: str = ""
-    expires_at: datetime | None = None
+    name: str = Field("", max_length=200)
+    expires_at: Timestamp | None = None
 
 
 class TokenOut(BaseModel):
@@ -289,8 +300,8 @@ class SplitIn(BaseModel):
 class PhaseIn(BaseModel):
     name: ObjectName
     split: str
-    opens_at: datetime | None = None
-    closes_at: datetime | None = None
+    opens_at: Timestamp | None = None
+    closes_at: Timestamp | None = None
     per_day: int | None = Field(None, ge=0, le=SQL_INT_MAX)
     total: int | None = Field(None, ge=0, le=SQL_INT_MAX)
     in_flight: int | None = Field(None, ge=0, le=SQL_INT_MAX)

@@ -257,3 +257,25 @@ def test_export_of_a_phase_with_a_non_ascii_name_downloads(world: World) -> None
     assert (
         "filename*=UTF-8''navsim-lb-Pr%C3%BCfung%20%E2%80%93%20%E6%B5%8B%E8%AF%95-v1.1-all.csv" in disposition
     )
+
+
+def test_times_need_a_time_zone_and_a_utc_equivalent(world: World) -> None:
+    headers = world.admin_headers()
+    naive = world.client.post(
+        "/api/v1/admin/phases",
+        json={"name": "naive", "split": "reference", "opens_at": "2026-01-01T00:00:00"},
+        headers=headers,
+    )
+    assert naive.status_code == 422 and "opens_at" in naive.text and "timezone" in naive.text
+    beyond = world.client.post(
+        f"/api/v1/admin/teams/{world.team_id}/tokens",
+        json={"name": "far", "expires_at": "9999-12-31T23:59:00-05:00"},
+        headers=headers,
+    )
+    assert beyond.status_code == 422 and "expires_at" in beyond.text and "out of range" in beyond.text
+    aware = world.client.post(
+        "/api/v1/admin/phases",
+        json={"name": "aware", "split": "reference", "opens_at": "2026-01-01T02:00:00+02:00"},
+        headers=headers,
+    )
+    assert aware.status_code in (200, 201) and aware.json()["opens_at"].startswith("2026-01-01T00:00:00")

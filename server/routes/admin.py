@@ -282,7 +282,7 @@ def audit(
     session: SessionDep,
     _admin: AdminDep,
     limit: Annotated[int, Query(ge=1, le=1000)] = 200,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Offset = 0,
 ) -> list[Any]:
     """The audit log, newest first."""
     return list(actions.audit_log(session, limit, offset))
