@@ -292,7 +292,7 @@ class RescoreIn(BaseModel):
 
 class SplitIn(BaseModel):
     name: ObjectName
-    directory: str
+    directory: Annotated[str, StringConstraints(min_length=1, max_length=4096), AfterValidator(_printable)]
     public_tokens: list[str] | None = None
     baselines: bool = True
 

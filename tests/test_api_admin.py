@@ -279,3 +279,19 @@ def test_times_need_a_time_zone_and_a_utc_equivalent(world: World) -> None:
         headers=headers,
     )
     assert aware.status_code in (200, 201) and aware.json()["opens_at"].startswith("2026-01-01T00:00:00")
+
+
+def test_a_split_directory_with_control_characters_is_refused(world: World) -> None:
+    answer = world.client.post(
+        "/api/v1/admin/splits",
+        json={"name": "nul", "directory": "/data/\x00split"},
+        headers=world.admin_headers(),
+    )
+    assert answer.status_code == 422 and "directory" in answer.text and "control characters" in answer.text
+
+
+def test_an_unreadable_split_directory_is_refused_with_the_reason(world: World) -> None:
+    answer = world.client.post(
+        "/api/v1/admin/splits", json={"name": "long", "directory": "x" * 300}, headers=world.admin_headers()
+    )
+    assert answer.status_code == 409 and "cannot be read (File name too long)" in answer.text

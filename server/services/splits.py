@@ -30,11 +30,15 @@ def register_split(
 
     if session.scalar(select(Split.id).where(Split.name == name)) is not None:
         raise Conflict(f"split {name!r} is already registered")
-    directory = Path(directory).resolve()
     try:
+        directory = Path(directory).resolve()
         tokens = list(scene_paths(directory))
     except SceneFormatError as error:
         raise Conflict(f"split {name!r}: {error}") from None
+    except OSError as error:  # e.g. a name too long for the file system
+        raise Conflict(
+            f"split {name!r}: directory {str(directory)[:200]!r} cannot be read ({error.strerror})"
+        ) from None
     if not tokens:
         raise Conflict(f"split {name!r}: no scene in {directory / 'scenes'}")
     split = Split(
