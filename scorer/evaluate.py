@@ -75,13 +75,13 @@ def build_missing_caches(
     errors: dict[str, Exception] = {}
     lacking: dict[tuple[str, ...], list[tuple[str, Scene]]] = {}  # scenes grouped by what they lack
     for path in paths:
-        token, scene_hash = path.name.split(".")[0], scene_file_hash(path)
-        missing = tuple(v for v in versions if load_cache(cache_dir, v, token, scene_hash) is None)
-        if missing:
-            try:
+        try:
+            token, scene_hash = path.name.split(".")[0], scene_file_hash(path)
+            missing = tuple(v for v in versions if load_cache(cache_dir, v, token, scene_hash) is None)
+            if missing:
                 lacking.setdefault(missing, []).append((path.name, load_scene(path)))
-            except SceneFormatError as error:
-                errors[path.name] = error
+        except (SceneFormatError, OSError) as error:  # unreadable or invalid: this scene only
+            errors[path.name] = error
     for missing, named in lacking.items():
         for start in range(0, len(named), CACHE_BATCH_SIZE):
             batch = named[start : start + CACHE_BATCH_SIZE]

@@ -105,3 +105,14 @@ def test_stale_or_damaged_files_are_rebuilt(
     (result,) = score_tokens(REFERENCE, tmp_path, poses, "v1.1", [token])
     assert result.valid
     assert load_cache(tmp_path, "v1.1", token, scene_file_hash(path)) is not None
+
+
+def test_an_unreadable_scene_file_fails_alone(tmp_path: Path) -> None:
+    split = tmp_path / "split"
+    (split / "scenes").mkdir(parents=True)
+    for path in list(scene_paths(REFERENCE).values())[:3]:
+        (split / "scenes" / path.name).write_bytes(path.read_bytes())
+    (split / "scenes" / "broken.json").mkdir()  # listed as a scene, cannot be read as one
+    failures = evaluate.build_split_cache(split, tmp_path / "cache", list(VERSIONS))
+    assert list(failures) == ["broken.json"] and failures["broken.json"].startswith("IsADirectoryError")
+    assert len(list((tmp_path / "cache" / "v1.0").iterdir())) == 3
