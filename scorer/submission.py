@@ -13,6 +13,7 @@ import json
 import lzma
 import math
 import pickle
+import pickletools
 import re
 import zlib
 from collections.abc import Iterable, Sequence
@@ -394,8 +395,23 @@ class _RestrictedUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError("persistent ids are not allowed")
 
 
+def _check_opcodes(data: bytes) -> None:
+    """Walk the opcodes before unpickling: a damaged stream can declare an argument longer than the file or a
+    memo index far beyond its size, which the C unpickler would allocate memory for before failing
+    (pickletools only reads the bytes that are there). A pickler numbers its memo entries in sequence."""
+    memo_size = 0
+    for opcode, argument, _ in pickletools.genops(data):
+        if opcode.name == "MEMOIZE":
+            memo_size += 1
+        elif opcode.name in ("PUT", "BINPUT", "LONG_BINPUT"):
+            if argument > memo_size:
+                raise pickle.UnpicklingError(f"memo index {argument} out of sequence")
+            memo_size = max(memo_size, argument + 1)
+
+
 def _unpickle(data: bytes) -> Any:
     try:
+        _check_opcodes(data)
         return _RestrictedUnpickler(io.BytesIO(data)).load()
     except (
         pickle.UnpicklingError,
@@ -405,6 +421,10 @@ def _unpickle(data: bytes) -> Any:
         AttributeError,
         IndexError,
         KeyError,
+        OverflowError,
+        RecursionError,
+        # With sizes bounded by `_check_opcodes`, the C unpickler still reports some damaged frames so.
+        MemoryError,
     ) as error:
         # Any failure inside the stream is the file's fault: report it, never execute around it.
         raise SubmissionError(

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from scorer.submission import (
     Submission,
@@ -263,3 +265,67 @@ def test_unreadable_file_still_reports_split_coverage() -> None:
         ("c3", "token of the split is missing"),
         ("zz", "token is not in the split"),
     ]
+
+
+# Damaged files: whatever the bytes, the loader answers with problems, never with another exception ----------
+
+
+def _damaged(data: bytes, edits: list[tuple[int, int, int]]) -> bytes:
+    """Apply (kind, position, byte) edits: 0 replaces, 1 inserts, 2 deletes the byte at position."""
+    damaged = bytearray(data)
+    for kind, position, value in edits:
+        at = position % (len(damaged) + 1)
+        if kind == 0 and at < len(damaged):
+            damaged[at] = value
+        elif kind == 1:
+            damaged.insert(at, value)
+        elif at < len(damaged):
+            del damaged[at]
+    return bytes(damaged)
+
+
+EDITS = st.lists(
+    st.tuples(st.integers(0, 2), st.integers(0, 10_000), st.integers(0, 255)), min_size=1, max_size=6
+)
+
+
+def _load_or_problems(data: bytes, name: str) -> None:
+    try:
+        submission = load_submission(data, name)
+    except SubmissionError as error:
+        assert error.problems and all(problem.message for problem in error.problems)
+    else:
+        validate_submission(submission, TOKENS)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(edits=EDITS, protocol=st.sampled_from([2, 4, 5]))
+def test_damaged_navsim_pickles_are_refused_with_problems(
+    devkit_classes: None, edits: list[tuple[int, int, int]], protocol: int
+) -> None:
+    valid = _navsim_pickle(
+        {t: Trajectory(_poses(i), TrajectorySampling()) for i, t in enumerate(TOKENS)}, protocol
+    )
+    _load_or_problems(_damaged(valid, edits), "submission.pkl")
+
+
+@settings(max_examples=300, deadline=None)
+@given(edits=EDITS)
+def test_damaged_json_files_are_refused_with_problems(edits: list[tuple[int, int, int]]) -> None:
+    valid = json.dumps(_document()).encode()
+    _load_or_problems(_damaged(valid, edits), "submission.json")
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.binary(min_size=1, max_size=300).map(lambda tail: b"\x80" + tail))
+def test_random_pickle_streams_are_refused_with_problems(data: bytes) -> None:
+    _load_or_problems(data, "random.pkl")
+
+
+def test_declared_sizes_beyond_the_stream_are_refused_before_anything_is_allocated() -> None:
+    huge_memo = b"\x80\x04N" + b"r" + (2**30).to_bytes(4, "little") + b"."  # LONG_BINPUT 2**30
+    huge_bytes = b"\x80\x04" + b"\x8e" + (2**40).to_bytes(8, "little") + b"abc."  # BINBYTES8 of 2**40 bytes
+    for data, reason in ((huge_memo, "memo index 1073741824 out of sequence"), (huge_bytes, "only 4 remain")):
+        with pytest.raises(SubmissionError) as refused:
+            load_submission(data, "crafted.pkl")
+        assert reason in refused.value.problems[0].message
