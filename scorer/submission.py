@@ -219,6 +219,10 @@ def _load_json(data: bytes) -> Submission:
         document = json.loads(data, object_pairs_hook=_object_pairs)
     except (UnicodeDecodeError, ValueError) as error:
         raise SubmissionError([Problem(None, None, f"not valid JSON: {error}")]) from None
+    except RecursionError:
+        raise SubmissionError(
+            [Problem(None, None, "not a submission: arrays or objects nested too deeply")]
+        ) from None
     if not isinstance(document, dict):
         raise SubmissionError([Problem(None, None, "the JSON document must be an object")])
     if document.get("format") != FORMAT:

@@ -329,3 +329,10 @@ def test_declared_sizes_beyond_the_stream_are_refused_before_anything_is_allocat
         with pytest.raises(SubmissionError) as refused:
             load_submission(data, "crafted.pkl")
         assert reason in refused.value.problems[0].message
+
+
+def test_deeply_nested_json_is_refused_with_a_problem() -> None:
+    nested = b'{"predictions": {"a1": ' + b"[" * 100_000 + b"]" * 100_000 + b"}}"
+    with pytest.raises(SubmissionError) as refused:
+        load_submission(nested, "deep.json")
+    assert "nested too deeply" in refused.value.problems[0].message
