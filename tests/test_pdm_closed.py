@@ -11,7 +11,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.interpolate import interp1d
 
-from scorer.geometry import _fused_multiply_add, normalize_angle, svml_arctan2_emulated
+from scorer.geometry import (
+    _SVML_PROBE_ARCTAN2,
+    _SVML_PROBE_X,
+    _SVML_PROBE_Y,
+    _fused_multiply_add,
+    normalize_angle,
+    svml_arctan2_emulated,
+)
 from scorer.pdm_closed import (
     EGO_LENGTH,
     PdmPath,
@@ -146,3 +153,9 @@ def test_avx512_arctan2_gives_the_devkit_headings_where_libm_does_not() -> None:
     dy, dx = segments[:, 3] - segments[:, 1], segments[:, 2] - segments[:, 0]
     assert svml_arctan2_emulated(dy, dx).tolist() == devkit
     assert not np.any(libm_arctan2(dy, dx) == devkit)
+
+
+def test_svml_probe_values_are_svml_and_not_libm() -> None:
+    """The probe that tells whether numpy runs SVML: the emulation gives its values, libm does not."""
+    assert np.array_equal(svml_arctan2_emulated(_SVML_PROBE_Y, _SVML_PROBE_X), _SVML_PROBE_ARCTAN2)
+    assert not np.any(libm_arctan2(_SVML_PROBE_Y, _SVML_PROBE_X) == _SVML_PROBE_ARCTAN2)
