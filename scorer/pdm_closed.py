@@ -462,15 +462,3 @@ def plan_references_batch(
             )
         outputs.append(scene_outputs)
     return outputs
-
-
-def plan_references(
-    scene: Scene, drivable_map: DrivableMap, configs: Sequence[ScorerConfig]
-) -> list[PlannerOutput]:
-    """Return PDM-Closed's output for each planner scorer config; everything but the selection is shared."""
-    return plan_references_batch([scene], [drivable_map], configs)[0]
-
-
-def plan_reference(scene: Scene, drivable_map: DrivableMap, config: ScorerConfig) -> PlannerOutput:
-    """Return PDM-Closed's route, centerline and reference trajectory for one planner scorer config."""
-    return plan_references(scene, drivable_map, [config])[0]

@@ -23,7 +23,6 @@ from scorer.geometry import rear_axle_round_trip
 from scorer.pdm_closed import (
     PROPOSAL_STEPS,
     PlannerOutput,
-    plan_references,
     plan_references_batch,
     plan_scene,
     unroll_proposals,
@@ -49,8 +48,8 @@ def _scene(token: str) -> Scene:
 @cache
 def _plans(token: str) -> dict[str, PlannerOutput]:
     scene = _scene(token)
-    outputs = plan_references(
-        scene, build_drivable_map(scene), [version.planner for version in VERSIONS.values()]
+    (outputs,) = plan_references_batch(
+        [scene], [build_drivable_map(scene)], [version.planner for version in VERSIONS.values()]
     )
     return dict(zip(VERSIONS, outputs))
 
@@ -118,9 +117,9 @@ def test_planning_a_scene_twice_or_after_another_scene_gives_the_same_result() -
     """Per-scene isolation: nothing (such as the devkit's collided-token list) carries over."""
     first, other = _scene(SCENES[0]), _scene(SCENES[1])
     config = VERSIONS["v1.1"].planner
-    before = plan_references(first, build_drivable_map(first), [config])[0]
-    plan_references(other, build_drivable_map(other), [config])
-    after = plan_references(first, build_drivable_map(first), [config])[0]
+    ((before,),) = plan_references_batch([first], [build_drivable_map(first)], [config])
+    plan_references_batch([other], [build_drivable_map(other)], [config])
+    ((after,),) = plan_references_batch([first], [build_drivable_map(first)], [config])
     assert np.array_equal(before.trajectory, after.trajectory) and before.proposal == after.proposal
 
 
