@@ -10,48 +10,20 @@ comparison is trivially equal.
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+from engine_process import score_in_process
 from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 FAMILIES = ("human", "lane_change", "swerve_left_fast", "zigzag", "stop")
 
-RUN = """
-import json, sys
-from pathlib import Path
-import scorer
-from numpy._core._multiarray_umath import __cpu_features__
-from scorer.evaluate import build_split_cache, score_tokens
-from scorer.submission import load_submission
-from scorer.versions import VERSIONS
-
-split, cache, families = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3:]
-assert build_split_cache(split, cache, list(VERSIONS)) == {}
-rows = []
-for family in families:
-    path = split / "submissions" / f"{family}.json"
-    poses = load_submission(path.read_bytes(), path.name).seeds[0]
-    for version in VERSIONS:
-        rows += [[family, version, r.token, r.valid, r.metrics] for r in score_tokens(split, cache, poses, version)]
-print(json.dumps({"avx512": __cpu_features__.get("X86_V4", False), "rows": rows}))
-"""
-
 
 def _scored(cache: Path, environment: dict[str, str]) -> dict[str, object]:
-    done = subprocess.run(
-        [sys.executable, "-c", RUN, str(REFERENCE), str(cache), *FAMILIES],
-        capture_output=True,
-        text=True,
-        check=False,
-        env={**os.environ, "OPENBLAS_NUM_THREADS": "1", **environment},
-    )
-    assert done.returncode == 0, done.stderr
-    return json.loads(done.stdout)  # floats round-trip exactly through JSON
+    return score_in_process(REFERENCE, cache, list(FAMILIES), environment)
 
 
 DETECT = "import scorer.geometry as g; print(g.NUMPY_ARCTAN2_IS_SVML)"

@@ -53,7 +53,13 @@ def no_at_fault_collisions(
     ego_stopped = np.hypot(state[:, StateIndex.VELOCITY_X], state[:, StateIndex.VELOCITY_Y]) <= STOPPED_SPEED
     # nuPlan's `is_track_stopped`: anything that is not an Agent counts as stopped.
     track_stopped = ~observations.is_agent[obj] | (observations.first_speed[obj] <= STOPPED_SPEED)
-    behind = relative_angle(state[:, : StateIndex.HEADING + 1], centroids(contacts.polygons)) > BEHIND_ANGLE
+    # The devkit asks for the angle only when neither is stopped; each angle costs BLAS calls (contacts.py).
+    behind = np.zeros(len(row), dtype=bool)
+    moving = ~ego_stopped & ~track_stopped
+    behind[moving] = (
+        relative_angle(state[moving, : StateIndex.HEADING + 1], centroids(contacts.polygons[moving]))
+        > BEHIND_ANGLE
+    )
     ego = points[row, step]
     front = segments_meet(
         ego[:, BoxPoint.FRONT_LEFT], ego[:, BoxPoint.FRONT_RIGHT], ego_corners(ego), contacts

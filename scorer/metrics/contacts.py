@@ -101,15 +101,22 @@ def segments_meet(
 
 
 def relative_angle(rear_axle: FloatArray, targets: FloatArray) -> FloatArray:
-    """Return the angle (K,) between the ego heading and the direction to each target (nuPlan's
-    `get_agent_relative_angle`): arccos of a unit-vector dot product, NaN when the target is the rear axle
-    or rounding pushes the dot product past 1 (every comparison with NaN is then false, as in the devkit).
+    """Return the angle (K,) between the ego heading (rear axle x, y, heading (K, 3)) and the direction to
+    each target (K, 2), as nuPlan's `get_agent_relative_angle` computes it (docs/engine.md, "BLAS").
+
+    The devkit takes `np.dot` of two 2-vectors and `np.linalg.norm` of one; both are BLAS `ddot`, whose
+    rounding belongs to the OpenBLAS kernel. For a target almost exactly behind, that last bit decides
+    whether the dot product passes -1 (arccos NaN: "behind" and "ahead" are both false) or not, so each
+    contact makes the same calls on the same 2-vectors rather than an array expression: contacts are few.
+    A target on the rear axle gives NaN too (0 / 0), as in the devkit.
     """
-    offset = targets - rear_axle[:, :2]
+    angles = np.empty(len(targets))
+    offsets = targets - rear_axle[:, :2]  # elementwise, as the devkit's scalar differences
     with np.errstate(invalid="ignore", divide="ignore"):
-        unit = offset / np.sqrt(offset[:, 0] * offset[:, 0] + offset[:, 1] * offset[:, 1])[:, None]
-        dot = np.cos(rear_axle[:, 2]) * unit[:, 0] + np.sin(rear_axle[:, 2]) * unit[:, 1]
-        return np.arccos(dot)
+        for contact, (offset, heading) in enumerate(zip(offsets, rear_axle[:, 2].tolist(), strict=True)):
+            heading_vector = np.array([np.cos(heading), np.sin(heading)])
+            angles[contact] = np.arccos(np.dot(heading_vector, offset / np.linalg.norm(offset)))
+    return angles
 
 
 def centroids(polygons: npt.NDArray[np.object_]) -> FloatArray:

@@ -1,0 +1,112 @@
+"""Knife-edge vectors: three tokens whose NC or TTC hangs on the last bit of a BLAS `ddot`.
+
+nuPlan's `get_agent_relative_angle` takes `np.dot` and `np.linalg.norm` of 2-vectors; for a target almost
+exactly behind the ego, whether the dot product rounds past -1 (arccos NaN, so "behind" is false) depends
+on the OpenBLAS kernel. The devkit's results exist under two kernel sets (`fixtures/knife-edge/README.md`).
+The engine must give each set's results under that set's kernels: every column equal, bit for bit, in
+both versions. Each run is a fresh process, because OpenBLAS picks its kernels when it loads.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from engine_process import run_python, score_in_process
+
+from scorer.blas import DEVKIT_KERNELS, KEEP_VARIABLE
+from scorer.metrics.contacts import BEHIND_ANGLE, relative_angle
+from scorer.versions import METRIC_COLUMNS, VERSIONS
+
+KNIFE_EDGE = Path(__file__).parent / "fixtures" / "knife-edge"
+FAMILIES = ("cv_accel", "cv_decel", "stop")
+EXPECTED = {DEVKIT_KERNELS: "expected", "Haswell": "expected-haswell-kernels"}
+
+# The contact of `cv_decel` on 8bedfe2fc5629e39 at 3.6 s: rear axle (x, y, heading) and the object's centroid.
+BEHIND_REAR_AXLE = (365444.6067915583, 144656.98124831126, 2.5276294646145665)
+BEHIND_TARGET = (365447.5566276066, 144654.9021022819)
+
+ANGLE = f"""
+import json
+import numpy as np
+import scorer
+from scorer.blas import blas_kernels
+from scorer.metrics.contacts import relative_angle
+
+angle = relative_angle(np.array([{BEHIND_REAR_AXLE}]), np.array([{BEHIND_TARGET}]))[0]
+print(json.dumps({{"kernels": list(blas_kernels()), "angle": None if np.isnan(angle) else angle}}))
+"""
+
+
+def _with_kernels(kernels: str) -> dict[str, str]:
+    return {KEEP_VARIABLE: "1", "OPENBLAS_CORETYPE": kernels}
+
+
+def _ran_with(output: dict, kernels: str) -> dict:
+    """Return `output`, or skip where this CPU could not run the kernels asked for."""
+    if output["kernels"] != [kernels]:
+        pytest.skip(f"this CPU cannot run OpenBLAS's {kernels} kernels (it ran {output['kernels']})")
+    return output
+
+
+def _expected(directory: str) -> dict[tuple[str, str, str], dict]:
+    expected = {}
+    for family in FAMILIES:
+        for version in VERSIONS:
+            with gzip.open(KNIFE_EDGE / directory / f"{family}.{version}.jsonl.gz", "rt") as handle:
+                expected |= {(family, version, row["token"]): row for row in map(json.loads, handle)}
+    return expected
+
+
+@pytest.mark.parametrize("kernels", list(EXPECTED))
+def test_every_column_equals_the_devkit_under_the_same_kernels(kernels: str, tmp_path: Path) -> None:
+    output = score_in_process(KNIFE_EDGE, tmp_path / "cache", list(FAMILIES), _with_kernels(kernels))
+    rows = _ran_with(output, kernels)["rows"]
+    expected = _expected(EXPECTED[kernels])
+    assert len(rows) == len(expected) == 18
+    mismatches = [
+        f"{family} {version} {token}: {column} {metrics[column]!r} != {expected[family, version, token][column]!r}"
+        for family, version, token, _, metrics in rows
+        for column in METRIC_COLUMNS
+        if metrics[column] != expected[family, version, token][column]
+    ]
+    assert mismatches == []
+
+
+def test_the_two_kernel_sets_disagree_on_the_three_tokens() -> None:
+    """The vectors are only a test if the kernels' answers differ: NC on two tokens, TTC on the third."""
+    official, haswell = _expected("expected"), _expected("expected-haswell-kernels")
+    differing = {
+        (family, token, column)
+        for (family, version, token), row in official.items()
+        for column in ("no_at_fault_collisions", "time_to_collision_within_bound")
+        if row[column] != haswell[family, version, token][column]
+    }
+    assert differing == {
+        ("cv_decel", "8bedfe2fc5629e39", "no_at_fault_collisions"),
+        ("stop", "bc55a3d277193f21", "no_at_fault_collisions"),
+        ("cv_accel", "05923cd002a9d02f", "time_to_collision_within_bound"),
+    }
+
+
+def test_a_target_almost_exactly_behind_is_nan_under_the_devkit_kernels_as_in_the_devkit() -> None:
+    # Official results: an at-fault collision, so "behind" was false, so the devkit's angle was NaN.
+    assert _ran_with(run_python(ANGLE, [], _with_kernels(DEVKIT_KERNELS)), DEVKIT_KERNELS)["angle"] is None
+
+
+def test_the_same_target_is_behind_under_the_haswell_kernels_as_in_the_devkit() -> None:
+    # Haswell results: no at-fault collision, so the devkit's angle was above 150 degrees.
+    assert _ran_with(run_python(ANGLE, [], _with_kernels("Haswell")), "Haswell")["angle"] > BEHIND_ANGLE
+
+
+def test_relative_angles_of_plain_cases() -> None:
+    rear_axle = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 2.0, np.pi / 2]])
+    targets = np.array([[5.0, 0.0], [-5.0, 0.0], [0.0, 0.0], [1.0, 7.0]])
+    angles = relative_angle(rear_axle, targets)
+    assert angles[0] == 0.0  # straight ahead
+    assert angles[1] == np.pi  # exactly behind: dot product exactly -1
+    assert np.isnan(angles[2])  # the target on the rear axle: 0 / 0, as nuPlan's
+    assert angles[3] == pytest.approx(0.0, abs=1e-15)
