@@ -16,21 +16,18 @@ import subprocess
 import time
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import httpx
 import typer
 from rich.markup import escape
-from sqlalchemy import select
-from sqlalchemy.orm import Session, sessionmaker
 
-from navsim_lb.client import upload
-from navsim_lb.processes import api_command, child_process
-from scorer.cli import console, fail, progress_bar
-from server.db import make_engine, make_session_factory, transaction
-from server.models import ACTIVE_STATUSES, Approval, Phase, Scope, Split, Status, Submission, Summary, Team
-from server.settings import get_settings
-from worker.cli import worker_command
+from navsim_lb.terminal import console, fail, progress_bar
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session, sessionmaker
+
+# The server's modules, SQLAlchemy and httpx are imported where they are used: every `navsim-lb` command
+# imports this module to register `demo`, and none of the others should pay for them.
 
 SPLIT = "demo"
 PHASE = "demo"
@@ -70,6 +67,10 @@ def _set_up(
     factory: sessionmaker[Session], split_dir: Path, storage_dir: Path
 ) -> tuple[list[int], dict[str, str]]:
     """Register split, baselines, phase and team if missing; return the baselines to queue and new tokens."""
+    from sqlalchemy import select
+
+    from server.db import transaction
+    from server.models import Approval, Phase, Scope, Split, Team
     from server.services.splits import create_phase, register_split
     from server.services.submissions import add_baselines
     from server.services.teams import create_team
@@ -118,6 +119,8 @@ def _check_alive(children: dict[str, subprocess.Popen[bytes]], logs: Path) -> No
 
 
 def _wait_for_api(url: str, children: dict[str, subprocess.Popen[bytes]], logs: Path) -> None:
+    import httpx
+
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
     while time.monotonic() < deadline:
         _check_alive(children, logs)
@@ -132,6 +135,10 @@ def _wait_for_api(url: str, children: dict[str, subprocess.Popen[bytes]], logs: 
 
 def _states(factory: sessionmaker[Session]) -> dict[int, tuple[str, str, float | None]]:
     """Return submission id -> (method, status, PDMS v1.1 on all tokens) of every submission."""
+    from sqlalchemy import select
+
+    from server.models import Submission, Summary
+
     with factory() as session:
         rows = session.execute(
             select(Submission.id, Submission.method, Submission.status, Summary.score)
@@ -153,6 +160,8 @@ def _watch(
     until_scored: bool,
 ) -> bool:
     """Report submissions as they finish; with `until_scored`, return, once none is active, if all scored."""
+    from server.models import ACTIVE_STATUSES, Status
+
     reported: dict[int, str] = {}
     while True:
         _check_alive(children, logs)
@@ -179,8 +188,17 @@ def demo(
     ] = False,
 ) -> None:
     """Run the whole leaderboard locally: database, demo split, worker, API, demo team; Ctrl-C stops it."""
+    import httpx
+    from sqlalchemy import select
+
+    from navsim_lb.client import upload
+    from navsim_lb.processes import api_command, child_process
+    from server.db import make_engine, make_session_factory
     from server.migrate import upgrade
+    from server.models import Status, Submission, Team
     from server.queue import enqueue_submission
+    from server.settings import get_settings
+    from worker.cli import worker_command
 
     settings = get_settings()
     data_dir = settings.data_dir.resolve()

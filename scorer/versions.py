@@ -40,6 +40,14 @@ class MetricVersion:
     planner: ScorerConfig  # PDMScorerConfig() dataclass defaults, used inside PDM-Closed
     result_columns: tuple[str, ...]  # PDMResults field order
 
+    @property
+    def ddc_role(self) -> str:
+        """How driving direction compliance enters the score, in words for tables."""
+        if self.evaluation.ddc_role == "multiplier":
+            return "multiplier"
+        weight = self.evaluation.driving_direction_weight
+        return "logged, not weighted" if weight == 0 else f"weight {weight:g}"
+
 
 _V1_0_SCORER = ScorerConfig(ddc_role="multiplier", ddc_window_axis="proposal")
 _V1_1_SCORER = ScorerConfig(ddc_role="weighted", ddc_window_axis="time")
@@ -55,6 +63,16 @@ METRIC_COLUMNS = (
     "score",
 )
 
+# Short names as in the NAVSIM paper, for tables a person reads; the devkit's names stay in data and APIs.
+METRIC_LABELS = {
+    "no_at_fault_collisions": "NC",
+    "drivable_area_compliance": "DAC",
+    "driving_direction_compliance": "DDC",
+    "ego_progress": "EP",
+    "time_to_collision_within_bound": "TTC",
+    "comfort": "C",
+    "score": "PDMS",
+}
 
 VERSIONS: dict[str, MetricVersion] = {
     "v1.0": MetricVersion(

@@ -6,17 +6,17 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
-from sqlalchemy.orm import Session
 
-from scorer.cli import console, fail
-from server.db import make_engine, make_session_factory, transaction
-from server.migrate import NotMigratedError, require_migrated
-from server.models import Approval, Scope
-from server.services.errors import ServiceError
-from server.settings import get_settings
+from navsim_lb.terminal import console, fail
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session
+
+# The server's modules are imported inside the commands: `navsim-lb score` should not pay for SQLAlchemy,
+# Alembic and FastAPI at start-up.
 
 db_app = typer.Typer(help="Database migrations (Alembic).", no_args_is_help=True)
 admin_app = typer.Typer(
@@ -36,6 +36,7 @@ def _timestamp(text: str | None) -> datetime | None:
 def upgrade(revision: Annotated[str, typer.Argument(help="target revision")] = "head") -> None:
     """Migrate the database (DATABASE_URL) up to the newest revision."""
     from server.migrate import upgrade as run_upgrade
+    from server.settings import get_settings
 
     url = get_settings().database_url
     run_upgrade(url, revision)
@@ -48,6 +49,7 @@ def downgrade(
 ) -> None:
     """Migrate the database down (one revision by default)."""
     from server.migrate import downgrade as run_downgrade
+    from server.settings import get_settings
 
     run_downgrade(get_settings().database_url, revision)
     console.print(f"database migrated down to {revision}")
@@ -56,7 +58,9 @@ def downgrade(
 @db_app.command()
 def current() -> None:
     """Print the database's revision and the newest one."""
+    from server.db import make_engine
     from server.migrate import current_revision, head_revision
+    from server.settings import get_settings
 
     engine = make_engine(get_settings().database_url)
     print(f"current: {current_revision(engine) or 'none'}\nhead: {head_revision()}")
@@ -69,6 +73,10 @@ def serve(
 ) -> None:
     """Run the API and web pages (uvicorn); refuses an un-migrated database."""
     import uvicorn
+
+    from server.db import make_engine
+    from server.migrate import NotMigratedError, require_migrated
+    from server.settings import get_settings
 
     try:
         require_migrated(make_engine(get_settings().database_url))
@@ -85,6 +93,7 @@ def create_team_command(
     pending: Annotated[bool, typer.Option(help="leave it for approval instead of approving it")] = False,
 ) -> None:
     """Create a team (approved unless --pending) and print its id."""
+    from server.models import Approval
     from server.services.admin import audit
     from server.services.teams import create_team
 
@@ -105,6 +114,7 @@ def create_token_command(
     expires_days: Annotated[float | None, typer.Option(help="lifetime in days (default: no expiry)")] = None,
 ) -> None:
     """Create a team or admin token and print its secret (shown once) on stdout."""
+    from server.models import Scope
     from server.services.admin import audit
     from server.services.teams import team_by_name
     from server.services.tokens import create_token
@@ -133,6 +143,7 @@ def register_split_command(
     from server.services.admin import audit
     from server.services.splits import register_split
     from server.services.submissions import add_baselines
+    from server.settings import get_settings
 
     public = public_tokens.read_text().split() if public_tokens is not None else None
     settings = get_settings()
@@ -200,6 +211,11 @@ def create_phase_command(
 @contextmanager
 def _session() -> Iterator[Session]:
     """Yield a transaction on the configured, migrated database; service errors become CLI errors."""
+    from server.db import make_engine, make_session_factory, transaction
+    from server.migrate import NotMigratedError, require_migrated
+    from server.services.errors import ServiceError
+    from server.settings import get_settings
+
     engine = make_engine(get_settings().database_url)
     try:
         require_migrated(engine)

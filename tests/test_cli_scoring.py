@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from rich.console import Console
 from typer.testing import CliRunner
 
 from navsim_lb.cli import app
+from navsim_lb.report import summary_rows, summary_table
 from scorer.evaluate import TokenResult, score_tokens
-from scorer.report import summary_rows
 from scorer.submission import load_submission
-from scorer.versions import VERSIONS
+from scorer.versions import METRIC_LABELS, VERSIONS
 
 runner = CliRunner()
 
@@ -86,8 +88,27 @@ def test_multi_seed_summary_has_per_seed_rows_and_mean_std_max() -> None:
 
     table = summary_rows(rows(0, 0.5) + rows(1, 0.9, valid=False), VERSIONS["v1.1"])
     header, *body = table
-    score = header.index("score")
+    score = header.index("PDMS")
     assert [row[0] for row in body] == ["0", "1", "mean", "std", "max"]
-    # Seed 1 has an unscored token: it counts 0 in the mean and is reported.
-    assert body[1][score] == "0.450000" and body[1][header.index("unscored")] == "1"
-    assert body[2][score] == "0.475000" and body[3][score] == "0.025000" and body[4][score] == "0.500000"
+    # Seed 1 has an unscored token: it counts 0 in the mean and is reported. Scores in %, as on the board.
+    assert body[1][score] == "45.0" and body[1][header.index("unscored")] == "1"
+    assert body[2][score] == "47.5" and body[3][score] == "2.5" and body[4][score] == "50.0"
+
+
+@pytest.mark.parametrize("version", list(VERSIONS))
+def test_summary_table_reads_in_80_columns(version: str) -> None:
+    results = [
+        TokenResult(f"token{index}", seed, True, dict.fromkeys(VERSIONS[version].result_columns, 0.987654))
+        for seed in range(3)
+        for index in range(12000)
+    ]
+    console = Console(width=80, record=True, file=io.StringIO())
+    console.print(summary_table(results, VERSIONS[version], "a method with a long name on private_test_e2e"))
+    text = console.export_text()
+    lines = text.splitlines()
+    assert max(len(line) for line in lines) <= 80 and "…" not in text
+    header = next(line.split() for line in lines if line.split()[:1] == ["seed"])
+    labels = [METRIC_LABELS[column] for column in VERSIONS[version].result_columns]
+    assert header == ["seed", *labels, "tokens", "unscored"]
+    assert next(line.split() for line in lines if line.split()[:1] == ["mean"])[1:] == ["98.8"] * 7
+    assert f"DDC: {VERSIONS[version].ddc_role}" in " ".join(text.split())

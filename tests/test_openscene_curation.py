@@ -11,7 +11,7 @@ import typer
 from test_openscene_builders import write_maps, write_road_log
 from typer.testing import CliRunner
 
-from scorer.openscene.cli import register
+from navsim_lb.openscene_cli import register
 from scorer.openscene.curation import REPORT_NAME, TABLE_COLUMNS, curate_split, curation_table
 from scorer.openscene.importer import ImportSettings, import_logs
 from scorer.scene import scene_paths

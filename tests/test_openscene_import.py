@@ -24,7 +24,7 @@ from test_openscene_builders import (
 )
 from typer.testing import CliRunner
 
-from scorer.openscene.cli import register
+from navsim_lb.openscene_cli import register
 from scorer.openscene.excerpt import build_excerpt, excerpt_to_json
 from scorer.openscene.frames import convert_frame, ego_pose, route_roadblocks
 from scorer.openscene.gpkg import gpkg_path, load_map_tables

@@ -10,7 +10,7 @@ from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from sqlalchemy import select
 
-from scorer.versions import VERSIONS
+from scorer.versions import METRIC_LABELS, VERSIONS
 from server.auth import SessionDep
 from server.models import Phase
 from server.routes.public import cached_board
@@ -18,16 +18,6 @@ from server.services.errors import ServiceError
 
 TEMPLATES = Jinja2Templates(directory=Path(__file__).resolve().parent.parent.parent / "web" / "templates")
 router = APIRouter(include_in_schema=False)
-
-# Short headers as in the NAVSIM paper; the devkit's names stay in the API and in the header tooltips.
-COLUMN_LABELS = {
-    "no_at_fault_collisions": "NC",
-    "drivable_area_compliance": "DAC",
-    "driving_direction_compliance": "DDC",
-    "ego_progress": "EP",
-    "time_to_collision_within_bound": "TTC",
-    "comfort": "C",
-}
 
 
 @router.get("/", response_class=HTMLResponse)
@@ -43,7 +33,7 @@ def leaderboard_page(
     context: dict[str, Any] = {
         "versions": list(VERSIONS),
         "phases": [p.name for p in session.scalars(select(Phase).order_by(Phase.opens_at.desc())).all()],
-        "labels": COLUMN_LABELS,
+        "labels": METRIC_LABELS,
         "query": {"version": version, "subset": subset, "sort": sort, "phase": phase},
     }
     status = 200

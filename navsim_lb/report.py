@@ -1,14 +1,19 @@
-"""Result tables: the devkit's per-token CSV layout and the terminal summary."""
+"""Result tables: the devkit's per-token CSV layout, and the summary a person reads in a terminal."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
+from rich import box
+from rich.table import Table
 
 from scorer.evaluate import TokenResult, summarize
-from scorer.versions import MetricVersion
+from scorer.versions import METRIC_LABELS, MetricVersion
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 def results_table(results: Sequence[TokenResult], version: MetricVersion) -> pd.DataFrame:
@@ -17,6 +22,8 @@ def results_table(results: Sequence[TokenResult], version: MetricVersion) -> pd.
     As in the devkit, the average row is the column mean over valid rows and its `valid` is all(valid);
     a `seed` column is added only for multi-seed results.
     """
+    import pandas as pd  # about 0.3 s to import, and only `score --out` needs it
+
     multi_seed = any(result.seed is not None for result in results)
     rows = []
     for result in results:
@@ -35,24 +42,47 @@ def results_table(results: Sequence[TokenResult], version: MetricVersion) -> pd.
     return pd.concat([frame, pd.DataFrame([average])], ignore_index=True)
 
 
+def percent(value: float) -> str:
+    """Return a score in [0, 1] as the leaderboard shows it: percent with one decimal."""
+    return f"{value * 100:.1f}"
+
+
 def summary_rows(results: Sequence[TokenResult], version: MetricVersion) -> list[list[str]]:
-    """Return a header and rows: per seed the mean (unscored tokens count 0), then mean/std/max over seeds."""
+    """Return a header and rows: per seed the mean (unscored tokens count 0), then mean/std/max over seeds.
+
+    Headers are the short metric names (NC, DAC, ..., PDMS) and scores are percent, as on the leaderboard.
+    """
     seeds = sorted({result.seed for result in results}, key=lambda seed: -1 if seed is None else seed)
     per_seed = {seed: summarize([r for r in results if r.seed == seed]) for seed in seeds}
     columns = list(version.result_columns)
-    header = ["seed", *columns, "tokens", "unscored"]
-    rows = [header]
+    rows = [["seed", *(METRIC_LABELS[column] for column in columns), "tokens", "unscored"]]
     for seed, summary in per_seed.items():
         rows.append(
             [
                 "-" if seed is None else str(seed),
-                *(f"{summary[c]:.6f}" for c in columns),
+                *(percent(summary[column]) for column in columns),
                 f"{summary['tokens']:.0f}",
                 f"{summary['failed']:.0f}",
             ]
         )
     if len(seeds) > 1:
-        values = np.array([[per_seed[seed][c] for c in columns] for seed in seeds])
+        values = np.array([[per_seed[seed][column] for column in columns] for seed in seeds])
         for name, reduce in (("mean", np.mean), ("std", np.std), ("max", np.max)):
-            rows.append([name, *(f"{v:.6f}" for v in reduce(values, axis=0)), "", ""])
+            rows.append([name, *(percent(value) for value in reduce(values, axis=0)), "", ""])
     return rows
+
+
+def summary_table(results: Sequence[TokenResult], version: MetricVersion, title: str) -> Table:
+    """Return the summary as a table that fits an 80-column terminal (no vertical rules, numbers right)."""
+    header, *rows = summary_rows(results, version)
+    table = Table(
+        title=f"{title} (PDMS {version.name})",
+        caption=f"scores in %; unscored tokens count 0; DDC: {version.ddc_role}",
+        box=box.SIMPLE_HEAD,
+        pad_edge=False,
+    )
+    for index, column in enumerate(header):
+        table.add_column(column, justify="left" if index == 0 else "right", no_wrap=True)
+    for row in rows:
+        table.add_row(*row)
+    return table

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
 from typing import Annotated
@@ -12,19 +10,10 @@ from typing import Annotated
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
 from rich.table import Table
 
+from navsim_lb.terminal import console, fail, progress_bar, warn, warn_about_kernels
 from scorer.versions import VERSIONS
-
-console = Console(stderr=True)
 
 
 class BaselineKind(str, Enum):
@@ -36,36 +25,6 @@ def default_cache_dir(split_dir: Path) -> Path:
     """Return the cache directory of a split: $NAVSIM_LB_CACHE_DIR (default .navsim-lb/cache) / split name."""
     root = Path(os.environ.get("NAVSIM_LB_CACHE_DIR", ".navsim-lb/cache"))
     return root / Path(split_dir).resolve().name
-
-
-@contextmanager
-def progress_bar(description: str, total: int) -> Iterator[Callable[[int], None]]:
-    """Yield a callback advancing a rich progress bar by n items."""
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-    )
-    with Progress(*columns, console=console, transient=False) as progress:
-        task = progress.add_task(description, total=total)
-        yield lambda n: progress.advance(task, n)
-
-
-def fail(message: str) -> typer.Exit:
-    """Print `message` (plain text, never markup: it may quote user data) and return the exit to raise."""
-    console.print(f"[red]error:[/red] {escape(message)}")
-    return typer.Exit(code=2)
-
-
-def warn_about_kernels() -> None:
-    """Say so when the OpenBLAS kernels are not the official results' (last bits may differ)."""
-    from scorer.blas import kernel_warning
-
-    warning = kernel_warning()
-    if warning is not None:
-        console.print(f"[yellow]warning:[/yellow] {escape(warning)}")
 
 
 def synth(
@@ -133,8 +92,8 @@ def score(
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
 ) -> None:
     """Score a submission against a split and print the summary."""
+    from navsim_lb.report import results_table, summary_table
     from scorer.evaluate import score_tokens
-    from scorer.report import results_table, summary_rows
     from scorer.scene import SceneFormatError, scene_paths
     from scorer.submission import SubmissionError, load_submission, validate_submission
 
@@ -148,7 +107,7 @@ def score(
     except SubmissionError as error:
         raise fail(f"{submission}: {error}") from None
     for problem in validate_submission(loaded, tokens):
-        console.print(f"[yellow]warning:[/yellow] {escape(str(problem))}")
+        warn(str(problem))
     warn_about_kernels()
     results = []
     with progress_bar(f"scoring {version}", len(tokens) * len(loaded.seeds)) as advance:
@@ -157,17 +116,10 @@ def score(
             results += score_tokens(
                 split, cache_dir or default_cache_dir(split), predictions, version, tokens, seed, advance
             )
-    frame = results_table(results, VERSIONS[version])
     if out is not None:
-        frame.to_csv(out)
+        results_table(results, VERSIONS[version]).to_csv(out)
         console.print(f"wrote {out}")
-    table = Table(title=f"{loaded.metadata.method} on {split.name} ({version})")
-    rows = summary_rows(results, VERSIONS[version])
-    for column in rows[0]:
-        table.add_column(column)
-    for row in rows[1:]:
-        table.add_row(*row)
-    Console().print(table)
+    Console().print(summary_table(results, VERSIONS[version], f"{loaded.metadata.method} on {split.name}"))
 
 
 def regress(

@@ -12,7 +12,8 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from scorer.cli import console, default_cache_dir, fail, progress_bar
+from navsim_lb.engine_cli import default_cache_dir
+from navsim_lb.terminal import console, fail, progress_bar
 from scorer.versions import VERSIONS
 
 SHOWN_REASONS = 10

@@ -1,0 +1,55 @@
+"""What every `navsim-lb` subcommand prints through: the stderr console, errors, progress bars, warnings."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+console = Console(stderr=True)
+
+
+@contextmanager
+def progress_bar(description: str, total: int) -> Iterator[Callable[[int], None]]:
+    """Yield a callback advancing a rich progress bar by n items."""
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
+    with Progress(*columns, console=console, transient=False) as progress:
+        task = progress.add_task(description, total=total)
+        yield lambda n: progress.advance(task, n)
+
+
+def fail(message: str) -> typer.Exit:
+    """Print `message` (plain text, never markup: it may quote user data) and return the exit to raise."""
+    console.print(f"[red]error:[/red] {escape(message)}")
+    return typer.Exit(code=2)
+
+
+def warn(message: str) -> None:
+    """Print a warning (plain text, never markup)."""
+    console.print(f"[yellow]warning:[/yellow] {escape(message)}")
+
+
+def warn_about_kernels() -> None:
+    """Say so when the OpenBLAS kernels are not the official results' (last bits may differ)."""
+    from scorer.blas import kernel_warning
+
+    warning = kernel_warning()
+    if warning is not None:
+        warn(warning)
