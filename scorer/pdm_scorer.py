@@ -18,7 +18,7 @@ from scorer.drivable_map import DrivableMap, MapBatch
 from scorer.geometry import FloatArray
 from scorer.metrics.aggregation import aggregate
 from scorer.metrics.collisions import no_at_fault_collisions
-from scorer.metrics.comfort import is_comfortable
+from scorer.metrics.comfort import comfort_series, is_comfortable
 from scorer.metrics.drivable_area import drivable_area_compliance
 from scorer.metrics.driving_direction import driving_direction_compliance, off_route_steps
 from scorer.metrics.ego_areas import ego_areas
@@ -74,8 +74,9 @@ class ProposalScores:
 @dataclass(frozen=True, eq=False)
 class ProposalMeasures:
     """What each proposal earns on its own, (B, P) arrays: all but the steps that compare proposals (the
-    v1.0 DDC window, EP normalisation, aggregation). A proposal's measures do not depend on the others
-    it is scored with, so a reference proposal can be measured once and joined with others later.
+    v1.0 DDC window, EP normalisation, comfort's filters, aggregation). A proposal's measures do not depend
+    on the others it is scored with, so a reference proposal can be measured once and joined with others
+    later.
     """
 
     no_at_fault_collisions: FloatArray
@@ -83,7 +84,7 @@ class ProposalMeasures:
     drivable_area_compliance: FloatArray
     time_to_collision_within_bound: FloatArray
     ttc_index: IntArray
-    comfort: FloatArray
+    comfort_series: FloatArray  # (B, P, 41, 3): comfort is scored on a token's proposals together
     progress_raw: FloatArray
     off_route_steps: FloatArray  # (B, P, 41) centre displacement per step while off route
     ego_areas: npt.NDArray[np.bool_]  # (B, P, 41, 3)
@@ -179,7 +180,7 @@ def measure_batch(
         drivable_area_compliance=per_token(drivable_area_compliance(areas)),
         time_to_collision_within_bound=per_token(ttc),
         ttc_index=per_token(ttc_index),
-        comfort=per_token(is_comfortable(rows, SCORING_INTERVAL_S).astype(np.float64)),
+        comfort_series=per_token(comfort_series(rows)),
         progress_raw=per_token(raw_progress(points, centerline_strings(list(centerlines)), row_token)),
         off_route_steps=per_token(off_route_steps(points, areas)),
         ego_areas=per_token(areas),
@@ -187,7 +188,9 @@ def measure_batch(
 
 
 def score_measures(measures: ProposalMeasures, config: ScorerConfig) -> ProposalScores:
-    """Return the scores (B, P) from the proposals' measures: DDC windows, EP normalisation, aggregation."""
+    """Return the scores (B, P) from the proposals' measures: DDC windows, EP normalisation, comfort,
+    aggregation: the steps in which the devkit's result for a proposal depends on the others."""
+    comfort = is_comfortable(measures.comfort_series, SCORING_INTERVAL_S).astype(np.float64)
     driving_direction = driving_direction_compliance(measures.off_route_steps, config, SCORING_INTERVAL_S)
     # DDC is a multiplier (v1.0) or a weighted row (v1.1, weight 0): data, not a version test.
     ddc_is_multiplier = config.ddc_role == "multiplier"
@@ -203,7 +206,7 @@ def score_measures(measures: ProposalMeasures, config: ScorerConfig) -> Proposal
     weighted_rows = {
         "progress": ego_progress,
         "ttc": measures.time_to_collision_within_bound,
-        "comfortable": measures.comfort,
+        "comfortable": comfort,
     } | ({} if ddc_is_multiplier else ddc_row)
     weights = [config.progress_weight, config.ttc_weight, config.comfortable_weight]
     weights += [] if ddc_is_multiplier else [config.driving_direction_weight]
@@ -215,7 +218,7 @@ def score_measures(measures: ProposalMeasures, config: ScorerConfig) -> Proposal
         driving_direction_compliance=driving_direction,
         ego_progress=ego_progress,
         time_to_collision_within_bound=measures.time_to_collision_within_bound,
-        comfort=measures.comfort,
+        comfort=comfort,
         score=score,
         progress_raw=measures.progress_raw,
         collision_index=measures.collision_index,

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.signal import savgol_filter
 
-from scorer.metrics.comfort import is_comfortable
+from scorer.metrics.comfort import comfort_series, filtered_series, is_comfortable
 from scorer.metrics.driving_direction import _time_windows
 from scorer.trajectory import StateIndex
+
+MIDPOINT = Path(__file__).parent / "fixtures" / "comfort-midpoint.json"
 
 
 @pytest.mark.parametrize("horizon", [3, 7, 10, 12, 20])
@@ -58,15 +63,28 @@ def _devkit_comfort(states: np.ndarray) -> np.ndarray:
     )
 
 
-def test_comfort_filters_as_matrices_decide_as_scipy_does() -> None:
-    # Random drives scaled so that about half of them break some bound.
+def test_comfort_filters_a_tokens_proposals_as_the_devkits_call_does() -> None:
+    # Random drives scaled so that about half of them break some bound, scored in pairs as in evaluation.
     rng = np.random.default_rng(5)
-    states = np.zeros((4000, 41, 11))
-    scale = rng.choice([0.3, 1.0, 2.0, 4.0], (4000, 1))
-    states[..., StateIndex.ACCELERATION_X] = np.cumsum(rng.normal(0, 0.15, (4000, 41)), axis=1) * scale
-    states[:, 0, StateIndex.ACCELERATION_Y] = rng.normal(0, 8.0, 4000)
-    headings = np.cumsum(rng.normal(0, 0.005, (4000, 41)), axis=1) * scale + rng.uniform(-4, 4, (4000, 1))
+    states = np.zeros((600, 41, 11))
+    scale = rng.choice([0.3, 1.0, 2.0, 4.0], (600, 1))
+    states[..., StateIndex.ACCELERATION_X] = np.cumsum(rng.normal(0, 0.15, (600, 41)), axis=1) * scale
+    states[:, 0, StateIndex.ACCELERATION_Y] = rng.normal(0, 8.0, 600)
+    headings = np.cumsum(rng.normal(0, 0.005, (600, 41)), axis=1) * scale + rng.uniform(-4, 4, (600, 1))
     states[..., StateIndex.HEADING] = (headings + np.pi) % (2 * np.pi) - np.pi
-    expected = _devkit_comfort(states)
+    pairs = states.reshape(300, 2, 41, 11)
+    expected = np.array([_devkit_comfort(pair) for pair in pairs])
     assert 0.2 < expected.mean() < 0.8
-    assert np.array_equal(is_comfortable(states, 0.1), expected)
+    assert np.array_equal(is_comfortable(comfort_series(pairs), 0.1), expected)
+
+
+def test_an_output_on_a_rounding_midpoint_rounds_as_the_devkits_call_on_the_pair() -> None:
+    lon = np.array(json.loads(MIDPOINT.read_text())["lon_acceleration"])
+    devkit = savgol_filter(lon, window_length=41, polyorder=2, axis=-1)
+    scaled = devkit[1, 3] * 1e8
+    assert abs(scaled - np.floor(scaled) - 0.5) < 1e-6  # the fixture sits on a midpoint
+    series = np.zeros((1, 2, 41, 3))
+    series[0, :, :, 0] = lon
+    outputs, regrouped = filtered_series(series, 0.1)
+    assert regrouped.tolist() == [True]
+    np.testing.assert_array_equal(outputs[0][0], np.round(devkit, 8))
