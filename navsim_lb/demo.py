@@ -22,6 +22,7 @@ import typer
 from rich.markup import escape
 
 from navsim_lb.terminal import console, fail, progress_bar
+from scorer.versions import DEFAULT_VERSION
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
@@ -134,7 +135,7 @@ def _wait_for_api(url: str, children: dict[str, subprocess.Popen[bytes]], logs: 
 
 
 def _states(factory: sessionmaker[Session]) -> dict[int, tuple[str, str, float | None]]:
-    """Return submission id -> (method, status, PDMS v1.1 on all tokens) of every submission."""
+    """Return submission id -> (method, status, PDMS of the default version on all tokens) of every submission."""
     from sqlalchemy import select
 
     from server.models import Submission, Summary
@@ -145,7 +146,7 @@ def _states(factory: sessionmaker[Session]) -> dict[int, tuple[str, str, float |
             .outerjoin(
                 Summary,
                 (Summary.submission_id == Submission.id)
-                & (Summary.metric_version == "v1.1")
+                & (Summary.metric_version == DEFAULT_VERSION)
                 & (Summary.subset == "all"),
             )
             .order_by(Submission.id)
@@ -168,7 +169,7 @@ def _watch(
         states = _states(factory)
         for submission_id, (method, status, score) in states.items():
             if reported.get(submission_id) != status and status not in ACTIVE_STATUSES:
-                result = f"PDMS (v1.1) {score:.4f}" if score is not None else status
+                result = f"PDMS ({DEFAULT_VERSION}) {score:.4f}" if score is not None else status
                 console.print(escape(f"submission {submission_id} ({method}): {result}"))
             reported[submission_id] = status
         if until_scored and all(status not in ACTIVE_STATUSES for _, status, _ in states.values()):

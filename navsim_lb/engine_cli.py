@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from navsim_lb.terminal import console, fail, progress_bar, warn, warn_about_kernels
-from scorer.versions import VERSIONS
+from scorer.versions import DEFAULT_VERSION, VERSIONS, VersionName
 
 
 class BaselineKind(str, Enum):
@@ -59,7 +59,9 @@ def baseline(
 
 def cache(
     split: Annotated[Path, typer.Argument(help="split directory")],
-    version: Annotated[str, typer.Option(help="v1.0, v1.1 or all")] = "all",
+    version: Annotated[
+        VersionName | None, typer.Option(help="one metric version (default: every one)")
+    ] = None,
     workers: Annotated[int, typer.Option(help="processes")] = 1,
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
 ) -> None:
@@ -67,9 +69,7 @@ def cache(
     from scorer.evaluate import build_split_cache
     from scorer.scene import SceneFormatError, scene_paths
 
-    versions = list(VERSIONS) if version == "all" else [version]
-    if any(v not in VERSIONS for v in versions):
-        raise fail(f"unknown version {version!r}; use one of {', '.join(VERSIONS)} or all")
+    versions = list(VERSIONS) if version is None else [version]
     try:
         total = len(scene_paths(split))
     except SceneFormatError as error:
@@ -87,7 +87,7 @@ def cache(
 def score(
     split: Annotated[Path, typer.Argument(help="split directory")],
     submission: Annotated[Path, typer.Argument(help="submission file (JSON or NAVSIM pickle)")],
-    version: Annotated[str, typer.Option(help="metric version: " + ", ".join(VERSIONS))] = "v1.1",
+    version: Annotated[VersionName, typer.Option(help="metric version")] = DEFAULT_VERSION,
     out: Annotated[Path | None, typer.Option(help="per-token CSV with an average row")] = None,
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
 ) -> None:
@@ -97,8 +97,6 @@ def score(
     from scorer.scene import SceneFormatError, scene_paths
     from scorer.submission import SubmissionError, load_submission, validate_submission
 
-    if version not in VERSIONS:
-        raise fail(f"unknown version {version!r}; use one of {', '.join(VERSIONS)}")
     try:
         tokens = list(scene_paths(split))
         loaded = load_submission(submission.read_bytes(), submission.name)

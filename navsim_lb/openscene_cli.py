@@ -14,7 +14,7 @@ from rich.table import Table
 
 from navsim_lb.engine_cli import default_cache_dir
 from navsim_lb.terminal import console, fail, progress_bar
-from scorer.versions import VERSIONS
+from scorer.versions import DEFAULT_VERSION, VersionName
 
 SHOWN_REASONS = 10
 
@@ -79,7 +79,7 @@ def import_openscene(
 def curate(
     split: Annotated[Path, typer.Argument(help="split directory to curate")],
     out: Annotated[Path, typer.Option(help="directory of the curated split")],
-    version: Annotated[str, typer.Option(help="metric version: " + ", ".join(VERSIONS))] = "v1.1",
+    version: Annotated[VersionName, typer.Option(help="metric version")] = DEFAULT_VERSION,
     threshold: Annotated[float, typer.Option(help="PDMS threshold for both agents")] = 0.8,
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
 ) -> None:
@@ -87,8 +87,6 @@ def curate(
     from scorer.openscene.curation import AGENTS, curate_split, curation_table
     from scorer.scene import SceneFormatError, scene_paths
 
-    if version not in VERSIONS:
-        raise fail(f"unknown version {version!r}; use one of {', '.join(VERSIONS)}")
     try:
         total = len(scene_paths(split)) * len(AGENTS)
         with progress_bar(f"scoring baselines ({version})", total) as advance:

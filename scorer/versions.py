@@ -7,10 +7,22 @@ and then on a field of this config (e.g. `ddc_window_axis`), never on the versio
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from enum import StrEnum
 from typing import Literal
 
 DdcRole = Literal["multiplier", "weighted"]
 DdcWindowAxis = Literal["proposal", "time"]
+
+
+class VersionName(StrEnum):
+    """The name of a registered metric version: the one type the API, the CLI, the workers and the database
+    use, so that an unknown name is refused (422, a CLI usage error) wherever it comes in."""
+
+    V1_0 = "v1.0"
+    V1_1 = "v1.1"
+
+
+DEFAULT_VERSION = VersionName.V1_1  # NAVSIM's current release: what a leaderboard shows unless asked
 
 
 @dataclass(frozen=True)
@@ -35,7 +47,7 @@ class ScorerConfig:
 class MetricVersion:
     """A NAVSIM metric release: the evaluation scorer, PDM-Closed's internal scorer and the result columns."""
 
-    name: str
+    name: VersionName
     evaluation: ScorerConfig  # default_scoring_parameters.yaml
     planner: ScorerConfig  # PDMScorerConfig() dataclass defaults, used inside PDM-Closed
     result_columns: tuple[str, ...]  # PDMResults field order
@@ -74,15 +86,15 @@ METRIC_LABELS = {
     "score": "PDMS",
 }
 
-VERSIONS: dict[str, MetricVersion] = {
-    "v1.0": MetricVersion(
-        name="v1.0",
+VERSIONS: dict[VersionName, MetricVersion] = {
+    VersionName.V1_0: MetricVersion(
+        name=VersionName.V1_0,
         evaluation=_V1_0_SCORER,
         planner=replace(_V1_0_SCORER, progress_distance_threshold=0.1),
         result_columns=METRIC_COLUMNS,
     ),
-    "v1.1": MetricVersion(
-        name="v1.1",
+    VersionName.V1_1: MetricVersion(
+        name=VersionName.V1_1,
         evaluation=_V1_1_SCORER,
         planner=_V1_1_SCORER,
         result_columns=(

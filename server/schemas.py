@@ -7,6 +7,8 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, AwareDatetime, BaseModel, ConfigDict, Field, HttpUrl, StringConstraints
 
+from scorer.versions import DEFAULT_VERSION, VersionName
+
 SQL_INT_MAX = 2**31 - 1  # PostgreSQL's INTEGER: ids and counts beyond it cannot be stored
 
 
@@ -144,7 +146,7 @@ class SubmissionPatch(BaseModel):
 
 class TokenRow(BaseModel):
     token: str
-    metric_version: str
+    metric_version: VersionName
     seed: int
     valid: bool
     error: str | None
@@ -170,7 +172,7 @@ class LeaderboardRow(BaseModel):
 
 
 class LeaderboardOut(BaseModel):
-    version: str
+    version: VersionName
     phase: str
     split: str
     subset: str
@@ -285,7 +287,7 @@ class DisqualifyIn(BaseModel):
 
 
 class RescoreIn(BaseModel):
-    version: str = "v1.1"
+    version: VersionName = DEFAULT_VERSION
     subset: str | None = None
     phase: str | None = None
 

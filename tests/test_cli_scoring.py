@@ -75,7 +75,9 @@ def test_score_explains_a_broken_submission(split: Path, tmp_path: Path) -> None
     assert result.exit_code == 2
     assert "expected 8 poses of [x, y, heading], got shape (1, 2)" in result.output
     result = runner.invoke(app, ["score", str(split), str(broken), "--version", "v9"])
-    assert result.exit_code == 2 and "unknown version 'v9'" in result.output
+    assert result.exit_code == 2 and "'v9' is not one of 'v1.0', 'v1.1'" in " ".join(
+        line.strip("│ ") for line in result.output.splitlines()
+    )
 
 
 def test_multi_seed_summary_has_per_seed_rows_and_mean_std_max() -> None:

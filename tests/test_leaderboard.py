@@ -232,3 +232,24 @@ def test_rank_change_report() -> None:
     ]
     assert (swap["entered"], swap["left"]) == (["e"], ["d"])
     assert swap["kendall_tau"] == pytest.approx(1 / 3)  # pairs among a, b, c: one discordant of three
+
+
+def test_every_route_that_takes_a_metric_version_refuses_an_unknown_one(world: World) -> None:
+    submission_id = submit_scored(world, world.team_id, b"a", [uniform(0.75)], "A")
+    requests = [
+        ("get", "/api/v1/leaderboard", {"params": {"version": "v9"}}),
+        ("get", f"/api/v1/submissions/{submission_id}/tokens", {"params": {"version": "v9"}}),
+        ("get", "/api/v1/admin/export", {"params": {"version": "v9"}}),
+        ("post", "/api/v1/admin/rescore", {"json": {"version": "v9"}}),
+    ]
+    for method, url, arguments in requests:
+        headers = world.admin_headers() if "/admin/" in url else world.team_headers()
+        response = world.client.request(method, url, headers=headers, **arguments)
+        assert response.status_code == 422, url
+        assert "'v1.0' or 'v1.1'" in response.text, url
+    known = world.client.get(
+        f"/api/v1/submissions/{submission_id}/tokens",
+        params={"version": "v1.0"},
+        headers=world.team_headers(),
+    )
+    assert known.status_code == 200 and {row["metric_version"] for row in known.json()} == {"v1.0"}

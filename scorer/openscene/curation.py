@@ -16,6 +16,7 @@ from pathlib import Path
 from scorer.baselines import baseline_submission
 from scorer.evaluate import TokenResult, score_tokens, summarize
 from scorer.scene import scene_paths
+from scorer.versions import DEFAULT_VERSION, VersionName
 
 CURATION_THRESHOLD = 0.8
 AGENTS = (("constant-velocity", "Constant velocity"), ("human", "Human"))
@@ -46,7 +47,7 @@ def curate_split(
     split_dir: Path,
     out_dir: Path,
     cache_dir: Path,
-    version: str = "v1.1",
+    version: VersionName = DEFAULT_VERSION,
     threshold: float = CURATION_THRESHOLD,
     progress: Callable[[int], None] | None = None,
 ) -> CurationResult:

@@ -16,6 +16,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import AdminDep, SessionDep
 from server.models import Approval, Scope, Status, Submission, Team
 from server.routes.params import Offset, OptionalRowId, RowId
@@ -254,7 +255,7 @@ def rescore_report(session: SessionDep, _admin: AdminDep, rescore_id: RowId) -> 
 def export(
     session: SessionDep,
     _admin: AdminDep,
-    version: str = "v1.1",
+    version: VersionName = DEFAULT_VERSION,
     subset: str | None = None,
     phase: str | None = None,
     format: Literal["csv", "json"] = "csv",

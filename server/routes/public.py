@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse, Response
 from sqlalchemy import select, text
 from sqlalchemy.orm import Session
 
+from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import SessionDep, TokenDep
 from server.migrate import current_revision
 from server.models import Approval, Phase, Scope, Split
@@ -85,7 +86,7 @@ def cached_board(app: FastAPI, version: str, subset: str | None, sort: str, phas
 @router.get("/leaderboard", response_model=LeaderboardOut, tags=["leaderboard"])
 async def get_leaderboard(
     request: Request,
-    version: str = "v1.1",
+    version: VersionName = DEFAULT_VERSION,
     subset: str | None = None,
     sort: str = "score",
     phase: str | None = None,

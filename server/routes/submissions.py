@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from scorer.versions import METRIC_COLUMNS
+from scorer.versions import DEFAULT_VERSION, METRIC_COLUMNS, VersionName
 from server.auth import ApprovedTeamDep, SessionDep, TeamDep, TokenDep
 from server.models import Phase, Status, TokenResultRow
 from server.routes.params import Offset, RowId
@@ -151,7 +151,11 @@ def edit(session: SessionDep, team: TeamDep, submission_id: RowId, patch: Submis
 
 @router.get("/submissions/{submission_id}/tokens", response_model=list[TokenRow])
 def token_rows(
-    session: SessionDep, team: TeamDep, submission_id: RowId, version: str = "v1.1", only_failed: bool = False
+    session: SessionDep,
+    team: TeamDep,
+    submission_id: RowId,
+    version: VersionName = DEFAULT_VERSION,
+    only_failed: bool = False,
 ) -> list[dict[str, Any]]:
     """Per-token results of the current run on the tokens the team may see (failed tokens carry their error)."""
     submission = get_submission(session, submission_id, team.id)

@@ -10,7 +10,7 @@ from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from sqlalchemy import select
 
-from scorer.versions import METRIC_LABELS, VERSIONS
+from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, VERSIONS
 from server.auth import SessionDep
 from server.models import Phase
 from server.routes.public import cached_board
@@ -24,7 +24,7 @@ router = APIRouter(include_in_schema=False)
 def leaderboard_page(
     request: Request,
     session: SessionDep,
-    version: str = "v1.1",
+    version: str = DEFAULT_VERSION,
     subset: str | None = None,
     sort: str = "score",
     phase: str | None = None,
