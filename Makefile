@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 PORT ?= 8000
 
-.PHONY: demo test install services
+.PHONY: demo test install services browser
 
 $(BIN)/navsim-lb: pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -19,7 +19,7 @@ demo: install
 	PORT=$(PORT) $(BIN)/navsim-lb demo
 
 ## make test: everything CI runs (.ci/run calls exactly this): lint, the tests, the regression goldens.
-test: install services
+test: install services browser
 	$(BIN)/ruff check --quiet .
 	$(BIN)/ruff format --check --quiet .
 	$(BIN)/pytest -q -p no:cacheprovider
@@ -28,3 +28,7 @@ test: install services
 ## PostgreSQL and Redis must answer for the service tests; start them when they do not.
 services:
 	./.ci/services
+
+## Debian's chromium for the browser tests (tests/test_web_browser.py); installed when missing.
+browser:
+	./.ci/browser

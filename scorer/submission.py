@@ -126,6 +126,29 @@ def _seed_field(seed: int, seed_count: int) -> str:
     return f"predictions[{seed}]" if seed_count > 1 else "predictions"
 
 
+def _kind_of_value(values: np.ndarray) -> str:
+    """Name what stands where a number was expected, as a person says it (not numpy's dtype name)."""
+    kind = {
+        "U": "text",
+        "S": "bytes",
+        "b": "true/false",
+        "c": "a complex number",
+        "M": "a date",
+        "m": "a duration",
+    }
+    if values.dtype.kind in kind:
+        return kind[values.dtype.kind]
+    found = {type(value).__name__ for value in values.ravel().tolist()} - {"int", "float"}
+    names = {
+        "str": "text",
+        "NoneType": "null",
+        "bool": "true/false",
+        "list": "a nested list",
+        "dict": "an object",
+    }
+    return " and ".join(sorted(names.get(name, name) for name in found)) or "something else"
+
+
 def _check_poses(values: Any, token: str, field: str, problems: _Problems) -> FloatArray | None:
     """Return `values` as (8, 3) finite float64 poses, or record why they are not."""
     try:
@@ -134,7 +157,9 @@ def _check_poses(values: Any, token: str, field: str, problems: _Problems) -> Fl
         problems.add(token, field, "poses must be a list of 8 [x, y, heading] numbers")
         return None
     if poses.dtype.kind not in "fiu":
-        problems.add(token, field, f"poses must be numbers, got {poses.dtype.name} values")
+        problems.add(
+            token, field, f"poses must be numbers, found {_kind_of_value(poses)} where a number was expected"
+        )
         return None
     if poses.shape != (NUM_POSES, 3):
         problems.add(token, field, f"expected {NUM_POSES} poses of [x, y, heading], got shape {poses.shape}")

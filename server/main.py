@@ -11,6 +11,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from pydantic import TypeAdapter
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
@@ -71,7 +72,9 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     engine = make_engine(settings.database_url)
     require_migrated(engine)
 
-    app = FastAPI(
+    # fastapi-offline serves Swagger UI's and ReDoc's assets itself: /docs and /redoc need no CDN.
+    app = FastAPIOffline(
+        favicon_url="/static/favicon.svg",
         title="NAVSIM Leaderboard",
         version=ENGINE_VERSION,
         description="Submissions, PDM Score (v1.0, v1.1) leaderboard and administration of the NAVSIM benchmark.",

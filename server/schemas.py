@@ -159,8 +159,13 @@ class LeaderboardRow(BaseModel):
     model_config = ConfigDict(extra="allow")
 
     rank: int | None = Field(description="standing by PDMS among team entries; null for baselines")
+    tied_with_above: bool = Field(
+        description="its 95% interval overlaps the interval of the entry ranked above (statistically tied)"
+    )
     team: str
     method: str
+    tech_report_url: str = Field(description="given at upload; empty if none")
+    code_url: str = Field(description="given at upload; empty if none")
     score: float | None
     seeds: Seeds
     baseline: bool

@@ -68,6 +68,21 @@ def test_every_problem_is_listed_and_nothing_is_stored(world: World) -> None:
     assert _state(world) == before
 
 
+def test_links_must_be_web_addresses_and_nothing_is_stored_otherwise(world: World) -> None:
+    before = _state(world)
+    response = _post(world, HUMAN, tech_report_url="javascript:alert(1)", code_url="https://example.org/x")
+    assert response.status_code == 422
+    assert response.json()["problems"] == [
+        {
+            "token": None,
+            "field": "tech_report_url",
+            "message": "tech_report_url must be an http:// or https:// address",
+        }
+    ]
+    assert _state(world) == before and world.queued == []
+    assert _post(world, HUMAN, code_url="ftp://example.org").json()["problems"][0]["field"] == "code_url"
+
+
 def test_dry_run_validation_stores_nothing(world: World) -> None:
     before = _state(world)
     ok = world.client.post(

@@ -10,7 +10,7 @@ import pytest
 from server_testing import World, add_phase, add_team, reference_tokens, score_run, submit_scored, uniform
 
 from server.db import transaction
-from server.models import utc_now
+from server.models import Submission, utc_now
 from server.services.leaderboard import bootstrap_ci, rank_change_report
 from server.services.submissions import add_baselines
 
@@ -210,7 +210,43 @@ def test_web_page_shows_rows_baseline_flag_and_interval(world: World) -> None:
     page = world.client.get("/", params={"version": "v1.1"})
     assert page.status_code == 200
     assert "Page method" in page.text and "75.5" in page.text and "95% CI" in page.text
-    assert world.client.get("/", params={"sort": "nope"}).status_code == 422
+    assert "<caption>" in page.text and 'scope="col"' in page.text and 'aria-sort="descending"' in page.text
+    unknown = world.client.get("/", params={"version": "v9"})
+    assert (
+        unknown.status_code == 422
+        and "unknown metric version &#39;v9&#39;; known: v1.0, v1.1" in unknown.text
+    )
+
+
+def test_entries_with_overlapping_intervals_are_marked_tied(world: World) -> None:
+    beta, _ = add_team(world.factory, "beta")
+    gamma, _ = add_team(world.factory, "gamma")
+    tokens = reference_tokens()
+    spread = {token: (0.6 if index % 2 else 1.0) for index, token in enumerate(tokens)}  # mean 0.8, wide CI
+    submit_scored(world, world.team_id, b"a", [spread], "Wide")
+    submit_scored(world, beta, b"b", [uniform(0.79)], "Inside the interval above")
+    submit_scored(world, gamma, b"c", [uniform(0.2)], "Far below")
+    rows = _board(world)["rows"]
+    assert [(row["method"], row["tied_with_above"]) for row in rows] == [
+        ("Wide", False),
+        ("Inside the interval above", True),
+        ("Far below", False),
+    ]
+    assert world.client.get("/").text.count('class="tied"') == 2  # the mark on one row, and in the legend
+
+
+def test_method_links_are_shown_only_for_web_addresses(world: World) -> None:
+    first = submit_scored(world, world.team_id, b"a", [uniform(0.7)], "Linked")
+    beta, _ = add_team(world.factory, "beta")
+    second = submit_scored(world, beta, b"b", [uniform(0.6)], "Not linked")
+    with world.session() as session:
+        session.get(Submission, first).tech_report_url = "https://example.org/paper"
+        session.get(Submission, second).code_url = "javascript:alert(1)"  # stored before uploads were checked
+        session.commit()
+    rows = {row["method"]: row for row in _board(world, sort="submitted_at")["rows"]}
+    assert rows["Linked"]["tech_report_url"] == "https://example.org/paper"
+    page = world.client.get("/", params={"phase": world.phase}).text
+    assert 'href="https://example.org/paper"' in page and "javascript:alert" not in page
 
 
 def test_rank_change_report() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse
@@ -26,19 +27,28 @@ def leaderboard_page(
     session: SessionDep,
     version: str = DEFAULT_VERSION,
     subset: str | None = None,
-    sort: str = "score",
     phase: str | None = None,
 ) -> HTMLResponse:
-    """The public leaderboard."""
+    """The public leaderboard: tabs per phase, metric version and subset; the table sorts in the browser."""
+    query = {"version": version, "subset": subset, "phase": phase}
+
+    def here(**changes: str | None) -> str:
+        """Return the query string of this page with `changes` applied (None drops a parameter)."""
+        return "?" + urlencode({k: v for k, v in (query | changes).items() if v is not None})
+
     context: dict[str, Any] = {
         "versions": list(VERSIONS),
         "phases": [p.name for p in session.scalars(select(Phase).order_by(Phase.opens_at.desc())).all()],
         "labels": METRIC_LABELS,
-        "query": {"version": version, "subset": subset, "sort": sort, "phase": phase},
+        "query": query,
+        "here": here,
+        "ddc_role": VERSIONS[version].ddc_role if version in VERSIONS else "",
     }
     status = 200
     try:
-        context["board"] = cached_board(request.app, version, subset, sort, phase).view
+        board = cached_board(request.app, version, subset, "score", phase).view
+        context["board"] = board
+        query["phase"], query["subset"] = board["phase"], board["subset"]
     except ServiceError as error:
         context["error"] = error.message
         status = error.http_status
@@ -49,3 +59,9 @@ def leaderboard_page(
 def admin_page(request: Request) -> HTMLResponse:
     """The admin dashboard; it holds no data itself and asks the admin API with the token typed in."""
     return TEMPLATES.TemplateResponse(request, "admin.html", {"versions": list(VERSIONS)})
+
+
+@router.get("/team", response_class=HTMLResponse)
+def team_page(request: Request) -> HTMLResponse:
+    """Sign in or register; upload with live progress, history, metadata and final-entry choice (team API)."""
+    return TEMPLATES.TemplateResponse(request, "team.html", {})

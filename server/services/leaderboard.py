@@ -149,6 +149,8 @@ def _row(entry: Any, columns: tuple[str, ...]) -> dict[str, Any]:
         "rank": None,
         "team": entry.team,
         "method": entry.method,
+        "tech_report_url": entry.tech_report_url,
+        "code_url": entry.code_url,
         "score": entry.score,
         **{column: getattr(entry, column) for column in columns},
         "seeds": {"count": entry.seeds, "mean": entry.score, "std": entry.score_std, "max": entry.score_max},
@@ -182,6 +184,8 @@ def _entries(session: Session, phase: Phase, version: str, subset: str) -> Seque
             Summary.submission_id,
             Team.name.label("team"),
             Submission.method,
+            Submission.tech_report_url,
+            Submission.code_url,
             Submission.is_baseline,
             Submission.created_at,
             Summary.seeds,
@@ -213,6 +217,11 @@ def _entries(session: Session, phase: Phase, version: str, subset: str) -> Seque
     return session.execute(query).all()
 
 
+def _overlap(interval: list[float], other: list[float]) -> bool:
+    """Return whether two intervals share a point (NaN bounds, from entries without tokens, share none)."""
+    return bool(interval[1] >= other[0] and other[1] >= interval[0])
+
+
 def leaderboard(
     session: Session, phase: Phase, version: str, subset: str, sort: str = "score"
 ) -> list[dict[str, Any]]:
@@ -223,11 +232,15 @@ def leaderboard(
         message = f"cannot sort by {sort!r}; choose one of {', '.join(sortable)}"
         raise Invalid(message, [{"token": None, "field": "sort", "message": message}])
     rows = [_row(entry, columns) for entry in _entries(session, phase, version, subset)]
-    rank = 0
+    rank, above = 0, None
     for row in rows:
+        row["tied_with_above"] = False
         if not row["baseline"]:
             rank += 1
             row["rank"] = rank
+            # Statistically tied: its 95% interval reaches into the interval of the entry ranked above.
+            row["tied_with_above"] = above is not None and _overlap(row["ci95"], above["ci95"])
+            above = row
     if sort == "submitted_at":
         return sorted(rows, key=lambda row: (row["submitted_at"], row["submission_id"]))
     if sort != "score":

@@ -7,11 +7,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import PurePath
 from typing import Any
+from urllib.parse import urlsplit
 
 from server.services.errors import Invalid
 
 # Metadata a team may give in the file or as form fields (form fields win).
 METADATA_FIELDS = ("method", "authors", "email", "institution", "country", "tech_report_url", "code_url")
+URL_FIELDS = ("tech_report_url", "code_url")  # shown as links on the leaderboard: web addresses only
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,11 @@ def _file_metadata(submission: Any) -> dict[str, str]:
     return {name: str(value) for name, value in values.items() if value not in (None, "")}
 
 
+def _is_web_address(text: str) -> bool:
+    parts = urlsplit(text)
+    return parts.scheme in ("http", "https") and bool(parts.netloc) and not any(c.isspace() for c in text)
+
+
 def validate_upload(
     data: bytes, filename: str, split_tokens: Sequence[str], form_metadata: dict[str, str] | None = None
 ) -> ValidUpload:
@@ -57,6 +64,13 @@ def validate_upload(
         {k: v.strip() for k, v in (form_metadata or {}).items() if k in METADATA_FIELDS and v and v.strip()}
     )
     metadata.setdefault("method", PurePath(filename).name.split(".")[0])
+    problems = [
+        {"token": None, "field": field, "message": f"{field} must be an http:// or https:// address"}
+        for field in URL_FIELDS
+        if field in metadata and not _is_web_address(metadata[field])
+    ]
+    if problems:
+        raise Invalid(f"{filename}: {len(problems)} problem(s) in the metadata", problems)
     return ValidUpload(
         data=data,
         filename=filename,

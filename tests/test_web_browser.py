@@ -1,0 +1,268 @@
+"""The web pages in a real browser: Debian's chromium, driven by Playwright, against `navsim-lb demo`.
+
+The demo is the whole service as a user meets it (SQLite, the embedded broker, a worker, the API and the
+pages) on a small synthetic split, with its baselines and demo entry scored. Screenshots of every page at
+desktop width and at 390 px go to tests/artifacts/screenshots/ (look at them).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+from playwright.sync_api import Browser, Page, Route, expect, sync_playwright
+
+pytestmark = pytest.mark.browser
+
+SCREENSHOTS = Path(__file__).parent / "artifacts" / "screenshots"
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+STARTUP_TIMEOUT_S = 240.0
+SCORING_TIMEOUT_MS = 180_000
+
+
+@dataclass(frozen=True)
+class Demo:
+    url: str
+    team_token: str
+    admin_token: str
+    data_dir: Path
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def _scored_entries(url: str) -> int:
+    try:
+        rows = httpx.get(f"{url}/api/v1/leaderboard", timeout=5).json()["rows"]
+    except (httpx.HTTPError, KeyError, ValueError):
+        return 0
+    return sum(row["score"] is not None for row in rows)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
+    data_dir = tmp_path_factory.mktemp("demo")
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    command = [
+        str(Path(sys.executable).with_name("navsim-lb")),
+        "demo",
+        "--scenes",
+        "12",
+        "--concurrency",
+        "1",
+    ]
+    environment = {**os.environ, "DATA_DIR": str(data_dir), "PORT": str(port)}
+    environment.pop("DATABASE_URL", None)
+    environment.pop("BROKER_URL", None)
+    log = (data_dir / "demo.log").open("wb")
+    process = subprocess.Popen(command, env=environment, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while _scored_entries(url) < 3:  # the two baselines and the demo entry
+            assert process.poll() is None, (data_dir / "demo.log").read_text()[-3000:]
+            assert time.monotonic() < deadline, "the demo did not score its entries in time"
+            time.sleep(1.0)
+        tokens = json.loads((data_dir / "demo-tokens.json").read_text())
+        yield Demo(url, tokens["team"], tokens["admin"], data_dir)
+    finally:
+        process.send_signal(signal.SIGTERM)  # stops the worker and the API as Ctrl-C does
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            process.kill()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    chromium = shutil.which("chromium")
+    assert chromium, "Debian's chromium is missing: `make test` installs it (.ci/browser)"
+    with sync_playwright() as playwright:
+        launched = playwright.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
+        yield launched
+        launched.close()
+
+
+def _page(browser: Browser, width: int = 1280) -> Page:
+    page = browser.new_page(viewport={"width": width, "height": 900})
+    page.set_default_timeout(30_000)
+    return page
+
+
+def _screenshot(page: Page, name: str) -> None:
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=SCREENSHOTS / f"{name}.png", full_page=True)
+
+
+def _scores(page: Page) -> list[float]:
+    return [
+        float(value)
+        for value in page.locator("#leaderboard tbody td.score").evaluate_all(
+            "cells => cells.map(cell => cell.dataset.value)"
+        )
+    ]
+
+
+def test_leaderboard_rows_sort_both_ways_by_any_column(demo: Demo, browser: Browser) -> None:
+    page = _page(browser)
+    page.goto(demo.url)
+    assert page.locator("#leaderboard tbody tr").count() == 3
+    assert page.locator("#leaderboard caption").inner_text().startswith("demo")
+    descending = _scores(page)
+    assert descending == sorted(descending, reverse=True) and len(set(descending)) == 3
+    pdms = page.locator('th[data-key="score"]')
+    assert pdms.get_attribute("aria-sort") == "descending"
+    pdms.locator("button").click()
+    assert pdms.get_attribute("aria-sort") == "ascending" and _scores(page) == sorted(descending)
+    pdms.locator("button").click()
+    assert pdms.get_attribute("aria-sort") == "descending" and _scores(page) == descending
+    method = page.locator('th[data-key="method"]')
+    method.locator("button").click()
+    names = page.locator("#leaderboard tbody .method-name").all_inner_texts()
+    assert method.get_attribute("aria-sort") == "ascending" and names == sorted(names, key=str.lower)
+    assert pdms.get_attribute("aria-sort") is None
+    assert "sort=method" in page.url  # the order survives a reload and a shared link
+    page.reload()
+    assert page.locator("#leaderboard tbody .method-name").all_inner_texts() == names
+    assert "logged, not weighted" in page.locator('th[data-key="driving_direction_compliance"]').inner_text()
+    _screenshot(page, "leaderboard-desktop")
+    page.get_by_role("link", name="PDMS v1.0").click()
+    expect(page.locator('th[data-key="driving_direction_compliance"]')).to_contain_text("multiplier")
+    assert "version=v1.0" in page.url
+
+
+def test_leaderboard_at_390_px_keeps_rank_and_pdms_in_view_without_sideways_scroll(
+    demo: Demo, browser: Browser
+) -> None:
+    page = _page(browser, 390)
+    page.goto(demo.url)
+    assert page.evaluate("document.documentElement.scrollWidth") <= 390
+    for cell in (page.locator("td.score").first, page.locator('th[data-key="rank"]')):
+        box = cell.bounding_box()
+        assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= 390
+    assert page.locator("td.wide").first.is_hidden()
+    _screenshot(page, "leaderboard-390")
+
+
+def test_api_docs_render_without_internet(demo: Demo, browser: Browser) -> None:
+    page = _page(browser)
+    outside: list[tuple[str, str]] = []
+
+    def local_only(route: Route) -> None:
+        if route.request.url.startswith(demo.url):
+            route.continue_()
+        else:
+            outside.append((route.request.resource_type, route.request.url))
+            route.abort()
+
+    page.route("**/*", local_only)
+    page.goto(f"{demo.url}/docs")
+    page.wait_for_selector(".opblock")
+    assert page.locator(".opblock").count() > 20
+    assert page.get_by_text("/api/v1/submissions:validate").count() >= 1
+    _screenshot(page, "docs")
+    assert outside == []
+    page.goto(f"{demo.url}/redoc")
+    page.wait_for_selector("h1")
+    assert "NAVSIM Leaderboard" in page.locator("h1").first.inner_text()
+    assert page.get_by_text("Upload a submission").count() >= 1
+    # ReDoc's footer links Redocly's logo from its CDN: an image the page renders without.
+    assert [kind for kind, _ in outside] in ([], ["image"])
+
+
+def test_a_team_signs_in_sees_every_problem_then_watches_its_upload_scored(
+    demo: Demo, browser: Browser, tmp_path: Path
+) -> None:
+    broken = tmp_path / "broken.json"
+    broken.write_text(
+        json.dumps({"format": "navsim-lb/submission", "version": 1, "predictions": {"x": [[0, 0, "a"]]}})
+    )
+    entry = json.loads((demo.data_dir / "demo-submission.json").read_text())
+    entry["method"] = "Uploaded in a browser"
+    valid = tmp_path / "valid.json"
+    valid.write_text(json.dumps(entry))
+
+    page = _page(browser)
+    page.goto(f"{demo.url}/team")
+    _screenshot(page, "team-signed-out")
+    page.fill("#token", "nlb_not_a_token")
+    page.click("#signin button[type=submit]")
+    expect(page.locator("#signin-error")).to_contain_text("not valid")
+    page.fill("#token", demo.team_token)
+    page.click("#signin button[type=submit]")
+    page.wait_for_selector("#signed-in:not([hidden])")
+    expect(page.locator("#team-name")).to_have_text("demo-team")
+
+    page.set_input_files("#upload input[type=file]", broken)
+    page.click("#upload-button")
+    problems = page.locator("#problems")
+    problems.wait_for()
+    text = problems.inner_text()
+    assert "poses must be numbers, found text where a number was expected" in text
+    assert "token of the split is missing" in text and "show all 13 problems" not in text
+    expect(page.locator("#history tbody tr")).not_to_have_count(0)
+    history_before = page.locator("#history tbody tr").count()
+    _screenshot(page, "team-problems")
+
+    page.set_input_files("#upload input[type=file]", valid)
+    page.click("#upload-button")
+    page.wait_for_selector("#progress:not([hidden])")
+    assert problems.is_hidden()
+    page.wait_for_function(
+        "document.querySelector('#upload-status').textContent.includes('is scored')",
+        timeout=SCORING_TIMEOUT_MS,
+    )
+    assert page.locator("#progress-bar").get_attribute("value") == "100"
+    expect(page.locator("#history tbody tr")).to_have_count(history_before + 1)
+    assert page.locator("#history tbody tr").first.inner_text().startswith(str(_latest_id(demo)))
+    _screenshot(page, "team-scored")
+
+    narrow = _page(browser, 390)
+    narrow.goto(f"{demo.url}/team")  # the token is per tab: this one signs in again
+    narrow.fill("#token", demo.team_token)
+    narrow.click("#signin button[type=submit]")
+    narrow.wait_for_selector("#history tbody tr")
+    assert narrow.evaluate("document.documentElement.scrollWidth") <= 390
+    _screenshot(narrow, "team-390")
+
+
+def _latest_id(demo: Demo) -> int:
+    headers = {"Authorization": f"Bearer {demo.team_token}"}
+    return int(httpx.get(f"{demo.url}/api/v1/submissions", headers=headers, timeout=5).json()[0]["id"])
+
+
+def test_team_registration_shows_its_token_once(demo: Demo, browser: Browser) -> None:
+    page = _page(browser)
+    page.goto(f"{demo.url}/team")
+    page.fill("#register input[name=name]", "browser-team")
+    page.fill("#register input[name=members]", "Ada, Grace")
+    page.click("#register button[type=submit]")
+    page.wait_for_selector("#registered:not([hidden])")
+    token = page.locator("#new-token").inner_text()
+    me = httpx.get(f"{demo.url}/api/v1/me", headers={"Authorization": f"Bearer {token}"}, timeout=5).json()
+    assert me["team"] == "browser-team" and me["approval"] == "pending"
+    page.click("#register button[type=submit]")  # the same name again
+    expect(page.locator("#register-error")).to_contain_text("browser-team")

@@ -1,0 +1,273 @@
+// Team pages: sign in with the team token (kept in sessionStorage, gone when the tab closes), register,
+// upload (checked by the validator before anything is stored, then followed live until scored), history.
+"use strict";
+
+const API = "/api/v1";
+const TOKEN_KEY = "navsim-lb-team-token";
+const FINAL = ["scored", "failed", "cancelled"];
+const $ = (selector) => document.querySelector(selector);
+const token = () => sessionStorage.getItem(TOKEN_KEY) || "";
+const pct = (value) => (value === null || value === undefined ? "–" : (100 * value).toFixed(1));
+const when = (text) => (text ? text.slice(0, 16).replace("T", " ") : "–");
+
+class ApiError extends Error {
+  constructor(status, body) {
+    super(typeof body.detail === "string" ? body.detail : `${status}`);
+    this.status = status;
+    this.body = body;
+  }
+}
+
+async function api(method, path, { json, form } = {}) {
+  const headers = { Authorization: `Bearer ${token()}` };
+  if (json) headers["Content-Type"] = "application/json";
+  const response = await fetch(API + path, { method, headers, body: json ? JSON.stringify(json) : form });
+  const body = await response.json().catch(() => ({}));
+  if (!response.ok) throw new ApiError(response.status, body);
+  return body;
+}
+
+function cell(row, content, className) {
+  const td = row.insertCell();
+  if (content instanceof Node) td.append(content); else td.textContent = content ?? "";
+  if (className) td.className = className;
+  return td;
+}
+
+function button(label, action, title) {
+  const element = document.createElement("button");
+  element.type = "button";
+  element.textContent = label;
+  if (title) element.title = title;
+  element.addEventListener("click", action);
+  return element;
+}
+
+function describeError(error) {
+  if (!(error instanceof ApiError)) return `The server could not be reached (${error.message}).`;
+  if (error.status === 401) return "This token is not valid (revoked, expired or mistyped).";
+  if (error.status === 429 && error.body.resets_at) return `${error.message} (resets ${when(error.body.resets_at)} UTC)`;
+  return error.message;
+}
+
+// --- signing in and out -------------------------------------------------------------------------------
+
+async function showTeam() {
+  const me = await api("GET", "/me");
+  if (me.scope !== "team") throw new ApiError(403, { detail: "This is not a team token." });
+  $("#team-name").textContent = me.team;
+  $("#approval").textContent = me.approval;
+  $("#approval").title = me.approval === "approved" ? "" : "an organiser approves teams before their first upload";
+  const quotas = $("#quotas");
+  quotas.replaceChildren();
+  for (const quota of me.quotas) {
+    const item = document.createElement("li");
+    const left = quota.limit === null ? "no limit" : `${Math.max(0, quota.limit - quota.used)} of ${quota.limit} left`;
+    item.textContent = `${quota.phase}, ${quota.quota.replace("_", " ")}: ${left}` +
+      (quota.resets_at ? ` (resets ${when(quota.resets_at)} UTC)` : "");
+    quotas.append(item);
+  }
+  if (!me.quotas.length) quotas.append(Object.assign(document.createElement("li"), { textContent: "No open phase." }));
+  $("#signed-out").hidden = true;
+  $("#signed-in").hidden = false;
+  await Promise.all([loadPhases(), loadHistory()]);
+}
+
+$("#signin").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  sessionStorage.setItem(TOKEN_KEY, $("#token").value.trim());
+  $("#signin-error").textContent = "";
+  try {
+    await showTeam();
+  } catch (error) {
+    sessionStorage.removeItem(TOKEN_KEY);
+    $("#signin-error").textContent = describeError(error);
+  }
+});
+
+$("#signout").addEventListener("click", () => {
+  sessionStorage.removeItem(TOKEN_KEY);
+  window.location.reload();
+});
+
+$("#register").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  const data = new FormData(event.target);
+  const members = String(data.get("members") || "").split(",").map((name) => name.trim()).filter(Boolean);
+  $("#register-error").textContent = "";
+  try {
+    const created = await fetch(`${API}/teams`, {
+      method: "POST",
+      headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ name: data.get("name"), affiliation: data.get("affiliation"), members }),
+    });
+    const body = await created.json().catch(() => ({}));
+    if (!created.ok) throw new ApiError(created.status, body);
+    $("#new-token").textContent = body.token;
+    $("#registered").hidden = false;
+    $("#token").value = body.token;
+  } catch (error) {
+    $("#register-error").textContent = describeError(error);
+  }
+});
+
+// --- upload ---------------------------------------------------------------------------------------------
+
+async function loadPhases() {
+  const phases = await api("GET", "/phases");
+  const select = $("#phase");
+  select.replaceChildren();
+  for (const phase of phases.filter((p) => p.open)) {
+    select.append(new Option(`${phase.name} (split ${phase.split})`, phase.name));
+  }
+}
+
+const SHOWN_PROBLEMS = 25;
+
+function showProblems(problems, all = false) {
+  const table = $("#problems");
+  const body = table.tBodies[0];
+  body.replaceChildren();
+  for (const problem of all ? problems : problems.slice(0, SHOWN_PROBLEMS)) {
+    const row = body.insertRow();
+    cell(row, problem.token ?? "–");
+    cell(row, problem.field ?? "–");
+    cell(row, problem.message);
+  }
+  if (!all && problems.length > SHOWN_PROBLEMS) {
+    const row = body.insertRow();
+    const more = button(`show all ${problems.length} problems`, () => showProblems(problems, true));
+    cell(row, more).colSpan = 3;
+  }
+  table.hidden = problems.length === 0;
+}
+
+function say(text) {
+  $("#upload-status").textContent = text;
+}
+
+async function follow(id) {
+  $("#progress").hidden = false;
+  for (;;) {
+    const submission = await api("GET", `/submissions/${id}`);
+    $("#progress-bar").value = submission.progress;
+    $("#progress-text").textContent = `${submission.status}, ${submission.progress}%`;
+    if (FINAL.includes(submission.status)) {
+      const score = submission.results?.["v1.1"]?.all?.score ?? submission.results?.["v1.1"]?.public?.score;
+      const link = document.createElement("a");
+      link.href = `/submissions/${id}`;
+      link.textContent = "see its results";
+      $("#upload-status").replaceChildren(
+        submission.status === "scored"
+          ? `Submission ${id} is scored: PDMS v1.1 ${pct(score)}. `
+          : `Submission ${id} ${submission.status}: ${submission.error || "no detail"}. `,
+        link,
+      );
+      await loadHistory();
+      return;
+    }
+    await new Promise((resolve) => setTimeout(resolve, 1000));
+  }
+}
+
+$("#upload").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  const form = new FormData(event.target);
+  for (const [key, value] of Array.from(form.entries())) if (value === "") form.delete(key);
+  const check = new FormData();
+  check.append("file", form.get("file"));
+  if (form.get("phase")) check.append("phase", form.get("phase"));
+  showProblems([]);
+  $("#progress").hidden = true;
+  $("#upload-button").disabled = true;
+  try {
+    say("Checking the file…");
+    await api("POST", "/submissions:validate", { form: check });
+    say("The file is valid. Submitting…");
+    const accepted = await api("POST", "/submissions", { form });
+    say(`Submission ${accepted.id} is queued.`);
+    await follow(accepted.id);
+  } catch (error) {
+    if (error instanceof ApiError && Array.isArray(error.body.problems)) {
+      say(`${error.message}. Fix them and upload again; nothing was stored.`);
+      showProblems(error.body.problems);
+    } else {
+      say(describeError(error));
+    }
+  } finally {
+    $("#upload-button").disabled = false;
+  }
+});
+
+// --- history --------------------------------------------------------------------------------------------
+
+async function edit(id, changes) {
+  try {
+    await api("PATCH", `/submissions/${id}`, { json: changes });
+  } catch (error) {
+    say(describeError(error));
+  }
+  await loadHistory();
+}
+
+function openEditor(submission) {
+  const dialog = $("#edit");
+  const form = $("#edit-form");
+  $("#edit-id").textContent = submission.id;
+  for (const name of ["method", "authors", "institution", "country", "tech_report_url", "code_url"]) {
+    form.elements[name].value = submission[name] || "";
+  }
+  $("#edit-error").textContent = "";
+  dialog.returnValue = "";
+  dialog.showModal();
+  dialog.onclose = async () => {
+    if (dialog.returnValue !== "save") return;
+    const changes = {};
+    for (const name of ["method", "authors", "institution", "country", "tech_report_url", "code_url"]) {
+      const value = form.elements[name].value.trim();
+      if (value !== (submission[name] || "")) changes[name] = value === "" && name.endsWith("_url") ? null : value;
+    }
+    if (Object.keys(changes).length) await edit(submission.id, changes);
+  };
+}
+
+async function loadHistory() {
+  const submissions = await api("GET", "/submissions");
+  const body = $("#history").tBodies[0];
+  body.replaceChildren();
+  for (const submission of submissions) {
+    const row = body.insertRow();
+    const link = document.createElement("a");
+    link.href = `/submissions/${submission.id}`;
+    link.textContent = submission.id;
+    cell(row, link);
+    cell(row, submission.method);
+    const status = document.createElement("span");
+    status.className = `status ${submission.status}`;
+    status.textContent = FINAL.includes(submission.status) ? submission.status : `${submission.status} ${submission.progress}%`;
+    if (submission.error) status.title = submission.error;
+    cell(row, status);
+    for (const version of ["v1.1", "v1.0"]) {
+      const results = submission.results?.[version] || {};
+      cell(row, pct((results.all || results.public || {}).score), "num");
+    }
+    cell(row, when(submission.submitted_at));
+    cell(row, submission.selected ? "✓ final" : submission.status === "scored"
+      ? button("make final", () => edit(submission.id, { selected: true }), "show this entry on the leaderboard")
+      : "");
+    const actions = document.createElement("span");
+    actions.append(
+      button("edit", () => openEditor(submission), "edit the method name, authors and links"),
+      button(submission.hidden ? "show" : "hide", () => edit(submission.id, { hidden: !submission.hidden }),
+        submission.hidden ? "show it on the leaderboard again" : "keep it off the leaderboard"),
+    );
+    cell(row, actions);
+  }
+  if (!submissions.length) {
+    const row = body.insertRow();
+    const td = cell(row, "No submission yet.", "empty");
+    td.colSpan = 8;
+  }
+}
+
+if (token()) showTeam().catch(() => sessionStorage.removeItem(TOKEN_KEY));
