@@ -141,10 +141,12 @@ def build_split_cache(
     return failures
 
 
-def _build_error_text(error: Exception) -> str:
-    """Return what a team may read of why a hidden scene's cache is missing (never the scene's content)."""
-    if isinstance(error, SceneFormatError):
-        return f"hidden scene is unreadable: {error}"
+def _build_error_text(token: str, error: Exception) -> str:
+    """Return what a team may read of why a hidden scene's cache is missing: never the scene's content nor
+    the server's paths, which the error's own text quotes (it goes to the log, for the organisers)."""
+    log.warning("token %s: metric cache not built: %s: %s", token, type(error).__name__, error)
+    if isinstance(error, (SceneFormatError, OSError)):
+        return "the hidden scene of this token is unreadable on the server (the organisers are told)"
     return f"the metric cache of this hidden scene could not be built ({type(error).__name__})"
 
 
@@ -246,7 +248,7 @@ def score_tokens(
             if name in built:
                 ready.append((built[name][version], poses))
             else:
-                results.append(TokenResult(token, seed, False, error=_build_error_text(errors[name])))
+                results.append(TokenResult(token, seed, False, error=_build_error_text(token, errors[name])))
         results.extend(score_caches([c for c, _ in ready], [p for _, p in ready], metric_version, seed))
         if progress is not None:
             progress(len(chunk))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -12,11 +13,20 @@ def stored_name(sha256: str) -> str:
     return f"{sha256[:2]}/{sha256}"
 
 
+def _holds(path: Path, sha256: str) -> bool:
+    """Return whether the file at `path` exists and its content hashes to `sha256`."""
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest() == sha256
+    except OSError:
+        return False
+
+
 def store_file(storage_dir: Path, sha256: str, data: bytes) -> str:
-    """Write `data` atomically under its sha256 (a no-op when already stored) and return its stored name."""
+    """Write `data` atomically under its sha256 and return its stored name. An intact copy is kept as it is;
+    a damaged one (its bytes no longer hash to its name) is replaced, so uploading the file again repairs it."""
     name = stored_name(sha256)
     path = Path(storage_dir) / name
-    if path.exists():
+    if _holds(path, sha256):
         return name
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".upload-")

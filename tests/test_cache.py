@@ -116,3 +116,17 @@ def test_an_unreadable_scene_file_fails_alone(tmp_path: Path) -> None:
     failures = evaluate.build_split_cache(split, tmp_path / "cache", list(VERSIONS))
     assert list(failures) == ["broken.json"] and failures["broken.json"].startswith("IsADirectoryError")
     assert len(list((tmp_path / "cache" / "v1.0").iterdir())) == 3
+
+
+def test_a_team_never_reads_the_servers_path_of_an_unreadable_hidden_scene(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    split = tmp_path / "hidden-split"
+    (split / "scenes").mkdir(parents=True)
+    token = next(iter(scene_paths(REFERENCE)))
+    (split / "scenes" / f"{token}.json.gz").write_bytes(b"\x1f\x8b damaged gzip")
+    with caplog.at_level("WARNING", logger="scorer.evaluate"):
+        [result] = evaluate.score_tokens(split, tmp_path / "cache", {token: np.zeros((8, 3))}, "v1.1")
+    assert not result.valid and result.error is not None
+    assert "unreadable" in result.error and str(tmp_path) not in result.error and "json" not in result.error
+    assert str(split) in caplog.text  # the organisers' log keeps the detail
