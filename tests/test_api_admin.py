@@ -181,7 +181,6 @@ def test_health_degrades_when_the_broker_is_down(world: World) -> None:
 
 
 def test_register_split_scores_its_baselines(world: World) -> None:
-    pytest.importorskip("scorer.baselines")
     response = world.client.post(
         "/api/v1/admin/splits",
         headers=world.admin_headers(),

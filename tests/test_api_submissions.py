@@ -8,10 +8,7 @@ import json
 import math
 from pathlib import Path
 
-import pytest
 from server_testing import REFERENCE_SUBMISSIONS, World, add_phase
-
-pytest.importorskip("scorer.submission")
 
 HUMAN = (REFERENCE_SUBMISSIONS / "human.json").read_bytes()
 

@@ -117,7 +117,6 @@ def test_bootstrap_interval_properties() -> None:
 
 
 def test_baselines_are_marked_and_take_no_rank(world: World) -> None:
-    pytest.importorskip("scorer.baselines")
     submit_scored(world, world.team_id, b"t", [uniform(0.5)], "team entry")
     with transaction(world.factory) as session:
         from server.models import Split

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import shapely
-from test_openscene_builders import (
+from openscene_builders import (
     CARPARK,
     CROSSWALK,
     DRIVABLE,

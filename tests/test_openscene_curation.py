@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import typer
-from test_openscene_builders import write_maps, write_road_log
+from openscene_builders import write_maps, write_road_log
 from typer.testing import CliRunner
 
 from navsim_lb.openscene_cli import register

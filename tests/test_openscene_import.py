@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import typer
-from test_openscene_builders import (
+from openscene_builders import (
     LOCATION,
     TURN_CONNECTOR,
     connector_id,

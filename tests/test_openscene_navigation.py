@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from test_openscene_builders import (
+from openscene_builders import (
     LOCATION,
     NORTH_BLOCKS,
     NORTH_CONNECTOR,

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import shapely
 from devkit_kernels import devkit_tolerance
-from test_openscene_builders import Table, write_gpkg, write_log
+from openscene_builders import Table, write_gpkg, write_log
 
 from scorer.geometry import rear_axle_round_trip
 from scorer.openscene.frames import quaternion_yaw

@@ -72,7 +72,6 @@ def test_migrate_then_administer_from_the_shell(cli: Cli) -> None:
 
 
 def test_register_split_queues_its_baselines(cli: Cli, tmp_path: Path) -> None:
-    pytest.importorskip("scorer.baselines")
     invoke, _, _ = cli
     invoke("db", "upgrade")
     public = tmp_path / "public.txt"

@@ -1,4 +1,4 @@
-"""Small fixtures in the upstream formats for the OpenScene importer tests (no tests of its own).
+"""Small fixtures in the upstream formats for the OpenScene importer tests.
 
 A nuPlan-style GeoPackage (WGS84 storage, UTM 11N in `meta`) with a straight eastbound road of
 60 roadblocks (2 lanes each) joined by roadblock connectors, a left-turn branch at roadblock 22,
