@@ -240,6 +240,15 @@ def test_a_team_signs_in_sees_every_problem_then_watches_its_upload_scored(
     assert page.locator("#history tbody tr").first.inner_text().startswith(str(_latest_id(demo)))
     _screenshot(page, "team-scored")
 
+    page.get_by_role("link", name="see its results").click()
+    page.wait_for_selector("#histograms figure")
+    assert page.locator("#histograms figure").count() == 1 + 6  # PDMS and every subscore of v1.1
+    expect(page.locator("#breakdown thead")).to_contain_text("Constant Velocity")  # next to the baselines
+    assert page.locator("#worst tbody tr").count() == 12  # fewer tokens than the list shows
+    page.select_option("#other", label=f"{_latest_id(demo) - 1}: Noisy human (demo)")
+    expect(page.locator("#diff-counts")).to_contain_text("of 12 tokens both scored")
+    _screenshot(page, "submission")
+
     narrow = _page(browser, 390)
     narrow.goto(f"{demo.url}/team")  # the token is per tab: this one signs in again
     narrow.fill("#token", demo.team_token)
@@ -247,6 +256,10 @@ def test_a_team_signs_in_sees_every_problem_then_watches_its_upload_scored(
     narrow.wait_for_selector("#history tbody tr")
     assert narrow.evaluate("document.documentElement.scrollWidth") <= 390
     _screenshot(narrow, "team-390")
+    narrow.goto(f"{demo.url}/submissions/{_latest_id(demo)}")
+    narrow.wait_for_selector("#histograms figure")
+    assert narrow.evaluate("document.documentElement.scrollWidth") <= 390
+    _screenshot(narrow, "submission-390")
 
 
 def _latest_id(demo: Demo) -> int:

@@ -14,6 +14,7 @@ from sqlalchemy import select
 from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, VERSIONS
 from server.auth import SessionDep
 from server.models import Phase
+from server.routes.params import RowId
 from server.routes.public import cached_board
 from server.services.errors import ServiceError
 
@@ -65,3 +66,18 @@ def admin_page(request: Request) -> HTMLResponse:
 def team_page(request: Request) -> HTMLResponse:
     """Sign in or register; upload with live progress, history, metadata and final-entry choice (team API)."""
     return TEMPLATES.TemplateResponse(request, "team.html", {})
+
+
+@router.get("/submissions/{submission_id}", response_class=HTMLResponse)
+def submission_page(request: Request, submission_id: RowId) -> HTMLResponse:
+    """One submission for its team: breakdown beside the baselines, histograms, worst tokens, a diff."""
+    page = {
+        "submission_id": submission_id,
+        "versions": list(VERSIONS),
+        "default_version": DEFAULT_VERSION,
+        "labels": METRIC_LABELS,
+        "ddc_roles": {name: version.ddc_role for name, version in VERSIONS.items()},
+    }
+    return TEMPLATES.TemplateResponse(
+        request, "submission.html", {"submission_id": submission_id, "page": page}
+    )

@@ -1,0 +1,50 @@
+// What every page script shares: the team API with the token kept in sessionStorage (gone when the tab
+// closes), its errors, and small DOM and number helpers. Loaded before the page's own script.
+"use strict";
+
+const API = "/api/v1";
+const TOKEN_KEY = "navsim-lb-team-token";
+const $ = (selector) => document.querySelector(selector);
+const token = () => sessionStorage.getItem(TOKEN_KEY) || "";
+const pct = (value) => (value === null || value === undefined ? "–" : (100 * value).toFixed(1));
+const when = (text) => (text ? text.slice(0, 16).replace("T", " ") : "–");
+
+class ApiError extends Error {
+  constructor(status, body) {
+    super(typeof body.detail === "string" ? body.detail : `${status}`);
+    this.status = status;
+    this.body = body;
+  }
+}
+
+async function api(method, path, { json, form } = {}) {
+  const headers = { Authorization: `Bearer ${token()}` };
+  if (json) headers["Content-Type"] = "application/json";
+  const response = await fetch(API + path, { method, headers, body: json ? JSON.stringify(json) : form });
+  const body = await response.json().catch(() => ({}));
+  if (!response.ok) throw new ApiError(response.status, body);
+  return body;
+}
+
+function cell(row, content, className) {
+  const td = row.insertCell();
+  if (content instanceof Node) td.append(content); else td.textContent = content ?? "";
+  if (className) td.className = className;
+  return td;
+}
+
+function button(label, action, title) {
+  const element = document.createElement("button");
+  element.type = "button";
+  element.textContent = label;
+  if (title) element.title = title;
+  element.addEventListener("click", action);
+  return element;
+}
+
+function describeError(error) {
+  if (!(error instanceof ApiError)) return `The server could not be reached (${error.message}).`;
+  if (error.status === 401) return "This token is not valid (revoked, expired or mistyped).";
+  if (error.status === 429 && error.body.resets_at) return `${error.message} (resets ${when(error.body.resets_at)} UTC)`;
+  return error.message;
+}

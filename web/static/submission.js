@@ -1,0 +1,232 @@
+// Submission page: the per-metric breakdown next to the phase's baselines, histograms of per-token PDMS
+// and of each subscore, the tokens that lost most, and a per-token diff with another of the team's
+// submissions. Everything comes from the team API (common.js); histograms are drawn as inline SVG.
+"use strict";
+
+const PAGE = JSON.parse($("#page-data").textContent);
+const LABELS = PAGE.labels; // devkit column -> short name
+const WORST_SHOWN = 15;
+const DIFF_SHOWN = 10;
+const state = { submission: null, version: PAGE.default_version, subset: null, rows: {}, others: [] };
+
+const label = (column) => LABELS[column] || column;
+const columnsOf = (results) => Object.keys(results).filter((key) => key in LABELS && key !== "score");
+
+function tab(text, current, action) {
+  const link = document.createElement("a");
+  link.href = "#";
+  link.textContent = text;
+  if (current) link.setAttribute("aria-current", "page");
+  link.addEventListener("click", (event) => { event.preventDefault(); action(); });
+  return link;
+}
+
+async function tokenRows(submissionId, version) {
+  const key = `${submissionId}/${version}`;
+  if (!(key in state.rows)) state.rows[key] = await api("GET", `/submissions/${submissionId}/tokens?version=${version}`);
+  return state.rows[key];
+}
+
+// Per token the mean over seeds, as the leaderboard averages seeds (an unscored token counts 0).
+function perToken(rows, columns) {
+  const tokens = new Map();
+  for (const row of rows) {
+    const entry = tokens.get(row.token) || { token: row.token, seeds: 0, errors: [], values: {} };
+    entry.seeds += 1;
+    if (!row.valid) entry.errors.push(row.error || "not scored");
+    for (const column of ["score", ...columns]) {
+      entry.values[column] = (entry.values[column] || 0) + (row.valid ? row.metrics[column] ?? 0 : 0);
+    }
+    tokens.set(row.token, entry);
+  }
+  for (const entry of tokens.values()) for (const column in entry.values) entry.values[column] /= entry.seeds;
+  return Array.from(tokens.values());
+}
+
+function histogram(title, values, bins) {
+  const width = 260, height = 120, pad = 18;
+  const counts = new Array(bins).fill(0);
+  for (const value of values) counts[Math.min(bins - 1, Math.max(0, Math.floor(value * bins)))] += 1;
+  const top = Math.max(1, ...counts);
+  const bar = (width - 2 * pad) / bins;
+  const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
+  svg.setAttribute("viewBox", `0 0 ${width} ${height + 16}`);
+  svg.setAttribute("role", "img");
+  svg.setAttribute("aria-label", `${title}: ${counts.map((count, i) => `${count} tokens in ${(i / bins).toFixed(2)}–${((i + 1) / bins).toFixed(2)}`).join(", ")}`);
+  counts.forEach((count, index) => {
+    const rect = document.createElementNS(svg.namespaceURI, "rect");
+    const h = (count / top) * (height - pad);
+    rect.setAttribute("x", pad + index * bar + 0.5);
+    rect.setAttribute("y", height - h);
+    rect.setAttribute("width", Math.max(1, bar - 1));
+    rect.setAttribute("height", h);
+    rect.setAttribute("class", index === bins - 1 ? "bar full" : "bar");
+    const tip = document.createElementNS(svg.namespaceURI, "title");
+    tip.textContent = `${count} token(s) with ${(index / bins).toFixed(2)} ≤ value ${index === bins - 1 ? "≤" : "<"} ${((index + 1) / bins).toFixed(2)}`;
+    rect.append(tip);
+    svg.append(rect);
+  });
+  for (const [x, text] of [[pad, "0"], [width / 2, "0.5"], [width - pad, "1"]]) {
+    const tick = document.createElementNS(svg.namespaceURI, "text");
+    tick.setAttribute("x", x);
+    tick.setAttribute("y", height + 13);
+    tick.setAttribute("text-anchor", "middle");
+    tick.textContent = text;
+    svg.append(tick);
+  }
+  const figure = document.createElement("figure");
+  const caption = document.createElement("figcaption");
+  caption.textContent = `${title} (max bar: ${top} tokens)`;
+  figure.append(caption, svg);
+  return figure;
+}
+
+async function baselines(version, subset) {
+  const query = new URLSearchParams({ version, subset, phase: state.submission.phase || "" });
+  try {
+    const board = await fetch(`${API}/leaderboard?${query}`).then((response) => (response.ok ? response.json() : { rows: [] }));
+    return board.rows.filter((row) => row.baseline);
+  } catch {
+    return [];
+  }
+}
+
+async function render() {
+  const submission = state.submission;
+  const results = submission.results[state.version] || {};
+  const subsets = Object.keys(results);
+  if (!subsets.includes(state.subset)) state.subset = subsets.includes("public") ? "public" : subsets[0];
+  const versionTabs = $("#version-tabs");
+  versionTabs.replaceChildren(...PAGE.versions.map((version) =>
+    tab(`PDMS ${version}`, version === state.version, () => { state.version = version; render(); })));
+  $("#subset-tabs").replaceChildren(...subsets.map((subset) =>
+    tab(`${subset} tokens`, subset === state.subset, () => { state.subset = subset; render(); })));
+  const summary = results[state.subset];
+  if (!summary) {
+    $("#page-error").textContent = submission.status === "scored" ? "No results on this subset." : `This submission is ${submission.status}.`;
+    return;
+  }
+  $("#page-error").textContent = "";
+  const columns = columnsOf(summary);
+
+  // Breakdown next to the baselines.
+  const reference = await baselines(state.version, state.subset);
+  const head = $("#breakdown thead tr");
+  head.replaceChildren();
+  for (const text of ["Metric", submission.method, ...reference.map((row) => row.method)]) {
+    const th = document.createElement("th");
+    th.scope = "col";
+    th.textContent = text;
+    if (text !== "Metric") th.className = "num";
+    head.append(th);
+  }
+  const body = $("#breakdown tbody");
+  body.replaceChildren();
+  for (const column of ["score", ...columns]) {
+    const row = body.insertRow();
+    const name = document.createElement("th");
+    name.scope = "row";
+    name.textContent = column === "driving_direction_compliance" ? `${label(column)} (${PAGE.ddc_roles[state.version]})` : label(column);
+    name.title = column;
+    row.append(name);
+    for (const value of [summary[column], ...reference.map((entry) => entry[column])]) {
+      const td = cell(row, "", "num");
+      const meter = document.createElement("span");
+      meter.className = "meter";
+      meter.style.setProperty("--fill", `${Math.round(100 * (value ?? 0))}%`);
+      meter.textContent = pct(value);
+      td.append(meter);
+    }
+  }
+
+  // Histograms and the worst tokens.
+  const tokens = perToken(await tokenRows(submission.id, state.version), columns);
+  const figures = [histogram("PDMS", tokens.map((t) => t.values.score), 20)];
+  for (const column of columns) figures.push(histogram(label(column), tokens.map((t) => t.values[column]), 10));
+  $("#histograms").replaceChildren(...figures);
+  const worst = $("#worst tbody");
+  worst.replaceChildren();
+  for (const entry of [...tokens].sort((a, b) => a.values.score - b.values.score).slice(0, WORST_SHOWN)) {
+    const row = worst.insertRow();
+    cell(row, entry.token, "token");
+    cell(row, pct(entry.values.score), "num");
+    const short = columns.filter((column) => entry.values[column] < 1)
+      .map((column) => `${label(column)} ${pct(entry.values[column])}`);
+    cell(row, entry.errors.length ? entry.errors.join("; ") : short.join(" · ") || "–");
+  }
+  await renderDiff(tokens, summary, columns);
+}
+
+async function renderDiff(tokens, summary, columns) {
+  const otherId = $("#other").value;
+  $("#diff").hidden = !otherId;
+  if (!otherId) return;
+  const other = state.others.find((submission) => String(submission.id) === otherId);
+  const otherSummary = (other.results[state.version] || {})[state.subset];
+  const means = $("#diff-means tbody");
+  means.replaceChildren();
+  for (const column of ["score", ...columns]) {
+    const row = means.insertRow();
+    cell(row, label(column));
+    const here = summary[column], there = otherSummary ? otherSummary[column] : null;
+    cell(row, pct(here), "num");
+    cell(row, pct(there), "num");
+    const change = here === null || there === null || there === undefined ? null : here - there;
+    const shown = change === null ? "–" : `${change >= 0 ? "+" : ""}${(100 * change).toFixed(1)}`;
+    // Colour only a change that shows in the rounded figure.
+    cell(row, shown, change >= 0.0005 ? "num better" : change <= -0.0005 ? "num worse" : "num");
+  }
+  const theirs = new Map(perToken(await tokenRows(other.id, state.version), columns).map((entry) => [entry.token, entry]));
+  const changes = tokens.filter((entry) => theirs.has(entry.token))
+    .map((entry) => ({ token: entry.token, here: entry.values.score, there: theirs.get(entry.token).values.score }));
+  const better = changes.filter((c) => c.here > c.there).sort((a, b) => (b.here - b.there) - (a.here - a.there));
+  const worse = changes.filter((c) => c.here < c.there).sort((a, b) => (a.here - a.there) - (b.here - b.there));
+  $("#diff-counts").textContent = `Per token: ${better.length} better, ${worse.length} worse, ${changes.length - better.length - worse.length} the same (of ${changes.length} tokens both scored).`;
+  for (const [table, list] of [["#diff-better", better], ["#diff-worse", worse]]) {
+    const tbody = $(`${table} tbody`);
+    tbody.replaceChildren();
+    for (const change of list.slice(0, DIFF_SHOWN)) {
+      const row = tbody.insertRow();
+      cell(row, change.token, "token");
+      cell(row, pct(change.here), "num");
+      cell(row, pct(change.there), "num");
+    }
+    if (!list.length) cell(tbody.insertRow(), "none", "empty").colSpan = 3;
+  }
+}
+
+async function load() {
+  try {
+    state.submission = await api("GET", `/submissions/${PAGE.submission_id}`);
+  } catch (error) {
+    if (error instanceof ApiError && error.status === 401) {
+      sessionStorage.removeItem(TOKEN_KEY);
+      $("#signin").hidden = false;
+      return;
+    }
+    $("#title").textContent = `Submission ${PAGE.submission_id}`;
+    $("#signin").hidden = false;
+    $("#signin-error").textContent = describeError(error);
+    return;
+  }
+  const submission = state.submission;
+  $("#signin").hidden = true;
+  $("#submission").hidden = false;
+  $("#title").textContent = `${submission.method} (submission ${submission.id})`;
+  $("#facts").textContent = `${submission.team} · phase ${submission.phase ?? "–"} · split ${submission.split} · ` +
+    `${submission.status} · ${submission.seed_count} seed(s), ${submission.token_count} tokens · submitted ${when(submission.submitted_at)} UTC`;
+  state.others = (await api("GET", "/submissions")).filter((s) => s.id !== submission.id && s.status === "scored");
+  const select = $("#other");
+  select.replaceChildren(new Option("choose…", ""), ...state.others.map((s) => new Option(`${s.id}: ${s.method}`, s.id)));
+  select.addEventListener("change", () => render());
+  await render();
+}
+
+$("#signin").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  sessionStorage.setItem(TOKEN_KEY, $("#token").value.trim());
+  $("#signin-error").textContent = "";
+  await load();
+});
+
+if (token()) load(); else $("#signin").hidden = false;
