@@ -120,6 +120,52 @@ def score(
     Console().print(summary_table(results, VERSIONS[version], f"{loaded.metadata.method} on {split.name}"))
 
 
+def plot(
+    split: Annotated[Path, typer.Argument(help="split directory")],
+    submission: Annotated[Path, typer.Argument(help="submission file (JSON or NAVSIM pickle)")],
+    token: Annotated[str, typer.Argument(help="the scene token to draw")],
+    out: Annotated[Path, typer.Option(help="picture to write: .png or .svg")],
+    version: Annotated[VersionName, typer.Option(help="metric version")] = DEFAULT_VERSION,
+    seed: Annotated[int, typer.Option(help="seed of a multi-seed submission")] = 0,
+    cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
+) -> None:
+    """Draw why a token scored what it did: map, objects, trajectories, the first infraction of each kind."""
+    from scorer.evaluate import TokenError
+    from scorer.explain import explain_token
+    from scorer.scene import SceneFormatError
+    from scorer.submission import SubmissionError, load_submission
+    from server.scene_plot import render
+
+    image_format = out.suffix.lower().removeprefix(".")
+    if image_format not in ("png", "svg"):
+        raise fail(f"{out}: the picture must end in .png or .svg")
+    try:
+        loaded = load_submission(submission.read_bytes(), submission.name)
+    except OSError as error:
+        raise fail(str(error)) from None
+    except SubmissionError as error:
+        raise fail(f"{submission}: {error}") from None
+    if not 0 <= seed < len(loaded.seeds):
+        raise fail(f"{submission} has {len(loaded.seeds)} seed(s); --seed {seed} does not exist")
+    if token not in loaded.seeds[seed]:
+        raise fail(f"{submission} has no prediction for token {token}")
+    warn_about_kernels()
+    try:
+        explanation = explain_token(
+            split, cache_dir or default_cache_dir(split), token, loaded.seeds[seed][token], version
+        )
+    except (TokenError, SceneFormatError) as error:
+        raise fail(str(error)) from None
+    out.write_bytes(render(explanation, image_format))
+    score = explanation.metrics["score"]
+    console.print(f"{token}: PDMS {version} {100 * score:.1f}; wrote {out}")
+    for infraction in explanation.infractions:
+        involved = (
+            f" with {infraction.object_type} {infraction.object_token}" if infraction.object_token else ""
+        )
+        console.print(f"  {infraction.kind} at {infraction.time_s:.1f} s{involved}")
+
+
 def regress(
     update: Annotated[bool, typer.Option(help="rewrite the golden files instead of comparing")] = False,
 ) -> None:
@@ -145,5 +191,5 @@ def regress(
 
 def register(app: typer.Typer) -> None:
     """Add the engine's subcommands to `app`."""
-    for command in (synth, baseline, cache, score, regress):
+    for command in (synth, baseline, cache, score, plot, regress):
         app.command()(command)

@@ -17,7 +17,7 @@ import numpy as np
 
 from scorer.cache import MetricCache, build_cache_batch, load_cache, save_cache
 from scorer.geometry import FloatArray
-from scorer.pdm_scorer import join_measures, measure_batch, score_measures
+from scorer.pdm_scorer import ProposalScores, join_measures, measure_batch, score_measures
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state
@@ -164,6 +164,27 @@ def _row(token: str, seed: int | None, scores: object, index: tuple[int, int]) -
     return TokenResult(token=token, seed=seed, valid=True, metrics=metrics)
 
 
+def score_against_references(
+    caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion
+) -> tuple[FloatArray, ProposalScores]:
+    """Return the agents' simulated states (B, 41, 11) and the scores (B, 2) of [PDM-Closed, agent] per token,
+    as the devkit scores them: proposal 0 is the cached PDM-Closed reference (it sets the progress
+    normaliser), proposal 1 the agent. Raises ValueError when a simulation diverges."""
+    initial = np.stack([initial_state(cache.ego) for cache in caches])
+    t0_us = np.array([cache.t0_us for cache in caches], dtype=np.int64)
+    states = simulate(agent_references(initial, t0_us, np.stack(poses)), initial)
+    agent = measure_batch(
+        states[:, None],
+        [cache.observation for cache in caches],
+        [cache.drivable_map for cache in caches],
+        [cache.centerline[:, :2] for cache in caches],
+        [cache.route_lane_ids for cache in caches],
+        version.evaluation,
+    )
+    reference = join_measures([cache.reference_measures for cache in caches], axis=0)
+    return states, score_measures(join_measures([reference, agent]), version.evaluation)
+
+
 def score_caches(
     caches: Sequence[MetricCache],
     poses: Sequence[FloatArray],
@@ -173,27 +194,13 @@ def score_caches(
     """Score one agent trajectory per cache, all tokens in one batch, against the cached PDM-Closed measures."""
     if not caches:
         return []
-    initial = np.stack([initial_state(cache.ego) for cache in caches])
-    t0_us = np.array([cache.t0_us for cache in caches], dtype=np.int64)
-    references = agent_references(initial, t0_us, np.stack(poses))
     try:
-        states = simulate(references, initial)
-        agent = measure_batch(
-            states[:, None],
-            [cache.observation for cache in caches],
-            [cache.drivable_map for cache in caches],
-            [cache.centerline[:, :2] for cache in caches],
-            [cache.route_lane_ids for cache in caches],
-            version.evaluation,
-        )
+        _, scores = score_against_references(caches, poses, version)
     except ValueError:
         if len(caches) == 1:
             raise
         # One diverging trajectory must not fail its neighbours: score them one by one.
         return [result for c, p in zip(caches, poses) for result in _score_one(c, p, version, seed)]
-    # Proposal 0 is PDM-Closed (it sets the progress normaliser, as in the devkit); 1 is the agent.
-    reference = join_measures([cache.reference_measures for cache in caches], axis=0)
-    scores = score_measures(join_measures([reference, agent]), version.evaluation)
     return [_row(cache.token, seed, scores, (index, 1)) for index, cache in enumerate(caches)]
 
 

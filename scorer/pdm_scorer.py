@@ -46,7 +46,9 @@ class ProposalScores:
     score: FloatArray
     progress_raw: FloatArray  # m, before multipliers
     collision_index: IntArray  # first at-fault collision, time index (time = index * 0.1 s); -1 if none
+    collision_object: IntArray  # the object of that collision, its index in the token's observation; -1
     ttc_index: IntArray  # first TTC infraction, likewise
+    ttc_object: IntArray
     ego_areas: npt.NDArray[np.bool_]  # (..., 41, 3) MULTIPLE_LANES, NON_DRIVABLE_AREA, ONCOMING_TRAFFIC
     multiplier_rows: dict[str, FloatArray]  # the devkit's multi-metric rows, by its names, in order
     weighted_rows: dict[str, FloatArray]  # its weighted-metric rows, by its names, in order
@@ -81,9 +83,11 @@ class ProposalMeasures:
 
     no_at_fault_collisions: FloatArray
     collision_index: IntArray
+    collision_object: IntArray  # index in the token's observation; -1 without a collision
     drivable_area_compliance: FloatArray
     time_to_collision_within_bound: FloatArray
     ttc_index: IntArray
+    ttc_object: IntArray
     comfort_series: FloatArray  # (B, P, 41, 3): comfort is scored on a token's proposals together
     progress_raw: FloatArray
     off_route_steps: FloatArray  # (B, P, 41) centre displacement per step while off route
@@ -161,10 +165,14 @@ def measure_batch(
     def per_token(values: np.ndarray) -> np.ndarray:
         return values.reshape(num_tokens, num_proposals, *values.shape[1:])
 
+    def local_object(batch_column: IntArray) -> IntArray:
+        """Return object columns of the batch as indices in each row's own observation (-1 stays -1)."""
+        return np.where(batch_column >= 0, batch_column - batch_observations.start[row_token], -1)
+
     points = ego_box_points(rows)
     areas = ego_areas(points, row_token, maps)
-    collisions, collision_index = no_at_fault_collisions(rows, points, areas, row_token, batch_observations)
-    ttc, ttc_index = time_to_collision(
+    collisions, collision = no_at_fault_collisions(rows, points, areas, row_token, batch_observations)
+    ttc, ttc_infraction = time_to_collision(
         rows,
         points,
         areas,
@@ -176,10 +184,12 @@ def measure_batch(
     )
     return ProposalMeasures(
         no_at_fault_collisions=per_token(collisions),
-        collision_index=per_token(collision_index),
+        collision_index=per_token(collision.index),
+        collision_object=per_token(local_object(collision.obj)),
         drivable_area_compliance=per_token(drivable_area_compliance(areas)),
         time_to_collision_within_bound=per_token(ttc),
-        ttc_index=per_token(ttc_index),
+        ttc_index=per_token(ttc_infraction.index),
+        ttc_object=per_token(local_object(ttc_infraction.obj)),
         comfort_series=per_token(comfort_series(rows)),
         progress_raw=per_token(raw_progress(points, centerline_strings(list(centerlines)), row_token)),
         off_route_steps=per_token(off_route_steps(points, areas)),
@@ -222,7 +232,9 @@ def score_measures(measures: ProposalMeasures, config: ScorerConfig) -> Proposal
         score=score,
         progress_raw=measures.progress_raw,
         collision_index=measures.collision_index,
+        collision_object=measures.collision_object,
         ttc_index=measures.ttc_index,
+        ttc_object=measures.ttc_object,
         ego_areas=measures.ego_areas,
         multiplier_rows=multiplier_rows,
         weighted_rows=weighted_rows,

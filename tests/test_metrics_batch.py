@@ -31,7 +31,9 @@ RESULTS = (
     *METRIC_COLUMNS,
     "progress_raw",
     "collision_index",
+    "collision_object",
     "ttc_index",
+    "ttc_object",
     "ego_areas",
 )
 

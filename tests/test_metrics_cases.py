@@ -113,7 +113,7 @@ def test_running_into_a_stopped_vehicle_is_at_fault_and_zeroes_nc() -> None:
     # Ego front at 0.5 k + 4.049 reaches the vehicle's rear (15 - 2.5) at k = 17.
     scores = score(drive(5.0), objects=observe(track("car", 15.0, RIGHT_LANE_Y)))
     assert scores.no_at_fault_collisions[0] == 0.0
-    assert scores.collision_index[0] == 17
+    assert scores.collision_index[0] == 17 and scores.collision_object[0] == 0
     assert scores.score[0] == 0.0
 
 
@@ -130,7 +130,7 @@ def test_being_rear_ended_while_stopped_is_never_at_fault() -> None:
     chaser = track("chaser", -20.0 + 0.5 * np.arange(OBSERVATION_STEPS), RIGHT_LANE_Y, speed=5.0)
     scores = score(drive(0.0), objects=observe(chaser))
     assert scores.no_at_fault_collisions[0] == 1.0
-    assert scores.collision_index[0] == -1
+    assert scores.collision_index[0] == -1 and scores.collision_object[0] == -1
     assert scores.time_to_collision_within_bound[0] == 1.0  # TTC skips a standing ego
 
 

@@ -15,10 +15,11 @@ import numpy.typing as npt
 from scorer.geometry import FloatArray
 from scorer.metrics.contacts import (
     BEHIND_ANGLE,
+    FirstInfraction,
     centroids,
     counted_contacts,
     find_contacts,
-    first_index,
+    first_infraction,
     no_contacts,
     relative_angle,
     segments_meet,
@@ -41,8 +42,8 @@ def no_at_fault_collisions(
     areas: npt.NDArray[np.bool_],
     row_token: IntArray,
     observations: ObservationBatch,
-) -> tuple[FloatArray, IntArray]:
-    """Return NC (R,) and the time index of each row's first at-fault collision (-1 if none)."""
+) -> tuple[FloatArray, FirstInfraction]:
+    """Return NC (R,) and each row's first at-fault collision: time index and object (-1 if none)."""
     num_rows, num_steps = states.shape[:2]
     contacts = find_contacts(ego_corners(points), np.arange(num_steps), row_token, observations)
     if not len(contacts.row):
@@ -73,4 +74,4 @@ def no_at_fault_collisions(
     severity = np.where(observations.is_agent[obj], AGENT_COLLISION, OBJECT_COLLISION)
     scores = np.ones(num_rows)
     np.minimum.at(scores, row[counted], severity[counted])
-    return scores, first_index(row, step, counted, num_rows)
+    return scores, first_infraction(row, step, obj, counted, num_rows)

@@ -134,13 +134,30 @@ def counted_contacts(row: IntArray, obj: IntArray, order: IntArray, at_fault: Bo
     return at_fault & (order < first_cleared[pair])
 
 
-def no_contacts(num_rows: int) -> tuple[FloatArray, IntArray]:
-    """Return the scores (1) and infraction indices (-1) of rows without any contact."""
-    return np.ones(num_rows), np.full(num_rows, -1, dtype=np.intp)
+@dataclass(frozen=True, eq=False)
+class FirstInfraction:
+    """Each row's first counted contact: its time index and object column, -1 where there is none."""
+
+    index: IntArray  # (R,)
+    obj: IntArray  # (R,) column in the observation batch
 
 
-def first_index(row: IntArray, time_index: IntArray, counted: BoolArray, num_rows: int) -> IntArray:
-    """Return each row's earliest time index among counted contacts, -1 without any."""
-    earliest = np.full(num_rows, np.iinfo(np.intp).max)
-    np.minimum.at(earliest, row[counted], time_index[counted])
-    return np.where(earliest == np.iinfo(np.intp).max, -1, earliest)
+def no_contacts(num_rows: int) -> tuple[FloatArray, FirstInfraction]:
+    """Return the scores (1) and first infractions (none) of rows without any contact."""
+    none = np.full(num_rows, -1, dtype=np.intp)
+    return np.ones(num_rows), FirstInfraction(none, none.copy())
+
+
+def first_infraction(
+    row: IntArray, time_index: IntArray, obj: IntArray, counted: BoolArray, num_rows: int
+) -> FirstInfraction:
+    """Return each row's earliest time index among counted contacts, and the object of that contact (the
+    lowest object column when several objects are hit at that time)."""
+    row, time_index, obj = row[counted], time_index[counted], obj[counted]
+    first = np.full(num_rows, -1, dtype=np.intp)
+    first_obj = np.full(num_rows, -1, dtype=np.intp)
+    order = np.lexsort((obj, time_index, row))
+    rows, starts = np.unique(row[order], return_index=True)
+    first[rows] = time_index[order][starts]
+    first_obj[rows] = obj[order][starts]
+    return FirstInfraction(first, first_obj)

@@ -18,10 +18,11 @@ from scorer.geometry import FloatArray
 from scorer.metrics.contacts import (
     AHEAD_ANGLE,
     BEHIND_ANGLE,
+    FirstInfraction,
     centroids,
     counted_contacts,
     find_contacts,
-    first_index,
+    first_infraction,
     no_contacts,
     relative_angle,
 )
@@ -55,8 +56,8 @@ def time_to_collision(
     maps: MapBatch,
     stopped_speed_threshold: float,
     step_s: float,
-) -> tuple[FloatArray, IntArray]:
-    """Return TTC (R,) and the time index of each row's first infraction (-1 if none)."""
+) -> tuple[FloatArray, FirstInfraction]:
+    """Return TTC (R,) and each row's first infraction: time index and object (-1 if none)."""
     num_rows, num_steps = states.shape[:2]
     num_projections = len(PROJECTION_STEPS)
     heading = states[..., StateIndex.HEADING]
@@ -84,4 +85,4 @@ def time_to_collision(
     counted = counted_contacts(row, obj, order, at_fault)
     scores = np.ones(num_rows)
     scores[row[counted]] = 0.0
-    return scores, first_index(row, step, counted, num_rows)
+    return scores, first_infraction(row, step, obj, counted, num_rows)

@@ -1,0 +1,87 @@
+"""Score explanations and their pictures: the numbers are the devkit's, the infractions where it saw them."""
+
+from __future__ import annotations
+
+import gzip
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from navsim_lb.cli import app
+from scorer.explain import explain_token
+from scorer.submission import load_submission
+from scorer.versions import METRIC_COLUMNS, VERSIONS
+from server.scene_plot import render
+
+FIXTURES = Path(__file__).parent / "fixtures"
+REFERENCE = FIXTURES / "reference"
+KNIFE_EDGE = FIXTURES / "knife-edge"
+
+
+def _expected(directory: Path, family: str, version: str) -> dict[str, dict]:
+    with gzip.open(directory / "expected" / f"{family}.{version}.jsonl.gz", "rt") as handle:
+        return {row["token"]: row for row in map(json.loads, handle)}
+
+
+def _predictions(directory: Path, family: str) -> dict:
+    path = directory / "submissions" / f"{family}.json"
+    return load_submission(path.read_bytes(), path.name).seeds[0]
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("explain-cache")
+
+
+@pytest.mark.parametrize("family", ["swerve_offroad", "zigzag", "cv_accel"])
+def test_metrics_and_first_infractions_are_the_devkits(cache_dir: Path, family: str) -> None:
+    predictions = _predictions(REFERENCE, family)
+    for token, row in _expected(REFERENCE, family, "v1.1").items():
+        explanation = explain_token(REFERENCE, cache_dir, token, predictions[token], "v1.1")
+        assert explanation.metrics == {column: row[column] for column in METRIC_COLUMNS}, token
+        times = {infraction.kind: infraction.time_s for infraction in explanation.infractions}
+        diagnostics = row["diagnostics"]
+        for kind, devkit in (("collision", "collision_time_s"), ("time to collision", "ttc_time_s")):
+            # The devkit reports k * 0.1 unrounded (2.3000000000000003); ours is rounded to 0.1 s.
+            expected = None if diagnostics[devkit] is None else round(diagnostics[devkit], 1)
+            assert times.get(kind) == expected, (token, kind)
+        assert ("off the drivable area" in times) == (row["drivable_area_compliance"] == 0.0), token
+        for infraction in explanation.infractions:
+            if infraction.kind in ("collision", "time to collision"):
+                assert infraction.object_token in explanation.cache.observation.tokens
+
+
+def test_the_knife_edge_collision_is_explained_with_its_vehicle(cache_dir: Path) -> None:
+    token = "8bedfe2fc5629e39"
+    for version in VERSIONS:
+        explanation = explain_token(
+            KNIFE_EDGE, cache_dir, token, _predictions(KNIFE_EDGE, "cv_decel")[token], version
+        )
+        assert (
+            explanation.metrics["score"] == _expected(KNIFE_EDGE, "cv_decel", version)[token]["score"] == 0.0
+        )
+        [collision] = explanation.infractions
+        assert (collision.kind, collision.time_s, collision.object_type) == ("collision", 3.6, "VEHICLE")
+        assert explanation.agent_states.shape == explanation.reference_states.shape == (41, 11)
+
+
+def test_pictures_are_png_or_svg_with_the_infraction_named(cache_dir: Path) -> None:
+    token = "8bedfe2fc5629e39"
+    explanation = explain_token(
+        KNIFE_EDGE, cache_dir, token, _predictions(KNIFE_EDGE, "cv_decel")[token], "v1.1"
+    )
+    assert render(explanation, "png").startswith(b"\x89PNG\r\n\x1a\n")
+    svg = render(explanation, "svg").decode()
+    assert svg.lstrip().startswith("<?xml") and "collision at 3.6 s with vehicle add1e353" in svg
+
+
+def test_plot_command_writes_the_picture_and_names_the_infractions(cache_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "drill-down.png"
+    arguments = [str(KNIFE_EDGE), str(KNIFE_EDGE / "submissions" / "cv_decel.json"), "8bedfe2fc5629e39"]
+    result = CliRunner().invoke(app, ["plot", *arguments, "--out", str(out), "--cache-dir", str(cache_dir)])
+    assert result.exit_code == 0, result.output
+    assert out.read_bytes().startswith(b"\x89PNG") and "collision at 3.6 s with VEHICLE" in result.output
+    wrong = CliRunner().invoke(app, ["plot", *arguments, "--out", str(tmp_path / "x.gif")])
+    assert wrong.exit_code == 2 and "must end in .png or .svg" in wrong.output
