@@ -81,7 +81,7 @@ def _set_up(
         split = session.scalar(select(Split).where(Split.name == SPLIT))
         queued = []
         if split is None:
-            split = register_split(session, SPLIT, split_dir)
+            split = register_split(session, SPLIT, split_dir, scenes_public=True)  # synthetic scenes
             queued = [submission.id for submission in add_baselines(session, split, storage_dir)]
         if session.scalar(select(Phase.id).where(Phase.name == PHASE)) is None:
             create_phase(session, PHASE, split)

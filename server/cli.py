@@ -137,6 +137,10 @@ def register_split_command(
         Path | None, typer.Option(help="file with one public token per line; the rest is private")
     ] = None,
     baselines: Annotated[bool, typer.Option(help="queue the constant-velocity and human baselines")] = True,
+    scenes_public: Annotated[
+        bool,
+        typer.Option(help="let teams see its scenes in drill-down pictures (never for a hidden test split)"),
+    ] = False,
 ) -> None:
     """Register a split and queue its baseline submissions."""
     from server.queue import enqueue_submission
@@ -148,7 +152,7 @@ def register_split_command(
     public = public_tokens.read_text().split() if public_tokens is not None else None
     settings = get_settings()
     with _session() as session:
-        split = register_split(session, name, directory, public)
+        split = register_split(session, name, directory, public, scenes_public)
         queued = [s.id for s in add_baselines(session, split, settings.storage_dir)] if baselines else []
         audit(
             session,
@@ -158,6 +162,7 @@ def register_split_command(
             name,
             directory=split.directory,
             tokens=split.token_count,
+            scenes_public=split.scenes_public,
         )
         summary = (
             f"registered split {name}: {split.token_count} tokens, content hash {split.content_hash[:12]}…"

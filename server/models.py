@@ -23,6 +23,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    false,
 )
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
@@ -140,6 +141,8 @@ class Split(Base):
     directory: Mapped[str] = mapped_column(Text)
     content_hash: Mapped[str] = mapped_column(String(64))
     token_count: Mapped[int] = mapped_column(Integer)
+    # Whether teams may see its scenes (maps, objects) in drill-down pictures; a hidden test split never.
+    scenes_public: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
 
     subsets: Mapped[list[SplitSubset]] = relationship(back_populates="split", cascade="all, delete-orphan")

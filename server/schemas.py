@@ -202,6 +202,7 @@ class SplitOut(BaseModel):
     name: str
     token_count: int
     content_hash: str
+    scenes_public: bool = Field(description="teams may see its scenes in drill-down pictures")
     subsets: dict[str, int] = Field(description="subset name -> token count")
     phases: list[PhaseOut]
 
@@ -302,6 +303,7 @@ class SplitIn(BaseModel):
     directory: Annotated[str, StringConstraints(min_length=1, max_length=4096), AfterValidator(_printable)]
     public_tokens: list[str] | None = None
     baselines: bool = True
+    scenes_public: bool = Field(False, description="teams may see its scenes in drill-down pictures")
 
 
 class PhaseIn(BaseModel):

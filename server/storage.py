@@ -21,15 +21,10 @@ def _holds(path: Path, sha256: str) -> bool:
         return False
 
 
-def store_file(storage_dir: Path, sha256: str, data: bytes) -> str:
-    """Write `data` atomically under its sha256 and return its stored name. An intact copy is kept as it is;
-    a damaged one (its bytes no longer hash to its name) is replaced, so uploading the file again repairs it."""
-    name = stored_name(sha256)
-    path = Path(storage_dir) / name
-    if _holds(path, sha256):
-        return name
+def write_atomically(path: Path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file and a rename: readers see the old file or the new."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".upload-")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".partial-")
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
@@ -39,6 +34,16 @@ def store_file(storage_dir: Path, sha256: str, data: bytes) -> str:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def store_file(storage_dir: Path, sha256: str, data: bytes) -> str:
+    """Write `data` atomically under its sha256 and return its stored name. An intact copy is kept as it is;
+    a damaged one (its bytes no longer hash to its name) is replaced, so uploading the file again repairs it."""
+    name = stored_name(sha256)
+    path = Path(storage_dir) / name
+    if _holds(path, sha256):
+        return name
+    write_atomically(path, data)
     return name
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from sqlalchemy import inspect
+from sqlalchemy import inspect, text
 
 from server.db import make_engine
 from server.main import create_app
@@ -55,3 +55,32 @@ def test_app_refuses_an_unmigrated_database(tmp_path: Path) -> None:
     upgrade(settings.database_url, head_revision())
     app = create_app(settings, enqueue=lambda _: None)
     app.state.engine.dispose()
+
+
+def _splits_keep_their_scenes_hidden_after_0002(url: str) -> None:
+    engine = make_engine(url)
+    try:
+        upgrade(url, "0001_initial")
+        with engine.begin() as connection:
+            connection.execute(
+                text(
+                    "INSERT INTO splits (name, directory, content_hash, token_count, created_at) "
+                    "VALUES ('test', '/x', 'h', 1, CURRENT_TIMESTAMP)"
+                )
+            )
+        upgrade(url)
+        with engine.connect() as connection:
+            assert connection.execute(text("SELECT scenes_public FROM splits")).scalar_one() in (False, 0)
+        downgrade(url, "0001_initial")
+        assert "scenes_public" not in {column["name"] for column in inspect(engine).get_columns("splits")}
+    finally:
+        engine.dispose()
+
+
+def test_a_split_registered_before_scene_policies_stays_hidden_on_sqlite(tmp_path: Path) -> None:
+    _splits_keep_their_scenes_hidden_after_0002(f"sqlite:///{tmp_path / 'db.sqlite'}")
+
+
+@pytest.mark.services
+def test_a_split_registered_before_scene_policies_stays_hidden_on_postgresql(postgres_url: str) -> None:
+    _splits_keep_their_scenes_hidden_after_0002(postgres_url)

@@ -245,6 +245,10 @@ def test_a_team_signs_in_sees_every_problem_then_watches_its_upload_scored(
     assert page.locator("#histograms figure").count() == 1 + 6  # PDMS and every subscore of v1.1
     expect(page.locator("#breakdown thead")).to_contain_text("Constant Velocity")  # next to the baselines
     assert page.locator("#worst tbody tr").count() == 12  # fewer tokens than the list shows
+    page.locator("#worst tbody td.token button").first.click()
+    page.wait_for_selector("#scene:not([hidden])")
+    page.wait_for_function("document.querySelector('#scene-image').naturalWidth > 0")
+    expect(page.locator("#scene-caption")).to_contain_text("PDMS v1.1")
     page.select_option("#other", label=f"{_latest_id(demo) - 1}: Noisy human (demo)")
     expect(page.locator("#diff-counts")).to_contain_text("of 12 tokens both scored")
     _screenshot(page, "submission")

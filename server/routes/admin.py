@@ -12,14 +12,14 @@ from typing import Annotated, Any, Literal
 from urllib.parse import quote
 
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import AdminDep, SessionDep
 from server.models import Approval, Scope, Status, Submission, Team
-from server.routes.params import Offset, OptionalRowId, RowId
+from server.routes.params import PNG_RESPONSE, Offset, OptionalRowId, RowId, SceneToken, SeedIndex
 from server.routes.public import leaderboard_view
 from server.routes.views import phase_view, submission_views
 from server.schemas import (
@@ -39,6 +39,7 @@ from server.schemas import (
     TokenOut,
 )
 from server.services import admin as actions
+from server.services.pictures import scene_picture
 from server.services.splits import create_phase, register_split, resolve_phase, split_by_name
 from server.services.submissions import add_baselines, get_submission, list_submissions
 from server.services.teams import create_team, get_team, set_approval, set_team_quota
@@ -138,7 +139,9 @@ def quotas(session: SessionDep, admin: AdminDep, team_id: RowId, quota_in: Quota
 @router.post("/splits", status_code=201)
 def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: SplitIn) -> dict[str, Any]:
     """Register a split directory (on the server's disk) and queue its two baselines."""
-    split = register_split(session, split_in.name, Path(split_in.directory), split_in.public_tokens)
+    split = register_split(
+        session, split_in.name, Path(split_in.directory), split_in.public_tokens, split_in.scenes_public
+    )
     baselines = (
         add_baselines(session, split, request.app.state.settings.storage_dir) if split_in.baselines else []
     )
@@ -151,6 +154,7 @@ def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: 
         directory=split.directory,
         content_hash=split.content_hash,
         tokens=split.token_count,
+        scenes_public=split.scenes_public,
     )
     session.commit()
     _enqueue(request, [submission.id for submission in baselines])
@@ -293,3 +297,24 @@ def audit(
 def submission(session: SessionDep, _admin: AdminDep, submission_id: RowId) -> dict[str, Any]:
     """One submission with the admin-only fields."""
     return _one(session, get_submission(session, submission_id))
+
+
+@router.get(
+    "/submissions/{submission_id}/scenes/{token}.png", response_class=Response, responses=PNG_RESPONSE
+)
+def scene_picture_route(
+    request: Request,
+    session: SessionDep,
+    _admin: AdminDep,
+    submission_id: RowId,
+    token: SceneToken,
+    version: VersionName = DEFAULT_VERSION,
+    seed: SeedIndex = 0,
+) -> Response:
+    """The picture that explains a submission's score on any token of any split."""
+    submission = get_submission(session, submission_id)
+    settings = request.app.state.settings
+    return Response(
+        scene_picture(session, submission, token, version, seed, admin=True, settings=settings),
+        media_type="image/png",
+    )

@@ -107,6 +107,7 @@ def splits(session: SessionDep) -> list[dict[str, Any]]:
             "name": split.name,
             "token_count": split.token_count,
             "content_hash": split.content_hash,
+            "scenes_public": split.scenes_public,
             "subsets": {subset.name: len(subset.tokens) for subset in split.subsets}
             | {ALL_SUBSET: split.token_count},
             "phases": [phase_view(phase) for phase in phases if phase.split_id == split.id],

@@ -6,16 +6,17 @@ import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Header, HTTPException, Query, Request, UploadFile
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from scorer.versions import DEFAULT_VERSION, METRIC_COLUMNS, VersionName
 from server.auth import ApprovedTeamDep, SessionDep, TeamDep, TokenDep
 from server.models import Phase, Status, TokenResultRow
-from server.routes.params import Offset, RowId
+from server.routes.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
 from server.routes.views import submission_views
 from server.schemas import SubmissionAccepted, SubmissionOut, SubmissionPatch, TokenRow, ValidationReport
+from server.services.pictures import scene_picture
 from server.services.splits import resolve_phase, split_tokens, subset_tokens, visible_subsets
 from server.services.submissions import create_submission, edit_submission, get_submission, list_submissions
 from server.services.validation import ValidUpload, validate_upload
@@ -183,3 +184,23 @@ def token_rows(
         for row in rows
         if row.token in allowed
     ]
+
+
+@router.get(
+    "/submissions/{submission_id}/scenes/{token}.png", response_class=Response, responses=PNG_RESPONSE
+)
+def scene_picture_route(
+    request: Request,
+    session: SessionDep,
+    team: TeamDep,
+    submission_id: RowId,
+    token: SceneToken,
+    version: VersionName = DEFAULT_VERSION,
+    seed: SeedIndex = 0,
+) -> Response:
+    """The picture that explains the score on one token: map, objects, trajectories, first infractions.
+    Only for splits whose scenes are public, on tokens of the subsets the team may see."""
+    submission = get_submission(session, submission_id, team.id)
+    settings = request.app.state.settings
+    picture = scene_picture(session, submission, token, version, seed, admin=False, settings=settings)
+    return Response(picture, media_type="image/png")

@@ -23,9 +23,14 @@ def split_tokens(split: Split) -> tuple[str, ...]:
 
 
 def register_split(
-    session: Session, name: str, directory: Path, public_tokens: list[str] | None = None
+    session: Session,
+    name: str,
+    directory: Path,
+    public_tokens: list[str] | None = None,
+    scenes_public: bool = False,
 ) -> Split:
-    """Register a split directory under `name`; with `public_tokens`, the rest of the split is the private subset."""
+    """Register a split directory under `name`; with `public_tokens`, the rest of the split is the private subset.
+    `scenes_public` lets teams see its scenes in drill-down pictures (never for a hidden test split)."""
     from scorer.evaluate import split_content_hash  # the engine is heavy: imported only when a split is added
 
     if session.scalar(select(Split.id).where(Split.name == name)) is not None:
@@ -46,6 +51,7 @@ def register_split(
         directory=str(directory),
         content_hash=split_content_hash(directory),
         token_count=len(tokens),
+        scenes_public=scenes_public,
     )
     if public_tokens is not None:
         unknown = sorted(set(public_tokens) - set(tokens))

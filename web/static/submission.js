@@ -7,6 +7,7 @@ const PAGE = JSON.parse($("#page-data").textContent);
 const LABELS = PAGE.labels; // devkit column -> short name
 const WORST_SHOWN = 15;
 const DIFF_SHOWN = 10;
+const token_ = token; // the team token (common.js); `token` names scene tokens here
 const state = { submission: null, version: PAGE.default_version, subset: null, rows: {}, others: [] };
 
 const label = (column) => LABELS[column] || column;
@@ -148,13 +149,36 @@ async function render() {
   worst.replaceChildren();
   for (const entry of [...tokens].sort((a, b) => a.values.score - b.values.score).slice(0, WORST_SHOWN)) {
     const row = worst.insertRow();
-    cell(row, entry.token, "token");
+    cell(row, button(entry.token, () => showScene(entry.token), "draw this scene"), "token");
     cell(row, pct(entry.values.score), "num");
     const short = columns.filter((column) => entry.values[column] < 1)
       .map((column) => `${label(column)} ${pct(entry.values[column])}`);
     cell(row, entry.errors.length ? entry.errors.join("; ") : short.join(" · ") || "–");
   }
   await renderDiff(tokens, summary, columns);
+}
+
+async function showScene(token) {
+  const figure = $("#scene");
+  const query = new URLSearchParams({ version: state.version });
+  $("#scene-note").textContent = `Drawing ${token}…`;
+  try {
+    const response = await fetch(`${API}/submissions/${state.submission.id}/scenes/${token}.png?${query}`, {
+      headers: { Authorization: `Bearer ${token_()}` },
+    });
+    if (!response.ok) throw new ApiError(response.status, await response.json().catch(() => ({})));
+    const image = $("#scene-image");
+    if (image.src) URL.revokeObjectURL(image.src);
+    image.src = URL.createObjectURL(await response.blob());
+    image.alt = `Bird's-eye view of scene ${token} under PDMS ${state.version}`;
+    $("#scene-caption").textContent = `${token}, PDMS ${state.version}: metres from the ego's start; objects white now, grey every second ahead; red: the first infraction of each kind and the object involved.`;
+    figure.hidden = false;
+    $("#scene-note").textContent = "";
+    figure.scrollIntoView({ behavior: "smooth", block: "start" });
+  } catch (error) {
+    figure.hidden = true;
+    $("#scene-note").textContent = describeError(error);
+  }
 }
 
 async function renderDiff(tokens, summary, columns) {

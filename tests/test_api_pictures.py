@@ -1,0 +1,69 @@
+"""Drill-down pictures over the API: a team sees them only for its own scored submissions, on splits whose
+scenes are public and tokens it may see; organisers see every scene; a picture is rendered once."""
+
+from __future__ import annotations
+
+import json
+
+from server_testing import REFERENCE_SUBMISSIONS, World, add_team, submit_scored, uniform
+
+from server.models import Split, Submission
+
+HUMAN = (REFERENCE_SUBMISSIONS / "human.json").read_bytes()
+TOKEN = min(json.loads(HUMAN)["predictions"])
+
+
+def _scenes_public(world: World, public: bool) -> None:
+    with world.session() as session:
+        for split in session.query(Split).all():
+            split.scenes_public = public
+        session.commit()
+
+
+def _picture(world: World, submission_id: int, token: str = TOKEN, admin: bool = False, **params: str):
+    prefix = "/api/v1/admin" if admin else "/api/v1"
+    headers = world.admin_headers() if admin else world.team_headers()
+    return world.client.get(
+        f"{prefix}/submissions/{submission_id}/scenes/{token}.png", params=params, headers=headers
+    )
+
+
+def test_pictures_follow_the_splits_scene_policy_and_the_submissions_owner(world: World) -> None:
+    submission_id = submit_scored(world, world.team_id, HUMAN, [uniform(0.9)], "Human")
+    hidden = _picture(world, submission_id)
+    assert hidden.status_code == 403 and "only the organisers see them" in hidden.json()["detail"]
+    organiser = _picture(world, submission_id, admin=True)
+    assert organiser.status_code == 200 and organiser.headers["content-type"] == "image/png"
+    assert organiser.content.startswith(b"\x89PNG")
+
+    _scenes_public(world, True)
+    shown = _picture(world, submission_id, version="v1.0")
+    assert shown.status_code == 200 and shown.content.startswith(b"\x89PNG")
+    assert _picture(world, submission_id, token="0123456789abcdef").status_code == 404
+    assert _picture(world, submission_id, token="..%2Fetc").status_code in (404, 422)
+    assert _picture(world, submission_id, version="v9").status_code == 422
+    assert _picture(world, submission_id, seed="3").status_code == 404
+
+    _, beta_token = add_team(world.factory, "beta")
+    other = world.client.get(
+        f"/api/v1/submissions/{submission_id}/scenes/{TOKEN}.png",
+        headers={"Authorization": f"Bearer {beta_token}"},
+    )
+    assert other.status_code == 404  # another team's submission does not exist for beta
+
+
+def test_a_picture_needs_a_scored_submission_and_is_rendered_once(world: World) -> None:
+    _scenes_public(world, True)
+    submission_id = submit_scored(world, world.team_id, HUMAN, [uniform(0.9)], "Human")
+    first = _picture(world, submission_id)
+    assert first.status_code == 200
+    pictures = list((world.settings.data_dir / "pictures").iterdir())
+    assert len(pictures) == 1
+    pictures[0].write_bytes(b"\x89PNG cached")  # served from disk from now on
+    assert _picture(world, submission_id).content == b"\x89PNG cached"
+
+    with world.session() as session:
+        session.get(Submission, submission_id).status = "running"
+        session.commit()
+    waiting = _picture(world, submission_id)
+    assert waiting.status_code == 409 and "once it is scored" in waiting.json()["detail"]
