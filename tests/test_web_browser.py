@@ -283,3 +283,38 @@ def test_team_registration_shows_its_token_once(demo: Demo, browser: Browser) ->
     assert me["team"] == "browser-team" and me["approval"] == "pending"
     page.click("#register button[type=submit]")  # the same name again
     expect(page.locator("#register-error")).to_contain_text("browser-team")
+
+
+def test_the_admin_console_follows_a_rerun_and_a_rescore_without_a_reload(
+    demo: Demo, browser: Browser
+) -> None:
+    page = _page(browser)
+    page.goto(f"{demo.url}/admin")
+    page.fill("#token", demo.admin_token)
+    page.click("#login button[type=submit]")
+    page.wait_for_selector("#dashboard:not([hidden])")
+    expect(page.locator("#workers")).to_contain_text("Broker: answers")
+    row = page.locator("#submissions tbody tr", has_text="Noisy human (demo)")
+    expect(row).to_contain_text("scored")
+    page.evaluate("window.notReloaded = true")
+    row.get_by_role("button", name="re-run").click()
+    queue = page.locator("#queue tbody")
+    expect(row.locator(".status")).not_to_have_text("scored", timeout=10_000)  # queued or running, live
+    expect(row.locator(".status")).to_have_text("scored", timeout=SCORING_TIMEOUT_MS)
+    expect(queue).to_contain_text("Nothing is waiting.", timeout=SCORING_TIMEOUT_MS)
+    assert page.evaluate("window.notReloaded") is True
+    page.check("#failed-only")
+    expect(page.locator("#submissions tbody tr")).to_have_count(0)
+    page.uncheck("#failed-only")
+    page.get_by_role("button", name="tokens and quotas").first.click()
+    expect(page.locator("#tokens tbody")).to_contain_text("active")
+    page.fill("#audit-filter", "rerun")
+    expect(page.locator("#audit tbody")).to_contain_text("rerun")
+    _screenshot(page, "admin")
+
+    page.once("dialog", lambda dialog: dialog.accept())
+    page.click("#rescore button[type=submit]")
+    page.get_by_role("link", name="open its rank-change report").click()
+    expect(page.locator("#summary")).to_contain_text("complete", timeout=SCORING_TIMEOUT_MS)
+    expect(page.locator("#summary")).to_contain_text("Kendall's tau")
+    _screenshot(page, "rescore-report")

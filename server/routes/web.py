@@ -59,7 +59,14 @@ def leaderboard_page(
 @router.get("/admin", response_class=HTMLResponse)
 def admin_page(request: Request) -> HTMLResponse:
     """The admin dashboard; it holds no data itself and asks the admin API with the token typed in."""
-    return TEMPLATES.TemplateResponse(request, "admin.html", {"versions": list(VERSIONS)})
+    context = {"versions": list(VERSIONS), "default_version": DEFAULT_VERSION}
+    return TEMPLATES.TemplateResponse(request, "admin.html", context)
+
+
+@router.get("/admin/rescores/{rescore_id}", response_class=HTMLResponse)
+def rescore_page(request: Request, rescore_id: RowId) -> HTMLResponse:
+    """The rank-change report of a rescore, read with the organiser's token; it follows the runs to the end."""
+    return TEMPLATES.TemplateResponse(request, "rescore.html", {"rescore_id": rescore_id})
 
 
 @router.get("/team", response_class=HTMLResponse)

@@ -1,146 +1,244 @@
-// Admin dashboard: every read and action goes through the admin REST API with the token typed in,
-// kept in sessionStorage only (gone when the tab closes).
+// Admin console: every read and action goes through the admin REST API with the organiser's token
+// (common.js keeps it in this tab only). The queue, the workers and the submissions refresh on their own
+// every few seconds while the tab is visible; the rest after each action.
 "use strict";
 
-const API = "/api/v1/admin";
-const $ = (selector) => document.querySelector(selector);
-const token = () => sessionStorage.getItem("navsim-lb-admin-token") || "";
+const ADMIN = "/admin";
+const LIVE_EVERY_MS = 3000;
+const ACTIVE = ["queued", "running"];
+const state = { submissions: [], teams: [], phases: [], audit: [], team: null };
 
-async function call(method, path, body) {
-  const response = await fetch(API + path, {
-    method,
-    headers: { Authorization: `Bearer ${token()}`, ...(body ? { "Content-Type": "application/json" } : {}) },
-    body: body ? JSON.stringify(body) : undefined,
-  });
-  if (!response.ok) {
-    const detail = (await response.json().catch(() => ({}))).detail || response.statusText;
-    throw new Error(`${response.status}: ${typeof detail === "string" ? detail : JSON.stringify(detail)}`);
-  }
-  return response;
+const say = (text) => { $("#message").textContent = text; };
+
+function age(since) {
+  const seconds = Math.max(0, (Date.now() - Date.parse(since)) / 1000);
+  if (seconds < 90) return `${Math.round(seconds)} s`;
+  if (seconds < 5400) return `${Math.round(seconds / 60)} min`;
+  return `${(seconds / 3600).toFixed(1)} h`;
 }
 
-function cell(row, content) {
-  const td = row.insertCell();
-  if (content instanceof Node) td.append(content); else td.textContent = content ?? "";
-  return td;
+function act(label, action, title) {
+  return button(label, async () => {
+    try { await action(); await refresh(); } catch (error) { say(describeError(error)); }
+  }, title);
 }
 
-function button(label, action) {
-  const element = document.createElement("button");
-  element.textContent = label;
-  element.addEventListener("click", async () => {
-    try { await action(); await refresh(); } catch (error) { say(error.message); }
-  });
-  return element;
-}
-
-function actions(...buttons) {
+function group(...elements) {
   const span = document.createElement("span");
-  span.append(...buttons.filter(Boolean));
+  span.append(...elements.filter(Boolean));
   return span;
 }
 
-const say = (text) => { $("#message").textContent = text; };
-const pct = (value) => (value === null || value === undefined ? "–" : (100 * value).toFixed(1));
-
-function fillTeams(teams) {
-  const body = $("#teams tbody");
-  body.replaceChildren();
-  for (const team of teams) {
-    const row = body.insertRow();
-    [team.id, team.name, team.affiliation, team.members.join(", "), team.approval].forEach((v) => cell(row, v));
-    cell(row, actions(
-      team.approval !== "approved" && button("approve", () => call("POST", `/teams/${team.id}/approve`)),
-      team.approval !== "rejected" && button("reject", () => call("POST", `/teams/${team.id}/reject`)),
-      button("new token", async () => {
-        const created = await (await call("POST", `/teams/${team.id}/tokens`, { name: "dashboard" })).json();
-        window.prompt(`Token for ${team.name} (shown once):`, created.token);
-      }),
-    ));
-  }
+function progress(submission) {
+  const bar = document.createElement("progress");
+  bar.max = 100;
+  bar.value = submission.progress;
+  bar.title = `${submission.progress}%`;
+  return group(bar, ` ${submission.progress}%`);
 }
 
-function fillSubmissions(submissions) {
+function fillQueue() {
+  const body = $("#queue tbody");
+  body.replaceChildren();
+  const active = state.submissions.filter((s) => ACTIVE.includes(s.status)).sort((a, b) => a.id - b.id);
+  for (const s of active) {
+    const row = body.insertRow();
+    [s.id, s.team, s.method, s.status, age(s.submitted_at)].forEach((v, i) => cell(row, v, i === 4 ? "num" : ""));
+    cell(row, progress(s));
+    cell(row, s.worker || "–");
+    cell(row, s.attempts, "num");
+    cell(row, act("cancel", () => api("POST", `${ADMIN}/submissions/${s.id}/cancel`)));
+  }
+  if (!active.length) cell(body.insertRow(), "Nothing is waiting.", "empty").colSpan = 9;
+}
+
+async function fillWorkers() {
+  const list = $("#workers");
+  const health = await fetch(`${API}/health`).then((response) => response.json()).catch(() => null);
+  const items = [];
+  if (!health) items.push("The API's health check does not answer.");
+  else {
+    items.push(`Broker: ${health.broker.ok ? "answers" : `does not answer (${health.broker.detail})`}.`);
+    const workers = health.workers;
+    if (workers.ok === null) items.push(`Ping: ${workers.detail} (embedded broker); the runs below show who works.`);
+    else items.push(workers.count ? `Answering a ping: ${workers.names.join(", ")}.` : `No worker answers a ping${workers.detail ? ` (${workers.detail})` : ""}.`);
+  }
+  // Every transport: the workers that hold a run's lease right now.
+  const holding = new Map();
+  for (const s of state.submissions.filter((s) => s.status === "running" && s.worker)) {
+    holding.set(s.worker, [...(holding.get(s.worker) || []), s.id]);
+  }
+  for (const [worker, ids] of holding) items.push(`${worker} is scoring submission(s) ${ids.join(", ")}.`);
+  if (!holding.size) items.push("No worker holds a run at the moment.");
+  list.replaceChildren(...items.map((text) => Object.assign(document.createElement("li"), { textContent: text })));
+}
+
+function fillSubmissions() {
   const body = $("#submissions tbody");
   body.replaceChildren();
-  for (const s of submissions) {
+  const failedOnly = $("#failed-only").checked;
+  for (const s of state.submissions.filter((s) => !failedOnly || s.status === "failed")) {
     const row = body.insertRow();
-    const v11 = (s.results["v1.1"] || {});
+    const v11 = s.results["v1.1"] || {};
     const best = v11.public || v11.all;
     const flags = [s.baseline && "baseline", s.hidden && "hidden by team", s.admin_hidden && "hidden",
-      s.disqualified && `disqualified: ${s.disqualified_reason}`, s.selected && "final", s.error_detail && s.error_detail]
-      .filter(Boolean).join(" · ");
-    [s.id, s.team, s.method, s.status + (s.error ? ` (${s.error})` : ""), `${s.progress}%`, best ? pct(best.score) : "–",
-      flags, s.submitted_at.slice(0, 16).replace("T", " ")].forEach((v) => cell(row, v));
-    const active = s.status === "queued" || s.status === "running";
-    cell(row, actions(
-      !active && button("re-run", () => call("POST", `/submissions/${s.id}/rerun`)),
-      active && button("cancel", () => call("POST", `/submissions/${s.id}/cancel`)),
-      button(s.admin_hidden ? "show" : "hide", () => call("POST", `/submissions/${s.id}/hide`, { hidden: !s.admin_hidden })),
+      s.disqualified && `disqualified: ${s.disqualified_reason}`, s.selected && "final"].filter(Boolean).join(" · ");
+    const status = group(Object.assign(document.createElement("span"), { className: `status ${s.status}`, textContent: s.status }));
+    if (s.error) status.append(` · ${s.error}`);
+    if (s.error_detail) {
+      const details = document.createElement("details");
+      details.append(Object.assign(document.createElement("summary"), { textContent: "detail" }),
+        Object.assign(document.createElement("pre"), { textContent: s.error_detail }));
+      status.append(details);
+    }
+    const link = Object.assign(document.createElement("a"), { href: `/submissions/${s.id}`, textContent: s.id });
+    cell(row, s.baseline ? String(s.id) : link);
+    [s.team, s.method].forEach((v) => cell(row, v));
+    cell(row, status);
+    cell(row, `${s.progress}%`, "num");
+    cell(row, best ? pct(best.score) : "–", "num");
+    cell(row, flags);
+    cell(row, when(s.submitted_at));
+    const active = ACTIVE.includes(s.status);
+    cell(row, group(
+      !active && act("re-run", () => api("POST", `${ADMIN}/submissions/${s.id}/rerun`), "score it again under a new run"),
+      active && act("cancel", () => api("POST", `${ADMIN}/submissions/${s.id}/cancel`)),
+      act(s.admin_hidden ? "show" : "hide", () => api("POST", `${ADMIN}/submissions/${s.id}/hide`, { json: { hidden: !s.admin_hidden } })),
       s.disqualified
-        ? button("requalify", () => call("POST", `/submissions/${s.id}/disqualify`, { disqualified: false, reason: "lifted" }))
-        : button("disqualify", async () => {
+        ? act("requalify", () => api("POST", `${ADMIN}/submissions/${s.id}/disqualify`, { json: { disqualified: false, reason: "lifted" } }))
+        : act("disqualify", async () => {
           const reason = window.prompt("Reason for the disqualification:");
-          if (reason) await call("POST", `/submissions/${s.id}/disqualify`, { disqualified: true, reason });
+          if (reason) await api("POST", `${ADMIN}/submissions/${s.id}/disqualify`, { json: { disqualified: true, reason } });
         }),
     ));
   }
 }
 
-function fillAudit(entries) {
+function fillTeams() {
+  const body = $("#teams tbody");
+  body.replaceChildren();
+  for (const team of state.teams) {
+    const row = body.insertRow();
+    [team.id, team.name, team.affiliation, team.members.join(", ")].forEach((v) => cell(row, v));
+    cell(row, Object.assign(document.createElement("span"), { className: `status ${team.approval}`, textContent: team.approval }));
+    cell(row, group(
+      team.approval !== "approved" && act("approve", () => api("POST", `${ADMIN}/teams/${team.id}/approve`)),
+      team.approval !== "rejected" && act("reject", () => api("POST", `${ADMIN}/teams/${team.id}/reject`)),
+      button("tokens and quotas", () => openTeam(team)),
+    ));
+  }
+}
+
+async function openTeam(team) {
+  state.team = team;
+  $("#team-detail").hidden = false;
+  $("#team-detail-title").textContent = `${team.name}: tokens and quotas`;
+  const tokens = await api("GET", `${ADMIN}/teams/${team.id}/tokens`);
+  const body = $("#tokens tbody");
+  body.replaceChildren();
+  for (const t of tokens) {
+    const row = body.insertRow();
+    [t.id, t.name, t.prefix, when(t.created_at), when(t.last_used_at)].forEach((v) => cell(row, v));
+    cell(row, t.revoked_at ? `revoked ${when(t.revoked_at)}` : t.expires_at ? `expires ${when(t.expires_at)}` : "active");
+    cell(row, t.revoked_at ? "" : act("revoke", async () => {
+      if (window.confirm(`Revoke token ${t.prefix}… of ${team.name}?`)) await api("DELETE", `${ADMIN}/tokens/${t.id}`);
+      await openTeam(team);
+    }));
+  }
+  const add = body.insertRow();
+  cell(add, act("new token", async () => {
+    const created = await api("POST", `${ADMIN}/teams/${team.id}/tokens`, { json: { name: "console" } });
+    window.prompt(`Token for ${team.name} (shown once, copy it now):`, created.token);
+    await openTeam(team);
+  })).colSpan = 7;
+  $("#quota-phase").replaceChildren(...state.phases.map((phase) => new Option(phase.name, phase.name)));
+}
+
+$("#quota").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  const data = new FormData(event.target);
+  const number = (name) => (data.get(name) === "" ? null : Number(data.get(name)));
+  try {
+    await api("PUT", `${ADMIN}/teams/${state.team.id}/quotas`, {
+      json: { phase: data.get("phase"), per_day: number("per_day"), total: number("total"), in_flight: number("in_flight") },
+    });
+    say(`Quotas of ${state.team.name} in ${data.get("phase")} set.`);
+    await refresh();
+  } catch (error) { say(describeError(error)); }
+});
+
+function fillAudit() {
   const body = $("#audit tbody");
   body.replaceChildren();
-  for (const e of entries) {
+  const filter = $("#audit-filter").value.trim().toLowerCase();
+  for (const e of state.audit) {
+    const text = [e.actor, e.action, e.target_type, e.target_id].join(" ").toLowerCase();
+    if (filter && !text.includes(filter)) continue;
     const row = body.insertRow();
     [e.at.slice(0, 19).replace("T", " "), e.actor, e.action, `${e.target_type} ${e.target_id}`, JSON.stringify(e.details)]
       .forEach((v) => cell(row, v));
   }
 }
 
+async function refreshLive() {
+  state.submissions = await api("GET", `${ADMIN}/submissions?limit=300`);
+  fillQueue();
+  fillSubmissions();
+  await fillWorkers();
+  $("#updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
+}
+
 async function refresh() {
-  const [teams, submissions, audit] = await Promise.all(
-    ["/teams", "/submissions?limit=200", "/audit?limit=100"].map(async (path) => (await call("GET", path)).json()),
-  );
-  fillTeams(teams);
-  fillSubmissions(submissions);
-  fillAudit(audit);
+  [state.teams, state.audit, state.phases] = await Promise.all([
+    api("GET", `${ADMIN}/teams`), api("GET", `${ADMIN}/audit?limit=300`), api("GET", "/phases"),
+  ]);
+  fillTeams();
+  fillAudit();
+  await refreshLive();
   $("#dashboard").hidden = false;
 }
 
 async function open() {
   if (!token()) return;
-  try { await refresh(); say(""); } catch (error) { $("#dashboard").hidden = true; say(error.message); }
+  try { await refresh(); say(""); } catch (error) { $("#dashboard").hidden = true; say(describeError(error)); return; }
+  setInterval(() => {
+    if (document.visibilityState === "visible") refreshLive().catch((error) => say(describeError(error)));
+  }, LIVE_EVERY_MS);
 }
 
 $("#login").addEventListener("submit", (event) => {
   event.preventDefault();
-  sessionStorage.setItem("navsim-lb-admin-token", $("#token").value.trim());
+  sessionStorage.setItem(TOKEN_KEY, $("#token").value.trim());
   $("#token").value = "";
   open();
 });
-$("#logout").addEventListener("click", () => { sessionStorage.removeItem("navsim-lb-admin-token"); location.reload(); });
+$("#logout").addEventListener("click", () => { sessionStorage.removeItem(TOKEN_KEY); location.reload(); });
+$("#failed-only").addEventListener("change", fillSubmissions);
+$("#audit-filter").addEventListener("input", fillAudit);
 
 $("#rescore").addEventListener("submit", async (event) => {
   event.preventDefault();
   const version = new FormData(event.target).get("version");
   if (!window.confirm(`Re-run every scored entry and report rank changes under ${version}?`)) return;
   try {
-    const started = await (await call("POST", "/rescore", { version })).json();
-    $("#report").textContent = `rescore ${started.id}: ${started.queued} submissions queued; report: ${started.report}`;
+    const started = await api("POST", `${ADMIN}/rescore`, { json: { version } });
+    const link = Object.assign(document.createElement("a"), { href: `/admin/rescores/${started.id}`, textContent: "open its rank-change report" });
+    $("#report").replaceChildren(`Rescore ${started.id}: ${started.queued} submissions queued; `, link, ".");
     await refresh();
-  } catch (error) { say(error.message); }
+  } catch (error) { say(describeError(error)); }
 });
 
 for (const element of document.querySelectorAll("[data-export]")) {
   element.addEventListener("click", async () => {
     const version = new FormData($("#rescore")).get("version");
+    const format = element.dataset.export;
     try {
-      const format = element.dataset.export;
-      const blob = await (await call("GET", `/export?format=${format}&version=${version}`)).blob();
-      const link = Object.assign(document.createElement("a"), { href: URL.createObjectURL(blob), download: `leaderboard-${version}.${format}` });
+      const response = await fetch(`${API}${ADMIN}/export?format=${format}&version=${version}`, { headers: { Authorization: `Bearer ${token()}` } });
+      if (!response.ok) throw new ApiError(response.status, await response.json().catch(() => ({})));
+      const link = Object.assign(document.createElement("a"), { href: URL.createObjectURL(await response.blob()), download: `leaderboard-${version}.${format}` });
       link.click();
       URL.revokeObjectURL(link.href);
-    } catch (error) { say(error.message); }
+    } catch (error) { say(describeError(error)); }
   });
 }
 

@@ -1,9 +1,10 @@
-// What every page script shares: the team API with the token kept in sessionStorage (gone when the tab
-// closes), its errors, and small DOM and number helpers. Loaded before the page's own script.
+// What every page script shares: the API with the page's token (a team's, or an organiser's on the admin
+// console: the page's <meta name="token-key"> says which) kept in sessionStorage (gone when the tab closes),
+// its errors, and small DOM and number helpers. Loaded before the page's own script.
 "use strict";
 
 const API = "/api/v1";
-const TOKEN_KEY = "navsim-lb-team-token";
+const TOKEN_KEY = document.querySelector('meta[name="token-key"]').content;
 const $ = (selector) => document.querySelector(selector);
 const token = () => sessionStorage.getItem(TOKEN_KEY) || "";
 const pct = (value) => (value === null || value === undefined ? "–" : (100 * value).toFixed(1));
