@@ -67,3 +67,14 @@ def test_a_picture_needs_a_scored_submission_and_is_rendered_once(world: World) 
         session.commit()
     waiting = _picture(world, submission_id)
     assert waiting.status_code == 409 and "once it is scored" in waiting.json()["detail"]
+
+
+def test_organisers_read_every_tokens_rows_and_teams_only_their_own(world: World) -> None:
+    submission_id = submit_scored(world, world.team_id, HUMAN, [uniform(0.9)], "Human")
+    admin = world.client.get(
+        f"/api/v1/admin/submissions/{submission_id}/tokens", headers=world.admin_headers()
+    )
+    assert admin.status_code == 200 and len(admin.json()) == len(json.loads(HUMAN)["predictions"])
+    assert world.client.get(
+        f"/api/v1/admin/submissions/{submission_id}/tokens", headers=world.team_headers()
+    ).status_code in (401, 403)

@@ -312,6 +312,14 @@ def test_the_admin_console_follows_a_rerun_and_a_rescore_without_a_reload(
     expect(page.locator("#audit tbody")).to_contain_text("rerun")
     _screenshot(page, "admin")
 
+    row.get_by_role("link").click()  # the submission page, read with the organiser's token
+    page.wait_for_selector("#histograms figure")
+    expect(page.locator("#title")).to_contain_text("Noisy human (demo)")
+    page.locator("#worst tbody td.token button").first.click()
+    page.wait_for_function("document.querySelector('#scene-image').naturalWidth > 0")
+    page.go_back()
+    page.wait_for_selector("#dashboard:not([hidden])")
+
     page.once("dialog", lambda dialog: dialog.accept())
     page.click("#rescore button[type=submit]")
     page.get_by_role("link", name="open its rank-change report").click()

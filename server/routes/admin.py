@@ -21,7 +21,7 @@ from server.auth import AdminDep, SessionDep
 from server.models import Approval, Scope, Status, Submission, Team
 from server.routes.params import PNG_RESPONSE, Offset, OptionalRowId, RowId, SceneToken, SeedIndex
 from server.routes.public import leaderboard_view
-from server.routes.views import phase_view, submission_views
+from server.routes.views import phase_view, submission_views, token_result_views
 from server.schemas import (
     AdminSubmissionOut,
     AuditOut,
@@ -37,6 +37,7 @@ from server.schemas import (
     TokenCreated,
     TokenIn,
     TokenOut,
+    TokenRow,
 )
 from server.services import admin as actions
 from server.services.pictures import scene_picture
@@ -317,4 +318,18 @@ def scene_picture_route(
     return Response(
         scene_picture(session, submission, token, version, seed, admin=True, settings=settings),
         media_type="image/png",
+    )
+
+
+@router.get("/submissions/{submission_id}/tokens", response_model=list[TokenRow])
+def token_rows(
+    session: SessionDep,
+    _admin: AdminDep,
+    submission_id: RowId,
+    version: VersionName = DEFAULT_VERSION,
+    only_failed: bool = False,
+) -> list[dict[str, Any]]:
+    """Per-token results of a submission's current run on every token."""
+    return token_result_views(
+        session, get_submission(session, submission_id), version, only_failed, admin=True
     )

@@ -7,17 +7,16 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Header, HTTPException, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from scorer.versions import DEFAULT_VERSION, METRIC_COLUMNS, VersionName
+from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import ApprovedTeamDep, SessionDep, TeamDep, TokenDep
-from server.models import Phase, Status, TokenResultRow
+from server.models import Phase, Status
 from server.routes.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
-from server.routes.views import submission_views
+from server.routes.views import submission_views, token_result_views
 from server.schemas import SubmissionAccepted, SubmissionOut, SubmissionPatch, TokenRow, ValidationReport
 from server.services.pictures import scene_picture
-from server.services.splits import resolve_phase, split_tokens, subset_tokens, visible_subsets
+from server.services.splits import resolve_phase, split_tokens
 from server.services.submissions import create_submission, edit_submission, get_submission, list_submissions
 from server.services.validation import ValidUpload, validate_upload
 
@@ -160,30 +159,7 @@ def token_rows(
 ) -> list[dict[str, Any]]:
     """Per-token results of the current run on the tokens the team may see (failed tokens carry their error)."""
     submission = get_submission(session, submission_id, team.id)
-    subsets = subset_tokens(submission.split)
-    allowed = {
-        t for name in visible_subsets(submission.split, submission.phase, admin=False) for t in subsets[name]
-    }
-    query = select(TokenResultRow).where(
-        TokenResultRow.submission_id == submission.id,
-        TokenResultRow.run == submission.run,
-        TokenResultRow.metric_version == version,
-    )
-    if only_failed:
-        query = query.where(TokenResultRow.valid.is_(False))
-    rows = session.scalars(query.order_by(TokenResultRow.seed, TokenResultRow.token)).all()
-    return [
-        {
-            "token": row.token,
-            "metric_version": row.metric_version,
-            "seed": row.seed,
-            "valid": row.valid,
-            "error": row.error,
-            "metrics": {column: getattr(row, column) for column in METRIC_COLUMNS},
-        }
-        for row in rows
-        if row.token in allowed
-    ]
+    return token_result_views(session, submission, version, only_failed, admin=False)
 
 
 @router.get(

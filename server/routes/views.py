@@ -9,10 +9,10 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from scorer.versions import VERSIONS
-from server.models import Phase, Result, Submission, Summary
+from scorer.versions import METRIC_COLUMNS, VERSIONS
+from server.models import Phase, Result, Submission, Summary, TokenResultRow
 from server.services.leaderboard import subscore_columns
-from server.services.splits import is_open, visible_subsets
+from server.services.splits import is_open, subset_tokens, visible_subsets
 
 
 def _subset_result(summary: Summary, results: list[Result]) -> dict[str, Any]:
@@ -126,3 +126,35 @@ def phase_view(phase: Phase) -> dict[str, Any]:
         "total": phase.total,
         "in_flight": phase.in_flight,
     }
+
+
+def token_result_views(
+    session: Session, submission: Submission, version: str, only_failed: bool, admin: bool
+) -> list[dict[str, Any]]:
+    """Return the per-token rows of a submission's current run on the tokens the caller may see."""
+    subsets = subset_tokens(submission.split)
+    allowed = {
+        token
+        for name in visible_subsets(submission.split, submission.phase, admin=admin)
+        for token in subsets[name]
+    }
+    query = select(TokenResultRow).where(
+        TokenResultRow.submission_id == submission.id,
+        TokenResultRow.run == submission.run,
+        TokenResultRow.metric_version == version,
+    )
+    if only_failed:
+        query = query.where(TokenResultRow.valid.is_(False))
+    rows = session.scalars(query.order_by(TokenResultRow.seed, TokenResultRow.token)).all()
+    return [
+        {
+            "token": row.token,
+            "metric_version": row.metric_version,
+            "seed": row.seed,
+            "valid": row.valid,
+            "error": row.error,
+            "metrics": {column: getattr(row, column) for column in METRIC_COLUMNS},
+        }
+        for row in rows
+        if row.token in allowed
+    ]

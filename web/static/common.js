@@ -18,8 +18,8 @@ class ApiError extends Error {
   }
 }
 
-async function api(method, path, { json, form } = {}) {
-  const headers = { Authorization: `Bearer ${token()}` };
+async function api(method, path, { json, form, bearer = token() } = {}) {
+  const headers = { Authorization: `Bearer ${bearer}` };
   if (json) headers["Content-Type"] = "application/json";
   const response = await fetch(API + path, { method, headers, body: json ? JSON.stringify(json) : form });
   const body = await response.json().catch(() => ({}));

@@ -7,7 +7,12 @@ const PAGE = JSON.parse($("#page-data").textContent);
 const LABELS = PAGE.labels; // devkit column -> short name
 const WORST_SHOWN = 15;
 const DIFF_SHOWN = 10;
-const token_ = token; // the team token (common.js); `token` names scene tokens here
+// The owning team reads it with its token; an organiser who opened the admin console, with the admin's.
+const ADMIN_TOKEN_KEY = "navsim-lb-admin-token";
+const asAdmin = () => !token() && Boolean(sessionStorage.getItem(ADMIN_TOKEN_KEY));
+const bearer = () => (asAdmin() ? sessionStorage.getItem(ADMIN_TOKEN_KEY) : token());
+const scoped = (path) => (asAdmin() ? `/admin${path}` : path);
+const read = (path) => api("GET", scoped(path), { bearer: bearer() });
 const state = { submission: null, version: PAGE.default_version, subset: null, rows: {}, others: [] };
 
 const label = (column) => LABELS[column] || column;
@@ -24,7 +29,7 @@ function tab(text, current, action) {
 
 async function tokenRows(submissionId, version) {
   const key = `${submissionId}/${version}`;
-  if (!(key in state.rows)) state.rows[key] = await api("GET", `/submissions/${submissionId}/tokens?version=${version}`);
+  if (!(key in state.rows)) state.rows[key] = await read(`/submissions/${submissionId}/tokens?version=${version}`);
   return state.rows[key];
 }
 
@@ -163,8 +168,8 @@ async function showScene(token) {
   const query = new URLSearchParams({ version: state.version });
   $("#scene-note").textContent = `Drawing ${token}…`;
   try {
-    const response = await fetch(`${API}/submissions/${state.submission.id}/scenes/${token}.png?${query}`, {
-      headers: { Authorization: `Bearer ${token_()}` },
+    const response = await fetch(`${API}${scoped(`/submissions/${state.submission.id}/scenes/${token}.png`)}?${query}`, {
+      headers: { Authorization: `Bearer ${bearer()}` },
     });
     if (!response.ok) throw new ApiError(response.status, await response.json().catch(() => ({})));
     const image = $("#scene-image");
@@ -221,7 +226,7 @@ async function renderDiff(tokens, summary, columns) {
 
 async function load() {
   try {
-    state.submission = await api("GET", `/submissions/${PAGE.submission_id}`);
+    state.submission = await read(`/submissions/${PAGE.submission_id}`);
   } catch (error) {
     if (error instanceof ApiError && error.status === 401) {
       sessionStorage.removeItem(TOKEN_KEY);
@@ -239,7 +244,8 @@ async function load() {
   $("#title").textContent = `${submission.method} (submission ${submission.id})`;
   $("#facts").textContent = `${submission.team} · phase ${submission.phase ?? "–"} · split ${submission.split} · ` +
     `${submission.status} · ${submission.seed_count} seed(s), ${submission.token_count} tokens · submitted ${when(submission.submitted_at)} UTC`;
-  state.others = (await api("GET", "/submissions")).filter((s) => s.id !== submission.id && s.status === "scored");
+  const mine = asAdmin() ? `/submissions?team_id=${submission.team_id}` : "/submissions";
+  state.others = (await read(mine)).filter((s) => s.id !== submission.id && s.status === "scored");
   const select = $("#other");
   select.replaceChildren(new Option("choose…", ""), ...state.others.map((s) => new Option(`${s.id}: ${s.method}`, s.id)));
   select.addEventListener("change", () => render());
@@ -253,4 +259,4 @@ $("#signin").addEventListener("submit", async (event) => {
   await load();
 });
 
-if (token()) load(); else $("#signin").hidden = false;
+if (bearer()) load(); else $("#signin").hidden = false;
