@@ -182,6 +182,7 @@ class LeaderboardOut(BaseModel):
     split: str
     subset: str
     subsets: list[str]
+    closed: bool = Field(description="the phase has closed: its entries are published (/published/{id})")
     sort: str
     columns: list[str] = Field(description="the devkit's subscore columns of this version, in order")
     rows: list[LeaderboardRow]

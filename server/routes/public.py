@@ -14,11 +14,23 @@ from sqlalchemy.orm import Session
 from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import SessionDep, TokenDep
 from server.migrate import current_revision
-from server.models import Approval, Phase, Scope, Split
-from server.routes.views import phase_view
-from server.schemas import HealthOut, LeaderboardOut, MeOut, PhaseOut, SplitOut, TeamIn, TeamRegistered
+from server.models import Approval, Phase, Scope, Split, utc_now
+from server.routes.params import PNG_RESPONSE, RowId, SceneToken, SeedIndex
+from server.routes.views import phase_view, submission_views, token_result_views
+from server.schemas import (
+    HealthOut,
+    LeaderboardOut,
+    MeOut,
+    PhaseOut,
+    SplitOut,
+    SubmissionOut,
+    TeamIn,
+    TeamRegistered,
+    TokenRow,
+)
 from server.services.errors import Forbidden, NotFound
 from server.services.leaderboard import leaderboard, subscore_columns
+from server.services.pictures import scene_picture
 from server.services.quota import quota_usage
 from server.services.splits import (
     ALL_SUBSET,
@@ -28,6 +40,7 @@ from server.services.splits import (
     subset_names,
     visible_subsets,
 )
+from server.services.submissions import published_submission
 from server.services.teams import create_team
 from server.services.tokens import create_token
 
@@ -57,6 +70,7 @@ def leaderboard_view(
         "split": phase.split.name,
         "subset": subset,
         "subsets": visible,
+        "closed": phase.closes_at is not None and phase.closes_at <= utc_now(),
         "sort": sort,
         "columns": list(columns),
         "rows": leaderboard(session, phase, version, subset, sort),
@@ -177,3 +191,39 @@ def me(session: SessionDep, token: TokenDep) -> dict[str, Any]:
         "expires_at": token.expires_at,
         "quotas": quotas,
     }
+
+
+@router.get("/published/{submission_id}", response_model=SubmissionOut, tags=["published"])
+def published(session: SessionDep, submission_id: RowId) -> dict[str, Any]:
+    """A leaderboard entry whose phase has closed, as its team sees it: open to everyone."""
+    return submission_views(session, [published_submission(session, submission_id)], admin=False)[0]
+
+
+@router.get("/published/{submission_id}/tokens", response_model=list[TokenRow], tags=["published"])
+def published_token_rows(
+    session: SessionDep, submission_id: RowId, version: VersionName = DEFAULT_VERSION
+) -> list[dict[str, Any]]:
+    """Per-token results of a published entry."""
+    submission = published_submission(session, submission_id)
+    return token_result_views(session, submission, version, only_failed=False, admin=False)
+
+
+@router.get(
+    "/published/{submission_id}/scenes/{token}.png",
+    response_class=Response,
+    responses=PNG_RESPONSE,
+    tags=["published"],
+)
+def published_scene_picture(
+    request: Request,
+    session: SessionDep,
+    submission_id: RowId,
+    token: SceneToken,
+    version: VersionName = DEFAULT_VERSION,
+    seed: SeedIndex = 0,
+) -> Response:
+    """The drill-down picture of a published entry on one token (splits whose scenes are public only)."""
+    submission = published_submission(session, submission_id)
+    settings = request.app.state.settings
+    picture = scene_picture(session, submission, token, version, seed, admin=False, settings=settings)
+    return Response(picture, media_type="image/png")

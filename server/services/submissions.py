@@ -130,6 +130,26 @@ def get_submission(session: Session, submission_id: int, team_id: int | None = N
     return submission
 
 
+def published_submission(session: Session, submission_id: int, now: datetime | None = None) -> Submission:
+    """Return a submission anyone may read: a scored leaderboard entry of a phase that has closed."""
+    submission = session.get(Submission, submission_id)
+    phase = submission.phase if submission is not None else None
+    published = (
+        submission is not None
+        and phase is not None
+        and submission.status == Status.scored
+        and not (submission.hidden or submission.admin_hidden or submission.disqualified)
+        and phase.closes_at is not None
+        and phase.closes_at <= (now or utc_now())
+    )
+    if not published:
+        raise NotFound(
+            f"submission {submission_id} is not published: entries are public once their phase has closed"
+        )
+    assert submission is not None
+    return submission
+
+
 def list_submissions(
     session: Session, team_id: int | None = None, status: str | None = None, limit: int = 200, offset: int = 0
 ) -> Sequence[Submission]:

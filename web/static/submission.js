@@ -7,11 +7,12 @@ const PAGE = JSON.parse($("#page-data").textContent);
 const LABELS = PAGE.labels; // devkit column -> short name
 const WORST_SHOWN = 15;
 const DIFF_SHOWN = 10;
-// The owning team reads it with its token; an organiser who opened the admin console, with the admin's.
+// The owning team reads it with its token; an organiser who opened the admin console, with the admin's;
+// anyone else, once the entry is published (its phase has closed), through the public routes.
 const ADMIN_TOKEN_KEY = "navsim-lb-admin-token";
-const asAdmin = () => !token() && Boolean(sessionStorage.getItem(ADMIN_TOKEN_KEY));
-const bearer = () => (asAdmin() ? sessionStorage.getItem(ADMIN_TOKEN_KEY) : token());
-const scoped = (path) => (asAdmin() ? `/admin${path}` : path);
+const mode = () => (token() ? "team" : sessionStorage.getItem(ADMIN_TOKEN_KEY) ? "admin" : "public");
+const bearer = () => (mode() === "admin" ? sessionStorage.getItem(ADMIN_TOKEN_KEY) : token());
+const scoped = (path) => ({ team: path, admin: `/admin${path}`, public: path.replace("/submissions/", "/published/") })[mode()];
 const read = (path) => api("GET", scoped(path), { bearer: bearer() });
 const state = { submission: null, version: PAGE.default_version, subset: null, rows: {}, others: [] };
 
@@ -228,11 +229,7 @@ async function load() {
   try {
     state.submission = await read(`/submissions/${PAGE.submission_id}`);
   } catch (error) {
-    if (error instanceof ApiError && error.status === 401) {
-      sessionStorage.removeItem(TOKEN_KEY);
-      $("#signin").hidden = false;
-      return;
-    }
+    if (error instanceof ApiError && error.status === 401) sessionStorage.removeItem(TOKEN_KEY);
     $("#title").textContent = `Submission ${PAGE.submission_id}`;
     $("#signin").hidden = false;
     $("#signin-error").textContent = describeError(error);
@@ -244,8 +241,9 @@ async function load() {
   $("#title").textContent = `${submission.method} (submission ${submission.id})`;
   $("#facts").textContent = `${submission.team} · phase ${submission.phase ?? "–"} · split ${submission.split} · ` +
     `${submission.status} · ${submission.seed_count} seed(s), ${submission.token_count} tokens · submitted ${when(submission.submitted_at)} UTC`;
-  const mine = asAdmin() ? `/submissions?team_id=${submission.team_id}` : "/submissions";
-  state.others = (await read(mine)).filter((s) => s.id !== submission.id && s.status === "scored");
+  const mine = { team: "/submissions", admin: `/submissions?team_id=${submission.team_id}` }[mode()];
+  state.others = mine ? (await read(mine)).filter((s) => s.id !== submission.id && s.status === "scored") : [];
+  $("#compare").hidden = !state.others.length;
   const select = $("#other");
   select.replaceChildren(new Option("choose…", ""), ...state.others.map((s) => new Option(`${s.id}: ${s.method}`, s.id)));
   select.addEventListener("change", () => render());
@@ -259,4 +257,4 @@ $("#signin").addEventListener("submit", async (event) => {
   await load();
 });
 
-if (bearer()) load(); else $("#signin").hidden = false;
+load();

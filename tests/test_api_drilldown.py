@@ -4,10 +4,11 @@ scenes are public and tokens it may see; organisers see every scene; a picture i
 from __future__ import annotations
 
 import json
+from datetime import timedelta
 
 from server_testing import REFERENCE_SUBMISSIONS, World, add_team, submit_scored, uniform
 
-from server.models import Split, Submission
+from server.models import Phase, Split, Submission, utc_now
 
 HUMAN = (REFERENCE_SUBMISSIONS / "human.json").read_bytes()
 TOKEN = min(json.loads(HUMAN)["predictions"])
@@ -78,3 +79,30 @@ def test_organisers_read_every_tokens_rows_and_teams_only_their_own(world: World
     assert world.client.get(
         f"/api/v1/admin/submissions/{submission_id}/tokens", headers=world.team_headers()
     ).status_code in (401, 403)
+
+
+def test_entries_are_published_to_everyone_once_their_phase_has_closed(world: World) -> None:
+    _scenes_public(world, True)
+    submission_id = submit_scored(world, world.team_id, HUMAN, [uniform(0.9)], "Human")
+    closed = world.client.get(f"/api/v1/published/{submission_id}")
+    assert closed.status_code == 404 and "public once their phase has closed" in closed.json()["detail"]
+    assert f'/submissions/{submission_id}">Human</a>' not in world.client.get("/").text
+    with world.session() as session:
+        session.query(Phase).filter_by(name=world.phase).one().closes_at = utc_now() - timedelta(seconds=1)
+        session.commit()
+    entry = world.client.get(f"/api/v1/published/{submission_id}")
+    assert entry.status_code == 200 and entry.json()["method"] == "Human"
+    rows = world.client.get(f"/api/v1/published/{submission_id}/tokens", params={"version": "v1.0"}).json()
+    assert len(rows) == len(json.loads(HUMAN)["predictions"]) and {r["metric_version"] for r in rows} == {
+        "v1.0"
+    }
+    picture = world.client.get(f"/api/v1/published/{submission_id}/scenes/{TOKEN}.png")
+    assert picture.status_code == 200 and picture.content.startswith(b"\x89PNG")
+    assert (
+        f'/submissions/{submission_id}">Human</a>'
+        in world.client.get("/", params={"phase": world.phase}).text
+    )
+    with world.session() as session:
+        session.get(Submission, submission_id).hidden = True  # the team takes it off the board
+        session.commit()
+    assert world.client.get(f"/api/v1/published/{submission_id}").status_code == 404
