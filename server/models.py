@@ -362,3 +362,14 @@ class Rescore(Base):
     before: Mapped[list[dict[str, Any]]] = mapped_column(JSON)
     submission_ids: Mapped[list[int]] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
+
+
+class WorkerHeartbeat(Base):
+    """A worker's last sign of life, written every few seconds by the worker itself: the answer to "which
+    workers run?" on transports that cannot broadcast a ping (the embedded broker)."""
+
+    __tablename__ = "worker_heartbeats"
+
+    name: Mapped[str] = mapped_column(String(255), primary_key=True)  # Celery node name, e.g. celery@host
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    seen_at: Mapped[datetime] = mapped_column(UTCDateTime, index=True)

@@ -20,8 +20,9 @@ from server_testing import (
 )
 
 from server.db import transaction
-from server.models import Approval, Submission
+from server.models import Approval, Submission, utc_now
 from server.services.submissions import create_submission
+from server.services.workers import record_heartbeat
 
 
 def _audit_actions(world: World) -> list[str]:
@@ -171,7 +172,16 @@ def test_splits_and_health(world: World) -> None:
     assert health.status_code == 200
     body = health.json()
     assert body["database"]["ok"] is True and body["broker"]["ok"] is True
-    assert body["status"] == "ok" and body["workers"]["ok"] is None  # the embedded broker cannot ping workers
+    # No worker runs here, and the embedded broker cannot ping: the database's heartbeats say so.
+    assert (
+        body["status"] == "degraded"
+        and body["workers"]["ok"] is False
+        and "(none)" in body["workers"]["detail"]
+    )
+    with transaction(world.factory) as session:
+        record_heartbeat(session, "celery@test", utc_now())
+    body = world.client.get("/api/v1/health").json()
+    assert body["status"] == "ok" and body["workers"]["names"] == ["celery@test"]
 
 
 def test_health_degrades_when_the_broker_is_down(world: World) -> None:

@@ -20,6 +20,7 @@ from celery import Celery, bootsteps
 
 from server.queue import celery_config
 from server.settings import Settings, get_settings
+from worker.heartbeat import DatabaseHeartbeat
 
 CHUNK_TASK = "worker.tasks.score_chunk"
 REAP_TASK = "worker.tasks.reap_leases"
@@ -66,6 +67,7 @@ def create_celery(settings: Settings) -> Celery:
         beat_schedule_filename=str(settings.data_dir / "celerybeat-schedule"),
     )
     app.steps["consumer"].add(EmbeddedBrokerPolling)
+    app.steps["consumer"].add(DatabaseHeartbeat)
     return app
 
 

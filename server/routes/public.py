@@ -43,6 +43,7 @@ from server.services.splits import (
 from server.services.submissions import published_submission
 from server.services.teams import create_team
 from server.services.tokens import create_token
+from server.services.workers import workers_from_heartbeats
 
 router = APIRouter()
 
@@ -146,6 +147,8 @@ def health(request: Request, session: SessionDep) -> JSONResponse:
         database = {"ok": False, "revision": None, "detail": f"{type(error).__name__}: {error}"}
     settings = request.app.state.settings
     broker, workers = request.app.state.broker_status(settings), request.app.state.live_workers(settings)
+    if workers["ok"] is None and database["ok"]:  # no ping on this transport: the workers' own heartbeats
+        workers = workers_from_heartbeats(session)
     healthy = database["ok"] and broker["ok"] and workers["ok"] is not False
     body = {
         "status": "ok" if healthy else "degraded",

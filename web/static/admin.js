@@ -60,8 +60,9 @@ async function fillWorkers() {
   else {
     items.push(`Broker: ${health.broker.ok ? "answers" : `does not answer (${health.broker.detail})`}.`);
     const workers = health.workers;
-    if (workers.ok === null) items.push(`Ping: ${workers.detail} (embedded broker); the runs below show who works.`);
-    else items.push(workers.count ? `Answering a ping: ${workers.names.join(", ")}.` : `No worker answers a ping${workers.detail ? ` (${workers.detail})` : ""}.`);
+    const how = workers.detail.includes("heartbeat") ? "alive (heartbeats in the database)" : "answering a ping";
+    if (workers.ok === null) items.push(`Workers: unknown (${workers.detail}).`);
+    else items.push(workers.count ? `Workers ${how}: ${workers.names.join(", ")}.` : `No worker is ${how} (${workers.detail}).`);
   }
   // Every transport: the workers that hold a run's lease right now.
   const holding = new Map();
