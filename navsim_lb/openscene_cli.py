@@ -28,7 +28,8 @@ def import_openscene(
         Path, typer.Option(help="nuPlan map root (nuplan-maps-v1.0.json, <location>/<version>/map.gpkg)")
     ],
     tokens: Annotated[
-        Path | None, typer.Option(help="token list: one per line, or a NAVSIM scene-filter YAML's tokens")
+        Path | None,
+        typer.Option(help="scene filter: NAVSIM's YAML (tokens, log_names or both) or one token per line"),
     ] = None,
     workers: Annotated[int, typer.Option(help="processes (one log per task)")] = max(1, os.cpu_count() or 1),
     frame_interval: Annotated[
@@ -40,14 +41,14 @@ def import_openscene(
     ] = True,
 ) -> None:
     """Import OpenScene logs and nuPlan maps into scene files; resumable, with a report of skipped tokens."""
-    from scorer.openscene.importer import REPORT_NAME, ImportSettings, import_logs, read_token_list
+    from scorer.openscene.importer import REPORT_NAME, ImportSettings, import_logs, read_scene_filter
 
     if not logs.is_dir() or not maps.is_dir():
         raise fail(f"{logs if not logs.is_dir() else maps}: not a directory")
     if frame_interval < 1:
         raise fail(f"--frame-interval must be at least 1, got {frame_interval}")
     try:
-        wanted = None if tokens is None else read_token_list(tokens)
+        wanted = None if tokens is None else read_scene_filter(tokens)
     except (OSError, ValueError) as error:
         raise fail(str(error)) from None
     settings = ImportSettings(maps, out, frame_interval, require_route, check_commands)

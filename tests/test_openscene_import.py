@@ -32,8 +32,9 @@ from scorer.openscene.importer import (
     JOURNAL_NAME,
     REPORT_NAME,
     ImportSettings,
+    SceneFilter,
     import_logs,
-    read_token_list,
+    read_scene_filter,
     scene_path,
 )
 from scorer.openscene.log_pickle import load_log
@@ -135,8 +136,8 @@ def test_report_lists_command_mismatches_and_map_warnings(imported) -> None:
 
 def test_files_are_deterministic(data, imported, tmp_path: Path) -> None:
     out, _ = imported
-    tokens = [frame_token(1, 4)]
-    import_logs(data["logs"], ImportSettings(data["maps"], tmp_path), tokens)
+    tokens = (frame_token(1, 4),)
+    import_logs(data["logs"], ImportSettings(data["maps"], tmp_path), SceneFilter(tokens=tokens))
     assert scene_path(tmp_path, tokens[0]).read_bytes() == scene_path(out, tokens[0]).read_bytes()
 
 
@@ -185,9 +186,9 @@ def test_token_list_reports_why_each_token_is_skipped(data, tmp_path: Path) -> N
     token_file.write_text(
         "# scene filter\nnum_history_frames: 4\ntokens:\n" + "".join(f"  - '{t}'\n" for t in wanted)
     )
-    assert read_token_list(token_file) == list(wanted)
+    assert read_scene_filter(token_file) == SceneFilter(tokens=tuple(wanted))
     report = import_logs(
-        logs, ImportSettings(data["maps"], tmp_path / "split"), read_token_list(token_file), workers=2
+        logs, ImportSettings(data["maps"], tmp_path / "split"), read_scene_filter(token_file), workers=2
     )
     assert list(scene_paths(tmp_path / "split")) == [frame_token(1, 12)]
     reasons = {entry["token"]: entry["reason"] for entry in report["skipped"]}
@@ -199,9 +200,68 @@ def test_token_list_reports_why_each_token_is_skipped(data, tmp_path: Path) -> N
 
 def test_token_list_rejects_garbage(tmp_path: Path) -> None:
     path = tmp_path / "tokens.txt"
-    path.write_text("0123456789abcdef\nnot-a-token\n")
-    with pytest.raises(ValueError, match=r"tokens.txt:2: 'not-a-token' is not a token"):
-        read_token_list(path)
+    path.write_text("0123456789abcdef\n# a comment\nnot-a-token\n")
+    with pytest.raises(ValueError, match=r"tokens.txt:3: 'not-a-token' is not a token"):
+        read_scene_filter(path)
+    navsim = tmp_path / "navtest.yaml"
+    navsim.write_text("_target_: navsim.common.dataclasses.SceneFilter\ntokens: [0123456789abcdef, nope]\n")
+    with pytest.raises(ValueError, match=r"navtest.yaml: tokens\[1\]: 'nope' is not a token"):
+        read_scene_filter(navsim)
+    navsim.write_text("num_history_frames: 4\n")
+    with pytest.raises(ValueError, match="neither tokens nor log_names"):
+        read_scene_filter(navsim)
+
+
+# NAVSIM's scene filters (e.g. navtest.yaml) name logs, tokens, or both, beside keys of their own.
+NAVSIM_FILTER = """_target_: navsim.common.dataclasses.SceneFilter
+_convert_: 'all'
+num_history_frames: 4
+num_future_frames: 10
+frame_interval: 1
+has_route: true
+max_scenes: null
+"""
+
+
+@pytest.mark.parametrize("layout", ["log_names", "tokens", "both"])
+def test_navsim_scene_filters_select_logs_tokens_or_both(data, tmp_path: Path, layout: str) -> None:
+    logs = tmp_path / "logs"
+    shutil.copytree(data["logs"], logs)
+    write_log(
+        logs / "second.pkl", [log_frame(frame, "second") for frame in road_frames(log_index=6, count=16)]
+    )
+    names = sorted(path.stem for path in logs.glob("*.pkl"))
+    every = set(scene_paths(_imported(data, logs, tmp_path / "every", None)))
+    first_log = set(
+        scene_paths(_imported(data, logs, tmp_path / "first", SceneFilter(log_names=(names[0],))))
+    )
+    assert first_log and first_log < every  # the filter keeps one log's scenes, and only those
+    token = min(first_log)
+    lines = {
+        "log_names": f"log_names:\n  - {names[0]}\n  - not_a_log\n",
+        "tokens": f"tokens:\n  - '{token}'\n",
+        "both": f"log_names: [{names[1]}]\ntokens: ['{token}']\n",
+    }[layout]
+    path = tmp_path / "navtest.yaml"
+    path.write_text(NAVSIM_FILTER + lines)
+    report = import_logs(logs, ImportSettings(data["maps"], tmp_path / "split"), read_scene_filter(path))
+    split = tmp_path / "split"
+    imported = set(scene_paths(split)) if (split / "scenes").is_dir() else set()
+    if layout == "log_names":
+        assert imported == first_log
+        assert report["failed_logs"] == [
+            {"log": "not_a_log", "reason": f"named by the scene filter but not in {logs}"}
+        ]
+    elif layout == "tokens":
+        assert imported == {token}
+    else:  # the token lies in the first log and the filter names only the second: nothing matches both
+        assert imported == set()
+        assert [entry["token"] for entry in report["skipped"]] == [token]
+
+
+def _imported(data, logs: Path, out: Path, scene_filter: SceneFilter | None) -> Path:
+    import_logs(logs, ImportSettings(data["maps"], out), scene_filter)
+    return out
 
 
 def test_missing_commands_are_computed_from_the_route(tmp_path: Path, data) -> None:

@@ -22,7 +22,7 @@ from openscene_builders import Table, write_gpkg, write_log
 
 from scorer.geometry import rear_axle_round_trip
 from scorer.openscene.frames import quaternion_yaw
-from scorer.openscene.importer import ImportSettings, import_logs, scene_path
+from scorer.openscene.importer import ImportSettings, SceneFilter, import_logs, scene_path
 from scorer.scene import load_scene
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
@@ -201,7 +201,9 @@ def imported(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[dict[s
             projected=f"epsg:{UTM}",
         )
         write_log(root / token / "logs" / f"{raw['log_name']}.pkl", log_frames(raw))
-        report = import_logs(root / token / "logs", ImportSettings(maps, root / "split"), [token])
+        report = import_logs(
+            root / token / "logs", ImportSettings(maps, root / "split"), SceneFilter(tokens=(token,))
+        )
         assert report["skipped"] == [], report["skipped"]
         result[token] = (raw, scene_path(root / "split", token))
     return result

@@ -84,18 +84,55 @@ def scene_path(out_dir: Path, token: str) -> Path:
     return out_dir / "scenes" / f"{token}.json.gz"
 
 
-def read_token_list(path: Path) -> list[str]:
-    """Return the tokens of a list file: one per line, or a NAVSIM scene-filter YAML's `tokens:` items."""
-    tokens = []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
-        text = line.split("#", 1)[0].strip()
-        if not text or text.endswith(":") or (":" in text and not text.startswith("-")):
-            continue  # blank, comment or another YAML key
-        token = text.removeprefix("-").strip().strip("'\"")
+@dataclass(frozen=True)
+class SceneFilter:
+    """Which scenes to import, as NAVSIM's scene filter says: tokens, logs, or both (None: no restriction)."""
+
+    tokens: tuple[str, ...] | None = None
+    log_names: tuple[str, ...] | None = None
+
+
+def _names(document: Mapping[str, Any], key: str, path: Path) -> tuple[str, ...] | None:
+    values = document.get(key)
+    if values is None:
+        return None
+    if not isinstance(values, list) or not all(isinstance(value, str) for value in values):
+        raise ValueError(f"{path}: {key} must be a list of names")
+    return tuple(dict.fromkeys(values))
+
+
+def _checked_tokens(tokens: Sequence[str], where: Callable[[int], str]) -> tuple[str, ...]:
+    for index, token in enumerate(tokens):
         if not TOKEN_PATTERN.fullmatch(token):
-            raise ValueError(f"{path}:{number}: {token!r} is not a token (16 lowercase hex characters)")
-        tokens.append(token)
-    return list(dict.fromkeys(tokens))
+            raise ValueError(f"{where(index)}: {token!r} is not a token (16 lowercase hex characters)")
+    return tuple(dict.fromkeys(tokens))
+
+
+def read_scene_filter(path: Path) -> SceneFilter:
+    """Return the scene filter of a file: NAVSIM's scene-filter YAML (`.yaml`/`.yml`: its `tokens`, its
+    `log_names`, or both; the other keys are NAVSIM's own) or a list of tokens, one per line (`#` comments)."""
+    text = path.read_text()
+    if path.suffix in (".yaml", ".yml"):
+        import yaml  # only organisers importing logs need it
+
+        try:
+            document = yaml.safe_load(text)
+        except yaml.YAMLError as error:
+            raise ValueError(f"{path}: not YAML ({error})") from None
+        if not isinstance(document, dict):
+            raise ValueError(f"{path}: expected a mapping with tokens and/or log_names")
+        tokens, log_names = _names(document, "tokens", path), _names(document, "log_names", path)
+        if tokens is None and log_names is None:
+            raise ValueError(f"{path}: neither tokens nor log_names is given")
+        if tokens is not None:
+            tokens = _checked_tokens(tokens, lambda index: f"{path}: tokens[{index}]")
+        return SceneFilter(tokens, log_names)
+    lines = [
+        (number, line.split("#", 1)[0].strip()) for number, line in enumerate(text.splitlines(), start=1)
+    ]
+    lines = [(number, token) for number, token in lines if token]
+    tokens = _checked_tokens([token for _, token in lines], lambda index: f"{path}:{lines[index][0]}")
+    return SceneFilter(tokens=tokens)
 
 
 _wanted_tokens: frozenset[str] | None = None
@@ -240,18 +277,29 @@ def _write_atomically(scene: dict[str, Any], out_path: Path) -> None:
 def import_logs(
     logs_dir: Path,
     settings: ImportSettings,
-    tokens: Sequence[str] | None = None,
+    scene_filter: SceneFilter | None = None,
     workers: int = 1,
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
-    """Import every `*.pkl` log of `logs_dir`; return the import report (also written to the output directory)."""
-    log_paths = sorted(path for path in Path(logs_dir).iterdir() if path.suffix == ".pkl")
-    wanted = None if tokens is None else frozenset(tokens)
+    """Import the `*.pkl` logs of `logs_dir` the filter names (every one by default), keeping the scenes it names;
+    return the import report (also written to the output directory)."""
+    scene_filter = scene_filter or SceneFilter()
+    log_paths = sorted(
+        path
+        for path in Path(logs_dir).iterdir()
+        if path.suffix == ".pkl" and (scene_filter.log_names is None or path.stem in scene_filter.log_names)
+    )
+    wanted = None if scene_filter.tokens is None else frozenset(scene_filter.tokens)
     settings.out_dir.mkdir(parents=True, exist_ok=True)
     journal = settings.out_dir / JOURNAL_NAME
     seen: set[str] = set()
     this_run = {"written": 0, "present": 0, "skipped": 0}
-    failed_logs = []
+    present = {path.stem for path in log_paths}
+    failed_logs = [
+        {"log": name, "reason": f"named by the scene filter but not in {logs_dir}"}
+        for name in scene_filter.log_names or ()
+        if name not in present
+    ]
     with journal.open("a") as journal_file:
         for outcome in _run(log_paths, settings, wanted, workers):
             if outcome.error is not None:
@@ -264,7 +312,8 @@ def import_logs(
             if progress is not None:
                 progress(1)
         for token in sorted((wanted or frozenset()) - seen):
-            reason = f"not found in any log of {logs_dir}" + (
+            searched = "the logs the filter names" if scene_filter.log_names is not None else "any log"
+            reason = f"not found in {searched} of {logs_dir}" + (
                 f" ({len(failed_logs)} log(s) unreadable)" if failed_logs else ""
             )
             journal_file.write(json.dumps(asdict(TokenOutcome(token, "", "skipped", reason))) + "\n")
