@@ -85,7 +85,7 @@ def main() -> None:
     engine_seconds = time.perf_counter() - start
     expected = [
         np.stack(stage)
-        for stage in zip(*(comfort._filtered_series(g, delta, _scipy_rounded) for g in series))
+        for stage in zip(*(comfort._filtered_series(g, delta, _scipy_rounded) for g in series), strict=True)
     ]
     differing = sum(
         int(np.count_nonzero(ours != devkit)) for ours, devkit in zip(outputs, expected, strict=True)

@@ -108,7 +108,7 @@ class MapBatch:
             is_lane=joined([drivable_map.is_lane for drivable_map in maps]),
             is_drivable=joined([drivable_map.is_drivable for drivable_map in maps]),
             is_intersection=joined([drivable_map.is_intersection for drivable_map in maps]),
-            is_route=joined([m.on_route(route) for m, route in zip(maps, route_lane_ids)]),
+            is_route=joined([m.on_route(route) for m, route in zip(maps, route_lane_ids, strict=True)]),
             start=np.cumsum(count) - count,
             count=count,
         )
@@ -139,7 +139,9 @@ def build_drivable_map(scene: Scene) -> DrivableMap:
         if not polygons:
             return []
         return [
-            item for item, hit in zip(layer, proximal_mask(polygons, center_x, center_y, MAP_RADIUS)) if hit
+            item
+            for item, hit in zip(layer, proximal_mask(polygons, center_x, center_y, MAP_RADIUS), strict=True)
+            if hit
         ]
 
     roadblocks = near(excerpt.roadblocks)

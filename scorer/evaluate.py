@@ -200,7 +200,9 @@ def score_caches(
         if len(caches) == 1:
             raise
         # One diverging trajectory must not fail its neighbours: score them one by one.
-        return [result for c, p in zip(caches, poses) for result in _score_one(c, p, version, seed)]
+        return [
+            result for c, p in zip(caches, poses, strict=True) for result in _score_one(c, p, version, seed)
+        ]
     return [_row(cache.token, seed, scores, (index, 1)) for index, cache in enumerate(caches)]
 
 

@@ -235,7 +235,7 @@ class IdmUnroll:
             corridors = np.array(
                 [
                     path.substring(first, first + reach).buffer(EGO_WIDTH / 2, cap_style="square")
-                    for path, first in zip(plan.paths, begin)
+                    for path, first in zip(plan.paths, begin, strict=True)
                 ],
                 dtype=object,
             )
@@ -420,7 +420,7 @@ def plan_references_batch(
 ) -> list[list[PlannerOutput]]:
     """Return PDM-Closed's output per scene and planner scorer config, the scenes unrolled and simulated together."""
     proposals = unroll_proposals(
-        [plan_scene(scene, drivable_map) for scene, drivable_map in zip(scenes, drivable_maps)]
+        [plan_scene(scene, drivable_map) for scene, drivable_map in zip(scenes, drivable_maps, strict=True)]
     )
     rows = np.arange(len(proposals.unroll.path_of))
     initial = np.repeat(
@@ -428,7 +428,7 @@ def plan_references_batch(
     )
     simulated = simulate(proposals.poses(rows, slice(0, PROPOSAL_STEPS + 1)), initial)
     selected = np.empty((len(scenes), len(configs)), dtype=np.intp)
-    for index, (plan, drivable_map) in enumerate(zip(proposals.plans, drivable_maps)):
+    for index, (plan, drivable_map) in enumerate(zip(proposals.plans, drivable_maps, strict=True)):
         scene_rows = proposals.rows(index)
         observation = scoring_observation(plan.observation)
         for column, config in enumerate(configs):
@@ -444,7 +444,9 @@ def plan_references_batch(
     # Only the selected proposals are unrolled on to 5 s, each alone (its own leading-agent buffer).
     extended = np.unique(selected)
     proposals.unroll.run(extended, range(PROPOSAL_STEPS + 1, TRAJECTORY_STEPS + 1), groups=extended)
-    poses = dict(zip(extended.tolist(), proposals.poses(extended, slice(0, TRAJECTORY_STEPS + 1))))
+    poses = dict(
+        zip(extended.tolist(), proposals.poses(extended, slice(0, TRAJECTORY_STEPS + 1)), strict=True)
+    )
     outputs = []
     for index, plan in enumerate(proposals.plans):
         scene_outputs = []

@@ -72,7 +72,7 @@ class RoadGraph:
             lane for lane in dict.fromkeys(lanes) if lane not in self._paths and self.lane_length(lane)
         ]
         if missing:
-            self._paths.update(zip(missing, baseline_poses([lane.baseline for lane in missing])))
+            self._paths.update(zip(missing, baseline_poses([lane.baseline for lane in missing]), strict=True))
 
     def lane_length(self, lane: Lane) -> float:
         """Return the baseline length as shapely measures it (nuPlan's `baseline_path.length`)."""
@@ -92,7 +92,7 @@ def baseline_poses(baselines: Sequence[FloatArray]) -> list[FloatArray]:
     )
     return [
         np.column_stack([baseline, np.append(heading, heading[-1])])
-        for baseline, heading in zip(baselines, headings)
+        for baseline, heading in zip(baselines, headings, strict=True)
     ]
 
 
@@ -208,7 +208,7 @@ def roadblock_candidates(
     for block in candidates:
         best_distance = np.inf
         lanes = graph.interior.get(block, ())
-        for lane, poses in zip(lanes, graph.discrete_paths(lanes)):
+        for lane, poses in zip(lanes, graph.discrete_paths(lanes), strict=True):
             distance, heading_error = _nearest_vertex(poses, x, y, heading)
             best_distance = min(best_distance, distance)
             if heading_error < CANDIDATE_HEADING_ERROR and distance < CANDIDATE_DISPLACEMENT_ERROR:

@@ -169,7 +169,9 @@ class _Reader:
             result = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
             raise self.fail(where, f"expected numbers of shape {_shape_text(shape)}") from None
-        if result.ndim != len(shape) or any(n is not None and n != m for n, m in zip(shape, result.shape)):
+        if result.ndim != len(shape) or any(
+            n is not None and n != m for n, m in zip(shape, result.shape, strict=True)
+        ):
             raise self.fail(where, f"expected shape {_shape_text(shape)}, got {result.shape}")
         if not np.all(np.isfinite(result)):
             raise self.fail(where, "non-finite value")

@@ -199,7 +199,7 @@ def road_map() -> dict[str, Table]:
         NORTH_LANES[0],
         line((turn_x, 5.25), (turn_x + 3, 5.6), (turn_x + 5.5, 7.5), (turn_x + 6.5, 12)),
     )
-    for k, (block, lane) in enumerate(zip(NORTH_BLOCKS, NORTH_LANES)):
+    for k, (block, lane) in enumerate(zip(NORTH_BLOCKS, NORTH_LANES, strict=True)):
         y0, y1 = 12 + k * BLOCK_PITCH, 12 + k * BLOCK_PITCH + BLOCK_LENGTH
         tables["lane_groups_polygons"].rows.append((block, box(turn_x + 4.75, y0, turn_x + 8.25, y1), {}))
         add_lane(

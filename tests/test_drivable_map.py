@@ -48,7 +48,7 @@ def scene_on(excerpt: MapExcerpt) -> Scene:
 def by_type(excerpt: MapExcerpt) -> dict[str, list[str]]:
     drivable_map = build_drivable_map(scene_on(excerpt))
     grouped: dict[str, list[str]] = {}
-    for token, kind in zip(drivable_map.tokens, drivable_map.types):
+    for token, kind in zip(drivable_map.tokens, drivable_map.types, strict=True):
         grouped.setdefault(kind, []).append(token)
     return grouped
 

@@ -96,7 +96,7 @@ def test_unscored_tokens_count_zero_and_are_counted(world: World) -> None:
 
 def test_bootstrap_interval_from_token_rows(world: World) -> None:
     rng = np.random.default_rng(7)
-    scores = dict(zip(TOKENS, rng.uniform(0.3, 1.0, len(TOKENS)).round(3).tolist()))
+    scores = dict(zip(TOKENS, rng.uniform(0.3, 1.0, len(TOKENS)).round(3).tolist(), strict=True))
     submit_scored(world, world.team_id, b"ci", [scores])
     row = _board(world)["rows"][0]
     low, high = row["ci95"]

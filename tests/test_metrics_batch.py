@@ -77,7 +77,7 @@ def _same(first: ProposalScores, second: ProposalScores) -> bool:
 def test_a_batch_scores_each_token_as_alone(version: str) -> None:
     config = get_version(version).evaluation
     cases = _tokens(version)
-    batch = score_batch(*(list(column) for column in zip(*cases)), config)
+    batch = score_batch(*(list(column) for column in zip(*cases, strict=True)), config)
     assert batch.score.shape == (len(cases), 2)
     singles = [score_proposals(*case, config) for case in cases]
     assert all(_same(batch.token(index), single) for index, single in enumerate(singles))
@@ -87,7 +87,7 @@ def test_a_batch_scores_each_token_as_alone(version: str) -> None:
 def test_proposals_measured_apart_and_joined_score_as_together(version: str) -> None:
     config = get_version(version).evaluation
     cases = _tokens(version)
-    states, observations, maps, centerlines, routes = (list(column) for column in zip(*cases))
+    states, observations, maps, centerlines, routes = (list(column) for column in zip(*cases, strict=True))
     states = np.stack(states)
     reference = measure_batch(states[:, :1], observations, maps, centerlines, routes, config)
     submitted = measure_batch(states[:, 1:], observations, maps, centerlines, routes, config)

@@ -48,7 +48,7 @@ def test_touching_and_nearly_touching_boxes() -> None:
             other = base + np.array([dx, dy])
             other[:, 0] = np.nextafter(other[:, 0], np.inf * nudge) if nudge else other[:, 0]
             pairs.append((base, other))
-    first, second = (np.array(column) for column in zip(*pairs))
+    first, second = (np.array(column) for column in zip(*pairs, strict=True))
     expected = shapely_meets(first, second)
     assert expected.sum() >= 4  # exact contacts touch
     assert np.array_equal(quads_intersect(first, second), expected)

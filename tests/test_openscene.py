@@ -164,7 +164,7 @@ def test_frame_conversion_recovers_global_ground_truth() -> None:
         assert all(isinstance(is_red, bool) for _, is_red in converted["traffic_lights"])
         assert [o["track"] for o in converted["objects"]] == [o.track for o in truth.objects]
         assert [o["category"] for o in converted["objects"]] == [o.name for o in truth.objects]
-        for obj, expected in zip(converted["objects"], truth.objects):
+        for obj, expected in zip(converted["objects"], truth.objects, strict=True):
             x, y, z, length, width, height, heading = obj["box"]
             assert (x, y) == pytest.approx((expected.x, expected.y), abs=1e-8)
             assert (z, length, width, height) == pytest.approx((0.8, *expected.size), abs=1e-12)
@@ -280,7 +280,7 @@ def test_geopackage_layers_are_reprojected_to_the_meta_projected_system(tables) 
     for table, layer in (("lanes_polygons", tables.lanes), ("lane_groups_polygons", tables.roadblocks)):
         expected = {str(fid): geometry for fid, geometry, _ in truth[table].rows}
         assert set(layer.ids) == set(expected)
-        for object_id, geometry in zip(layer.ids, layer.geometries):
+        for object_id, geometry in zip(layer.ids, layer.geometries, strict=True):
             coordinates = shapely.get_coordinates(geometry)
             np.testing.assert_allclose(
                 coordinates, shapely.get_coordinates(expected[object_id]), rtol=0, atol=1e-6
@@ -314,7 +314,7 @@ def test_geopackage_in_projected_storage_is_read_unchanged_and_in_fid_order(tmp_
     expected = {str(fid): geometry for fid, geometry, _ in truth["lane_groups_polygons"].rows}
     assert all(
         shapely.equals_exact(g, expected[i], tolerance=0)
-        for i, g in zip(tables.roadblocks.ids, tables.roadblocks.geometries)
+        for i, g in zip(tables.roadblocks.ids, tables.roadblocks.geometries, strict=True)
     )
 
 
@@ -433,7 +433,7 @@ def test_excerpt_warns_about_what_format_v1_drops_and_serialises_to_a_valid_scen
     assert [lane.id for lane in scene.map.lanes] == [lane.id for lane in excerpt.map.lanes]
     assert all(
         shapely.equals_exact(a.polygon, b.polygon, tolerance=0)
-        for a, b in zip(scene.map.roadblocks, excerpt.map.roadblocks)
+        for a, b in zip(scene.map.roadblocks, excerpt.map.roadblocks, strict=True)
     )
 
 

@@ -91,7 +91,7 @@ def test_scene_content_is_the_converted_window_and_its_excerpt(data, imported) -
     window = frames[9:23]
     expected_frames = [convert_frame(frame) for frame in window]
     assert [f["token"] for f in raw["frames"]] == [f["token"] for f in expected_frames]
-    for written, expected in zip(raw["frames"], expected_frames):
+    for written, expected in zip(raw["frames"], expected_frames, strict=True):
         assert written == expected  # every field, floats bit for bit (the stored commands are all one-hot)
     current = window[3]
     excerpt = build_excerpt(tables, ego_pose(current), route_roadblocks(current))

@@ -229,7 +229,7 @@ def test_all_reference_scenes_survive_the_round_trip(imported) -> None:
             assert [(o["track"], o["category"]) for o in frame["objects"]] == [
                 (o["track"], o["category"]) for o in expected["objects"]
             ]
-            for obj, expected_obj in zip(frame["objects"], expected["objects"]):
+            for obj, expected_obj in zip(frame["objects"], expected["objects"], strict=True):
                 # The synthetic scenes were never in an ego frame: the way back costs a few ulps.
                 assert obj["box"] == pytest.approx(expected_obj["box"], rel=0, abs=1e-9)
                 assert obj["velocity"] == pytest.approx(expected_obj["velocity"], rel=0, abs=1e-9)

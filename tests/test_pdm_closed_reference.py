@@ -51,7 +51,7 @@ def _plans(token: str) -> dict[str, PlannerOutput]:
     (outputs,) = plan_references_batch(
         [scene], [build_drivable_map(scene)], [version.planner for version in VERSIONS.values()]
     )
-    return dict(zip(VERSIONS, outputs))
+    return dict(zip(VERSIONS, outputs, strict=True))
 
 
 @pytest.mark.parametrize("version", list(VERSIONS))
@@ -150,8 +150,8 @@ def test_given_the_devkits_choice_every_cached_field_matches(monkeypatch: pytest
     outputs = plan_references_batch(
         scenes, [build_drivable_map(s) for s in scenes], [VERSIONS[v].planner for v in versions]
     )
-    for token, scene_outputs in zip(SCENES, outputs):
-        for version, plan in zip(versions, scene_outputs):
+    for token, scene_outputs in zip(SCENES, outputs, strict=True):
+        for version, plan in zip(versions, scene_outputs, strict=True):
             expected = _expected_cache(version)[token]
             assert list(plan.route_roadblocks) == expected["route_roadblocks_corrected"]
             assert list(plan.route_lane_ids) == expected["route_lane_ids"]

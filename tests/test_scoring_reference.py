@@ -83,7 +83,8 @@ def _cases() -> tuple[Case, ...]:
     simulated = simulate(np.concatenate([pdm, agents]), np.concatenate([initial, initial]))
     states = np.stack(np.split(simulated, 2), axis=1)
     return tuple(
-        Case(family, version, row, pair) for (family, version, row, _), pair in zip(labelled, states)
+        Case(family, version, row, pair)
+        for (family, version, row, _), pair in zip(labelled, states, strict=True)
     )
 
 
@@ -148,7 +149,7 @@ def test_observation_and_drivable_map_match_the_official_cache(version: str) -> 
             continue
         observation, drivable_map = _inputs(case.row["token"])
         by_type: dict[str, list[str]] = {}
-        for token, kind in zip(drivable_map.tokens, drivable_map.types):
+        for token, kind in zip(drivable_map.tokens, drivable_map.types, strict=True):
             by_type.setdefault(kind, []).append(token)
         assert by_type == case.row["cache"]["drivable_map"], case.row["token"]
         assert len(observation.tokens) == case.row["cache"]["observation_tracks"], case.row["token"]

@@ -75,7 +75,7 @@ def _einsum_lateral_steering_rate(
         np.zeros((batch, 3, 1)),
         np.zeros((batch, 3)),
     )
-    for step, term in zip(steps, affine):
+    for step, term in zip(steps, affine, strict=True):
         transition = np.einsum("bij, bjk -> bik", step, transition)
         control = np.einsum("bij, bjk -> bik", step, control) + np.array([[0.0], [0.0], [DT]])
         offset = np.einsum("bij, bj  -> bi", step, offset) + term

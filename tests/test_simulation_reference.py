@@ -102,7 +102,7 @@ def test_simulated_poses_match_the_devkit(cases: Cases, proposal: str) -> None:
     position, heading = _worst_differences(simulated, expected)
     failures = [
         f"{label}: position {p:.3g} m, heading {h:.3g} rad"
-        for label, p, h in zip(cases.labels, position, heading)
+        for label, p, h in zip(cases.labels, position, heading, strict=True)
         if p > POSITION_TOLERANCE_M or h > HEADING_TOLERANCE_RAD
     ]
     assert failures == []

@@ -268,7 +268,7 @@ def test_objects_have_realistic_boxes_and_static_ones_stand_still(scenes: list[S
     }
     for scene in scenes:
         for frame in scene.frames:
-            for category, box, velocity in zip(frame.categories, frame.boxes, frame.velocities):
+            for category, box, velocity in zip(frame.categories, frame.boxes, frame.velocities, strict=True):
                 low, high = limits.get(category, (0.1, 1.5))
                 assert low <= box[3] <= high and 0.1 <= box[4] <= 2.7, (scene.token, category, box)
                 if category in STATIC_CATEGORIES:
@@ -293,7 +293,7 @@ def test_every_object_category_and_road_user_is_present(scenes: list[Scene]) -> 
         local = _ego_frame(current, current.boxes[:, :2])
         heading = current.ego.heading
         for category, (x, y), box, velocity in zip(
-            current.categories, local, current.boxes, current.velocities
+            current.categories, local, current.boxes, current.velocities, strict=True
         ):
             speed = np.hypot(*velocity)
             along = np.cos(box[6] - heading)
@@ -362,7 +362,7 @@ def test_human_futures_are_plausible(scenes: list[Scene]) -> None:
         standing = [
             poly
             for frame in scene.future_frames
-            for track, poly in zip(frame.tracks, _object_boxes(frame))
+            for track, poly in zip(frame.tracks, _object_boxes(frame), strict=True)
             if track in once
         ]
         for frame in frames[: FUTURE_FRAMES + 1]:

@@ -116,7 +116,11 @@ def _convert(frame: Mapping[str, Any], token: str) -> dict[str, Any]:
             "x": pose.x,
             "y": pose.y,
             "heading": pose.heading,
-            **dict(zip(("vx", "vy", "ax", "ay"), map(float, _numbers(frame, "ego_dynamic_state", 4)))),
+            **dict(
+                zip(
+                    ("vx", "vy", "ax", "ay"), map(float, _numbers(frame, "ego_dynamic_state", 4)), strict=True
+                )
+            ),
         },
         "driving_command": driving_command(frame),
         "objects": _objects(frame, token, pose),
@@ -177,7 +181,9 @@ def _objects(frame: Mapping[str, Any], token: str, pose: EgoPose) -> list[dict[s
     velocities = np.where(is_agent[:, None], velocities_to_global(local_velocities, pose), 0.0)
     return [
         {"track": str(track), "category": category, "box": box.tolist(), "velocity": velocity.tolist()}
-        for track, category, box, velocity in zip(annotations["track_tokens"], categories, boxes, velocities)
+        for track, category, box, velocity in zip(
+            annotations["track_tokens"], categories, boxes, velocities, strict=True
+        )
     ]
 
 

@@ -141,7 +141,7 @@ class MapTables:
 
 def _group(layer: Layer, column: str) -> dict[str, list[str]]:
     groups: dict[str, list[str]] = defaultdict(list)
-    for object_id, parent in zip(layer.ids, layer.attributes[column]):
+    for object_id, parent in zip(layer.ids, layer.attributes[column], strict=True):
         if parent is not None:
             groups[parent].append(object_id)
     return dict(groups)

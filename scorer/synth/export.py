@@ -127,7 +127,7 @@ def _lane_documents(
             "incoming": lane.incoming,
             "outgoing": lane.outgoing,
         }
-        for lane, polygon, baseline in zip(lanes, polygons, baselines)
+        for lane, polygon, baseline in zip(lanes, polygons, baselines, strict=True)
     ]
 
 
@@ -142,7 +142,7 @@ def _block_documents(
             "outgoing": b.outgoing,
             "lanes": b.lanes,
         }
-        for b, polygon in zip(blocks, polygons)
+        for b, polygon in zip(blocks, polygons, strict=True)
         if b.id in kept
     ]
 
@@ -154,7 +154,7 @@ def map_excerpt(
     road_map = draft.road_map
     blocks = road_map.roadblocks + road_map.roadblock_connectors
     block_rings = _to_global(placement, [block.polygon for block in blocks])
-    kept = {b.id for b, near in zip(blocks, _touching(block_rings, centre)) if near}
+    kept = {b.id for b, near in zip(blocks, _touching(block_rings, centre), strict=True) if near}
     kept |= _neighbourhood({block.id: block for block in blocks}, draft.route)
     lanes = [lane for lane in road_map.lanes if lane.block in kept]
     connectors = [lane for lane in road_map.lane_connectors if lane.block in kept]
@@ -180,7 +180,7 @@ def map_excerpt(
         rings = _to_global(placement, [area.polygon for area in areas])
         document[layer] = [
             {"id": area.id, "polygon": ring.tolist()}
-            for area, ring, near in zip(areas, rings, _touching(rings, centre))
+            for area, ring, near in zip(areas, rings, _touching(rings, centre), strict=True)
             if near
         ]
     return document

@@ -133,7 +133,7 @@ def connect(
         bounds = [(path.offset(0.5 * width), path.offset(-0.5 * width)) for path in paths]
     block = road_map.add_block(ring(bounds[0][0], bounds[-1][1]), connector=True)
     _join(before, block, after)
-    for (lane_in, lane_out), centre, (left, right) in zip(pairs, centres, bounds):
+    for (lane_in, lane_out), centre, (left, right) in zip(pairs, centres, bounds, strict=True):
         lane = road_map.add_lane(block, centre, ring(left, right), 1, speed_limit, connector=True)
         _join(lane_in, lane, lane_out)
     return block
@@ -224,7 +224,7 @@ def carriageway(
                     road_map,
                     blocks[-1],
                     block,
-                    list(zip(lanes[-1], block_lanes)),
+                    list(zip(lanes[-1], block_lanes, strict=True)),
                     [lines[2 * k + 1][gap] for k in range(n_lanes)],
                     width,
                     speed_limit,

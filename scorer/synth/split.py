@@ -52,7 +52,7 @@ def scene_token(seed: int, index: int) -> str:
 def _dice(seed: int, index: int, offsets: dict[str, float]) -> Dice:
     strata = {
         choice: (offsets[choice] + index * math.sqrt(prime)) % 1.0
-        for choice, prime in zip(STRATIFIED_CHOICES, _PRIMES)
+        for choice, prime in zip(STRATIFIED_CHOICES, _PRIMES, strict=False)  # more primes than choices
     }
     return Dice(np.random.default_rng([seed, index]), strata)
 
@@ -68,7 +68,7 @@ def _draft(dice: Dice) -> SceneDraft:
 def synthesize_scene(seed: int, index: int) -> tuple[str, bytes, dict[str, object]]:
     """Return the token, the gzip file content and the generator's notes of one scene (a function of seed and index)."""
     offsets_rng = np.random.default_rng([seed, 1 << 20])
-    offsets = dict(zip(STRATIFIED_CHOICES, offsets_rng.random(len(STRATIFIED_CHOICES)).tolist()))
+    offsets = dict(zip(STRATIFIED_CHOICES, offsets_rng.random(len(STRATIFIED_CHOICES)).tolist(), strict=True))
     dice = _dice(seed, index, offsets)
     token = scene_token(seed, index)
     draft = _draft(dice)
