@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import SessionDep, TokenDep
 from server.migrate import current_revision
-from server.models import Approval, Phase, Scope, Split, utc_now
+from server.models import Approval, Phase, Scope, Split
 from server.routes.params import PNG_RESPONSE, RowId, SceneToken, SeedIndex
 from server.routes.views import phase_view, submission_views, token_result_views
 from server.schemas import (
@@ -35,6 +35,7 @@ from server.services.quota import quota_usage
 from server.services.splits import (
     ALL_SUBSET,
     PUBLIC_SUBSET,
+    has_closed,
     is_open,
     resolve_phase,
     subset_names,
@@ -71,7 +72,7 @@ def leaderboard_view(
         "split": phase.split.name,
         "subset": subset,
         "subsets": visible,
-        "closed": phase.closes_at is not None and phase.closes_at <= utc_now(),
+        "closed": has_closed(phase),
         "sort": sort,
         "columns": list(columns),
         "rows": leaderboard(session, phase, version, subset, sort),
@@ -228,5 +229,5 @@ def published_scene_picture(
     """The drill-down picture of a published entry on one token (splits whose scenes are public only)."""
     submission = published_submission(session, submission_id)
     settings = request.app.state.settings
-    picture = scene_picture(session, submission, token, version, seed, admin=False, settings=settings)
+    picture = scene_picture(submission, token, version, seed, admin=False, settings=settings)
     return Response(picture, media_type="image/png")

@@ -85,7 +85,7 @@ def subset_names(split: Split) -> list[str]:
 def visible_subsets(split: Split, phase: Phase | None, admin: bool, now: datetime | None = None) -> list[str]:
     """Return the subsets a caller may see: the private part only to admins or once the phase has closed."""
     names = subset_names(split)
-    closed = phase is not None and phase.closes_at is not None and phase.closes_at <= (now or utc_now())
+    closed = phase is not None and has_closed(phase, now)
     if admin or closed or names == [ALL_SUBSET]:
         return names
     # Before the phase closes, "all" would leak the private tokens' scores into the public numbers.
@@ -136,6 +136,11 @@ def is_open(phase: Phase, now: datetime | None = None) -> bool:
     """Return whether the phase accepts submissions at `now`."""
     now = now or utc_now()
     return phase.opens_at <= now and (phase.closes_at is None or now < phase.closes_at)
+
+
+def has_closed(phase: Phase, now: datetime | None = None) -> bool:
+    """Return whether the phase has closed at `now`: its private subset and its entries are then public."""
+    return phase.closes_at is not None and phase.closes_at <= (now or utc_now())
 
 
 def resolve_phase(session: Session, name: str | None, now: datetime | None = None) -> Phase:

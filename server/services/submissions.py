@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 from server.models import Phase, Split, Status, Submission, Team, utc_now
 from server.services.errors import Conflict, Forbidden, NotFound
 from server.services.quota import check_quota, lock_team
-from server.services.splits import is_open
+from server.services.splits import has_closed, is_open
 from server.services.teams import baseline_team
 from server.services.validation import ValidUpload
 from server.storage import store_file
@@ -139,8 +139,7 @@ def published_submission(session: Session, submission_id: int, now: datetime | N
         and phase is not None
         and submission.status == Status.scored
         and not (submission.hidden or submission.admin_hidden or submission.disqualified)
-        and phase.closes_at is not None
-        and phase.closes_at <= (now or utc_now())
+        and has_closed(phase, now)
     )
     if not published:
         raise NotFound(
