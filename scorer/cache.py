@@ -11,8 +11,6 @@ scene, unlike the devkit, whose planner instance carries it across the scenes of
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -23,6 +21,7 @@ import shapely
 
 from scorer.blas import engine_provenance
 from scorer.drivable_map import DrivableMap, build_drivable_map
+from scorer.files import write_atomically
 from scorer.geometry import FloatArray
 from scorer.observation import Observation, observe_scene
 from scorer.pdm_closed import plan_references_batch
@@ -170,10 +169,7 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
         },
     }
     path = cache_path(cache_dir, cache.key.metric_version, cache.token)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
-        handle.write(_pack(meta, arrays))
-    os.replace(handle.name, path)
+    write_atomically(path, _pack(meta, arrays), durable=False)  # a lost cache file is rebuilt
     return path
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import gzip
 import json
-import os
 import re
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
@@ -19,6 +18,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+from scorer.files import write_atomically
 from scorer.openscene.excerpt import Excerpt, build_excerpt, excerpt_to_json
 from scorer.openscene.frames import (
     CURRENT_INDEX,
@@ -231,7 +231,7 @@ class _LogScenes:
             "frames": frames,
             "map": excerpt_to_json(excerpt.map),
         }
-        _write_atomically(scene, out_path)
+        _write_scene(scene, out_path)
         return TokenOutcome(
             token,
             self.name,
@@ -264,14 +264,11 @@ class _LogScenes:
         return self._computed_commands[index]
 
 
-def _write_atomically(scene: dict[str, Any], out_path: Path) -> None:
-    """Validate the scene as the reader will, then write it under a temporary name and rename it."""
+def _write_scene(scene: dict[str, Any], out_path: Path) -> None:
+    """Validate the scene as the reader will, then write it compressed (atomically)."""
     parse_scene(scene, str(out_path))
     data = gzip.compress(json.dumps(scene, separators=(",", ":"), allow_nan=False).encode(), mtime=0)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp")
-    temporary.write_bytes(data)
-    os.replace(temporary, out_path)
+    write_atomically(out_path, data, durable=False)  # an import is resumable: a lost scene is written again
 
 
 def import_logs(
