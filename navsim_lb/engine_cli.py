@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from enum import Enum
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
@@ -14,6 +14,9 @@ from rich.table import Table
 
 from navsim_lb.terminal import console, fail, progress_bar, warn, warn_about_kernels
 from scorer.versions import DEFAULT_VERSION, VERSIONS, VersionName
+
+if TYPE_CHECKING:
+    from scorer.submission import Submission
 
 
 class BaselineKind(str, Enum):
@@ -84,6 +87,18 @@ def cache(
         raise typer.Exit(code=1)
 
 
+def _read_submission(path: Path) -> Submission:
+    """Return the submission in file `path`, or fail with what is wrong with it."""
+    from scorer.submission import SubmissionError, load_submission
+
+    try:
+        return load_submission(path.read_bytes(), path.name)
+    except OSError as error:
+        raise fail(str(error)) from None
+    except SubmissionError as error:
+        raise fail(f"{path}: {error}") from None
+
+
 def score(
     split: Annotated[Path, typer.Argument(help="split directory")],
     submission: Annotated[Path, typer.Argument(help="submission file (JSON or NAVSIM pickle)")],
@@ -95,15 +110,13 @@ def score(
     from navsim_lb.report import results_table, summary_table
     from scorer.evaluate import score_tokens
     from scorer.scene import SceneFormatError, scene_paths
-    from scorer.submission import SubmissionError, load_submission, validate_submission
+    from scorer.submission import validate_submission
 
     try:
         tokens = list(scene_paths(split))
-        loaded = load_submission(submission.read_bytes(), submission.name)
     except (SceneFormatError, OSError) as error:
         raise fail(str(error)) from None
-    except SubmissionError as error:
-        raise fail(f"{submission}: {error}") from None
+    loaded = _read_submission(submission)
     for problem in validate_submission(loaded, tokens):
         warn(str(problem))
     warn_about_kernels()
@@ -132,27 +145,24 @@ def plot(
     """Draw why a token scored what it did: map, objects, trajectories, the first infraction of each kind."""
     from scorer.evaluate import TokenError
     from scorer.explain import explain_token
-    from scorer.scene import SceneFormatError
-    from scorer.submission import SubmissionError, load_submission
+    from scorer.scene import SceneFormatError, scene_paths
     from server.scene_plot import render
 
     image_format = out.suffix.lower().removeprefix(".")
     if image_format not in ("png", "svg"):
         raise fail(f"{out}: the picture must end in .png or .svg")
-    try:
-        loaded = load_submission(submission.read_bytes(), submission.name)
-    except OSError as error:
-        raise fail(str(error)) from None
-    except SubmissionError as error:
-        raise fail(f"{submission}: {error}") from None
+    loaded = _read_submission(submission)
     if not 0 <= seed < len(loaded.seeds):
         raise fail(f"{submission} has {len(loaded.seeds)} seed(s); --seed {seed} does not exist")
     if token not in loaded.seeds[seed]:
         raise fail(f"{submission} has no prediction for token {token}")
     warn_about_kernels()
     try:
+        scenes = scene_paths(split)
+        if token not in scenes:
+            raise TokenError(f"token {token} is not part of split {split.name}")
         explanation = explain_token(
-            split, cache_dir or default_cache_dir(split), token, loaded.seeds[seed][token], version
+            scenes[token], cache_dir or default_cache_dir(split), token, loaded.seeds[seed][token], version
         )
     except (TokenError, SceneFormatError) as error:
         raise fail(str(error)) from None

@@ -18,7 +18,7 @@ from scorer.cache import MetricCache, load_cache
 from scorer.evaluate import TokenError, build_missing_caches, score_against_references
 from scorer.geometry import FloatArray
 from scorer.metrics.ego_areas import EgoArea
-from scorer.scene import load_scene, scene_file_hash, scene_paths
+from scorer.scene import load_scene, scene_file_hash
 from scorer.simulation import simulate
 from scorer.trajectory import SCORING_INTERVAL_S, initial_state, pdm_references
 from scorer.versions import METRIC_COLUMNS, VERSIONS, VersionName, get_version
@@ -50,13 +50,6 @@ class Explanation:
     cache: MetricCache  # observation, drivable map, centerline and route of the token
 
 
-def _scene_path(split_dir: Path, token: str) -> Path:
-    paths = scene_paths(split_dir)
-    if token not in paths:
-        raise TokenError(f"token {token} is not part of split {Path(split_dir).name}")
-    return paths[token]
-
-
 def _cache(scene: Path, cache_dir: Path, token: str, version: VersionName) -> MetricCache:
     cache = load_cache(Path(cache_dir), version, token, scene_file_hash(scene))
     if cache is not None:
@@ -79,13 +72,12 @@ def _first_step(flags: np.ndarray) -> int:
 
 
 def explain_token(
-    split_dir: Path, cache_dir: Path, token: str, poses: FloatArray, version: str
+    scene_file: Path, cache_dir: Path, token: str, poses: FloatArray, version: str
 ) -> Explanation:
-    """Return the explanation of `poses` (8, 3) on `token` under a metric version."""
+    """Return the explanation of `poses` (8, 3) on `token`, whose scene is `scene_file`, under a metric version."""
     metric_version = get_version(version)
-    scene_path = _scene_path(Path(split_dir), token)
-    cache = _cache(scene_path, Path(cache_dir), token, metric_version.name)
-    scene = load_scene(scene_path)
+    cache = _cache(scene_file, Path(cache_dir), token, metric_version.name)
+    scene = load_scene(scene_file)
     future = scene.frames[scene.current_index + 1 :]
     agent_states, scores = score_against_references(
         [cache], [np.asarray(poses, dtype=np.float64)], metric_version

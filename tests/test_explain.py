@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from navsim_lb.cli import app
 from scorer.explain import explain_token
+from scorer.scene import scene_paths
 from scorer.submission import load_submission
 from scorer.versions import METRIC_COLUMNS, VERSIONS
 from server.scene_plot import render
@@ -39,7 +40,9 @@ def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_metrics_and_first_infractions_are_the_devkits(cache_dir: Path, family: str) -> None:
     predictions = _predictions(REFERENCE, family)
     for token, row in _expected(REFERENCE, family, "v1.1").items():
-        explanation = explain_token(REFERENCE, cache_dir, token, predictions[token], "v1.1")
+        explanation = explain_token(
+            scene_paths(REFERENCE)[token], cache_dir, token, predictions[token], "v1.1"
+        )
         assert explanation.metrics == {column: row[column] for column in METRIC_COLUMNS}, token
         times = {infraction.kind: infraction.time_s for infraction in explanation.infractions}
         diagnostics = row["diagnostics"]
@@ -57,7 +60,11 @@ def test_the_knife_edge_collision_is_explained_with_its_vehicle(cache_dir: Path)
     token = "8bedfe2fc5629e39"
     for version in VERSIONS:
         explanation = explain_token(
-            KNIFE_EDGE, cache_dir, token, _predictions(KNIFE_EDGE, "cv_decel")[token], version
+            scene_paths(KNIFE_EDGE)[token],
+            cache_dir,
+            token,
+            _predictions(KNIFE_EDGE, "cv_decel")[token],
+            version,
         )
         assert (
             explanation.metrics["score"] == _expected(KNIFE_EDGE, "cv_decel", version)[token]["score"] == 0.0
@@ -70,7 +77,7 @@ def test_the_knife_edge_collision_is_explained_with_its_vehicle(cache_dir: Path)
 def test_pictures_are_png_or_svg_with_the_infraction_named(cache_dir: Path) -> None:
     token = "8bedfe2fc5629e39"
     explanation = explain_token(
-        KNIFE_EDGE, cache_dir, token, _predictions(KNIFE_EDGE, "cv_decel")[token], "v1.1"
+        scene_paths(KNIFE_EDGE)[token], cache_dir, token, _predictions(KNIFE_EDGE, "cv_decel")[token], "v1.1"
     )
     assert render(explanation, "png").startswith(b"\x89PNG\r\n\x1a\n")
     svg = render(explanation, "svg").decode()

@@ -316,7 +316,7 @@ def scene_picture_route(
     submission = get_submission(session, submission_id)
     settings = request.app.state.settings
     return Response(
-        scene_picture(session, submission, token, version, seed, admin=True, settings=settings),
+        scene_picture(submission, token, version, seed, admin=True, settings=settings),
         media_type="image/png",
     )
 

@@ -178,5 +178,5 @@ def scene_picture_route(
     Only for splits whose scenes are public, on tokens of the subsets the team may see."""
     submission = get_submission(session, submission_id, team.id)
     settings = request.app.state.settings
-    picture = scene_picture(session, submission, token, version, seed, admin=False, settings=settings)
+    picture = scene_picture(submission, token, version, seed, admin=False, settings=settings)
     return Response(picture, media_type="image/png")

@@ -10,16 +10,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sqlalchemy.orm import Session
-
+from scorer.files import write_atomically
 from server.models import Status, Submission
 from server.services.errors import Conflict, Forbidden, NotFound
-from server.services.splits import subset_tokens, visible_subsets
+from server.services.splits import ALL_SUBSET, visible_subsets
 from server.settings import Settings
-from server.storage import read_file, write_atomically
+from server.storage import read_file
 
 
-def _checked(session: Session, submission: Submission, token: str, seed: int, admin: bool) -> Path:
+def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path:
     """Return the token's scene file if the caller may see this picture; raise why not otherwise."""
     from scorer.scene import scene_paths
 
@@ -38,14 +37,17 @@ def _checked(session: Session, submission: Submission, token: str, seed: int, ad
             raise Forbidden(
                 f"the scenes of split {split.name!r} are not public: only the organisers see them"
             )
-        subsets = subset_tokens(split)
-        if not any(token in subsets[name] for name in visible_subsets(split, submission.phase, admin=False)):
+        visible = visible_subsets(split, submission.phase, admin=False)
+        # "all" holds every token of `paths`; the named subsets are stored with the split.
+        revealed = ALL_SUBSET in visible or any(
+            token in subset.tokens for subset in split.subsets if subset.name in visible
+        )
+        if not revealed:
             raise Forbidden(f"token {token} belongs to a subset of {split.name!r} that is not revealed yet")
     return paths[token]
 
 
 def scene_picture(
-    session: Session,
     submission: Submission,
     token: str,
     version: str,
@@ -59,7 +61,7 @@ def scene_picture(
     from scorer.submission import load_submission
     from server.scene_plot import render
 
-    scene = _checked(session, submission, token, seed, admin)
+    scene = _checked(submission, token, seed, admin)
     assert settings.cache_dir is not None and settings.storage_dir is not None
     path = (
         settings.data_dir
@@ -71,9 +73,7 @@ def scene_picture(
     predictions = load_submission(
         read_file(settings.storage_dir, submission.stored_name), submission.filename
     )
-    explanation = explain_token(
-        Path(submission.split.directory), settings.cache_dir, token, predictions.seeds[seed][token], version
-    )
+    explanation = explain_token(scene, settings.cache_dir, token, predictions.seeds[seed][token], version)
     picture = render(explanation, "png")
-    write_atomically(path, picture)
+    write_atomically(path, picture, durable=False)  # rendered again when missing
     return picture
