@@ -34,11 +34,16 @@ def _cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> frozenset[str]:
     return frozenset(flags.split())
 
 
+def cpu_runs_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> bool:
+    """Whether this CPU (or one with `cpu_flags`) can run the devkit's OpenBLAS kernels (AVX-512)."""
+    return _SKYLAKEX_CPU_FLAGS <= (_cpu_flags() if cpu_flags is None else cpu_flags)
+
+
 def select_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> None:
     """Ask OpenBLAS (when it loads later) for the devkit's kernels if this CPU can run them."""
     if os.environ.get(KEEP_VARIABLE):
         return
-    if _SKYLAKEX_CPU_FLAGS <= (_cpu_flags() if cpu_flags is None else cpu_flags):
+    if cpu_runs_devkit_kernels(cpu_flags):
         os.environ["OPENBLAS_CORETYPE"] = DEVKIT_KERNELS
 
 

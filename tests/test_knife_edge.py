@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from engine_process import run_python, score_in_process
 
-from scorer.blas import DEVKIT_KERNELS, KEEP_VARIABLE
+from scorer.blas import DEVKIT_KERNELS, KEEP_VARIABLE, cpu_runs_devkit_kernels
 from scorer.metrics.contacts import BEHIND_ANGLE, relative_angle
 from scorer.versions import METRIC_COLUMNS, VERSIONS
 
@@ -42,6 +42,10 @@ print(json.dumps({{"kernels": list(blas_kernels()), "angle": None if np.isnan(an
 
 
 def _with_kernels(kernels: str) -> dict[str, str]:
+    """Return the environment of a run under `kernels`; skip, saying why, where this CPU cannot run them."""
+    if kernels == DEVKIT_KERNELS and not cpu_runs_devkit_kernels():
+        # Forced onto a CPU without AVX-512, OpenBLAS's SkylakeX kernels stop the process (illegal instruction).
+        pytest.skip(f"this CPU has no AVX-512: OpenBLAS's {kernels} kernels cannot run here")
     return {KEEP_VARIABLE: "1", "OPENBLAS_CORETYPE": kernels}
 
 
