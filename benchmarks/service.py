@@ -8,8 +8,12 @@ For each backend (embedded: SQLite + SQLite broker; services: PostgreSQL + Redis
 - with the workers idle, GET /leaderboard at a fixed rate from one open-loop client on loopback and report
   p50/p99 latency, measured from each request's scheduled start (a slow answer delays no later request).
 
+With --load N: the leaderboard at --rate for --seconds while N uploads are scored by the largest worker
+size, on each backend: p50/p99 latency, errors, and a check that every upload was scored exactly once
+(one row per token, version and seed; one leaderboard entry per version).
+
 Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--rate 200] [--seconds 10]
-       [--backends embedded,services] [--workers 1,2]
+       [--backends embedded,services] [--workers 1,2] [--load 20]
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from sqlalchemy import func, select
 
 from navsim_lb.processes import api_command, child_process
 from navsim_lb.scratch import scratch_postgres_database, scratch_redis_queue
@@ -41,7 +46,8 @@ from scorer.synth import synthesize_split
 from scorer.versions import VERSIONS
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import upgrade
-from server.models import Approval, Scope
+from server.models import Approval, Scope, Summary, TokenResultRow
+from server.models import Submission as SubmissionRow
 from server.services.splits import create_phase, register_split
 from server.services.teams import create_team
 from server.services.tokens import create_token
@@ -68,9 +74,9 @@ def prepared_split(tokens: int) -> tuple[Path, Path]:
     return split, cache
 
 
-def entry_file(split: Path, out: Path) -> Path:
+def entry_file(split: Path, out: Path, seed: int = 0) -> Path:
     """Write a one-seed submission (the human trajectories with noise) covering every token of the split."""
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     human = baseline_submission(split, "human", "bench").seeds[0]
     noisy = {token: poses + rng.normal(0.0, 0.2, poses.shape) for token, poses in human.items()}
     out.write_bytes(dump_submission_json(Submission(SubmissionMetadata(method="bench"), (noisy,))))
@@ -164,18 +170,19 @@ async def leaderboard_latency(url: str, rate: float, seconds: float) -> tuple[fl
     return float(p50), float(p99), len(latencies), errors
 
 
-def measure(
-    kind: str, workers: int, split: Path, cache: Path, latency_load: tuple[float, float] | None
-) -> tuple[float, float, tuple[float, float, int, int] | None]:
-    """Run one configuration on a fresh backend: POST-to-row times, then leaderboard latency if asked."""
+@contextmanager
+def running(
+    kind: str, workers: int, split: Path, cache: Path
+) -> Iterator[tuple[Path, str, httpx.Client, str]]:
+    """Run API and worker on a fresh backend; yield the scratch root, the URL, a team client, the database URL."""
     with tempfile.TemporaryDirectory(prefix="navsim-lb-bench-") as tmp, ExitStack() as stack:
         root = Path(tmp)
         variables = stack.enter_context(backend(kind, root)) | {"CACHE_DIR": str(cache)}
         env = {**os.environ, **variables}
-        token = set_up(Settings(**variables).database_url, split)
-        entry = entry_file(split, root / "entry.json")
+        database_url = Settings(**variables).database_url
+        token = set_up(database_url, split)
         worker_log = root / "worker.log"
-        stack.enter_context(child_process(worker_command(workers, beat=False), env, worker_log))
+        stack.enter_context(child_process(worker_command(workers, beat=True), env, worker_log))
         port = free_port()
         stack.enter_context(child_process(api_command("127.0.0.1", port), env, root / "api.log"))
         url = f"http://127.0.0.1:{port}"
@@ -184,9 +191,62 @@ def measure(
         )
         wait_until(lambda: _answers(client), timeout=60)
         wait_until(lambda: "ready." in worker_log.read_text(errors="replace"), timeout=60)
-        scored, on_board = post_to_row(client, entry)
+        yield root, url, client, database_url
+
+
+def measure(
+    kind: str, workers: int, split: Path, cache: Path, latency_load: tuple[float, float] | None
+) -> tuple[float, float, tuple[float, float, int, int] | None]:
+    """Run one configuration on a fresh backend: POST-to-row times, then leaderboard latency if asked."""
+    with running(kind, workers, split, cache) as (root, url, client, _):
+        scored, on_board = post_to_row(client, entry_file(split, root / "entry.json"))
         latency = asyncio.run(leaderboard_latency(url, *latency_load)) if latency_load else None
     return scored, on_board, latency
+
+
+def scored_once(database_url: str, submission_ids: list[int], tokens: int) -> list[str]:
+    """Return what is wrong with each submission's record: not scored, rows missing or doubled, entries."""
+    engine = make_engine(database_url)
+    problems = []
+    with make_session_factory(engine)() as session:
+        for submission_id in submission_ids:
+            submission = session.get(SubmissionRow, submission_id)
+            rows = session.scalar(select(func.count()).where(TokenResultRow.submission_id == submission_id))
+            entries = session.scalar(select(func.count()).where(Summary.submission_id == submission_id))
+            if submission is None or submission.status != "scored":
+                problems.append(f"{submission_id}: {submission.status if submission else 'missing'}")
+            elif rows != tokens * len(VERSIONS) or entries != len(VERSIONS):
+                problems.append(f"{submission_id}: {rows} rows, {entries} leaderboard entries")
+    engine.dispose()
+    return problems
+
+
+def under_load(
+    kind: str, workers: int, split: Path, cache: Path, uploads: int, rate: float, seconds: float
+) -> tuple[tuple[float, float, int, int], float, list[str]]:
+    """Leaderboard latency at `rate` while `uploads` submissions are scored; the seconds until all are."""
+    with running(kind, workers, split, cache) as (root, url, client, database_url):
+        started = time.perf_counter()
+        ids = []
+        for index in range(uploads):
+            entry = entry_file(split, root / f"entry-{index}.json", seed=index)
+            response = client.post("/api/v1/submissions", files={"file": (entry.name, entry.read_bytes())})
+            assert response.status_code == 202, response.text
+            ids.append(response.json()["id"])
+        latency = asyncio.run(leaderboard_latency(url, rate, seconds))
+        done = lambda: all(
+            client.get(f"/api/v1/submissions/{i}").json()["status"] in ("scored", "failed") for i in ids
+        )
+        wait_until(done, timeout=3600, poll_s=1.0)
+        return (
+            latency,
+            time.perf_counter() - started,
+            scored_once(database_url, ids, split_size(split)),
+        )
+
+
+def split_size(split: Path) -> int:
+    return len(list((split / "scenes").iterdir()))
 
 
 def main() -> None:
@@ -196,10 +256,25 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--backends", default="embedded,services")
     parser.add_argument("--workers", default="1,2")
+    parser.add_argument("--load", type=int, default=0, help="uploads scored while the leaderboard is read")
     args = parser.parse_args()
 
     split, cache = prepared_split(args.tokens)
     sizes = [int(n) for n in args.workers.split(",")]
+    if args.load:
+        for kind in args.backends.split(","):
+            latency, total, problems = under_load(
+                kind, max(sizes), split, cache, args.load, args.rate, args.seconds
+            )
+            p50, p99, answered, errors = latency
+            print(
+                f"{kind}: GET /leaderboard {args.rate:.0f}/s for {args.seconds:.0f} s while {args.load} uploads of "
+                f"{args.tokens} tokens were scored by {max(sizes)} worker processes: p50 {p50:.1f} ms, "
+                f"p99 {p99:.1f} ms ({answered} answered, {errors} errors); all scored after {total:.0f} s; "
+                + ("every upload scored exactly once" if not problems else f"PROBLEMS: {problems}"),
+                flush=True,
+            )
+        return
     print(f"{args.tokens} tokens, both metric versions; seconds from POST to:")
     print(f"{'backend':10} {'workers':>7} {'scored':>8} {'on board':>9}")
     latencies = {}

@@ -1,7 +1,7 @@
 """`navsim-lb demo` (`make demo`): the whole service on one machine, with nothing to install but the venv.
 
 Migrates the configured database (an SQLite file under .navsim-lb by default), synthesises a demo split
-if there is none, registers it with its two baselines, starts one Celery worker (with the lease reaper)
+if there is none, registers it with its two baselines, starts one Celery worker (with the reaper of lost work)
 on the configured broker (the embedded SQLite one by default) and the API, creates a demo team and an
 admin with their tokens in `.navsim-lb/demo-tokens.json`, submits a demo entry through the API, prints
 the leaderboard URL and runs until Ctrl-C; then it stops every process it started.

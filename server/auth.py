@@ -10,6 +10,7 @@ from fastapi import Depends, HTTPException, Request
 from sqlalchemy.orm import Session
 
 from server.models import ApiToken, Approval, Scope, Team, utc_now
+from server.rate_limits import FAILED_AUTHENTICATIONS, UPLOADS_PER_ADDRESS, UPLOADS_PER_TOKEN
 from server.services.tokens import find_token, token_problem
 
 LAST_USED_RESOLUTION = timedelta(minutes=1)  # avoid a write on every request
@@ -28,17 +29,31 @@ def _unauthorized(message: str) -> HTTPException:
     return HTTPException(status_code=401, detail=message, headers={"WWW-Authenticate": "Bearer"})
 
 
+def client_address(request: Request) -> str:
+    """Return the address the request came from (as the proxy in front, if any, reports it to uvicorn)."""
+    return request.client.host if request.client else "unknown"
+
+
 def current_token(request: Request, session: SessionDep) -> ApiToken:
-    """Return the valid API token of the request (header `Authorization: Bearer <token>`)."""
+    """Return the valid API token of the request (header `Authorization: Bearer <token>`).
+
+    Wrong tokens are counted per client address: past FAILED_AUTHENTICATIONS, 429 until the window moves.
+    A token is found by its sha256, never compared as text: the secret's bytes set no timing.
+    """
     header = request.headers.get("Authorization", "")
     scheme, _, secret = header.partition(" ")
     if not header:
         raise _unauthorized("missing API token: send the header `Authorization: Bearer <token>`")
+    limits, address = request.app.state.rate_limits, client_address(request)
+    limits.check(FAILED_AUTHENTICATIONS, address)
+    token: ApiToken | None = None
     if scheme.lower() != "bearer" or not secret.strip():
-        raise _unauthorized("malformed Authorization header: expected `Bearer <token>`")
-    token = find_token(session, secret.strip())
-    problem = token_problem(token)
+        problem: str | None = "malformed Authorization header: expected `Bearer <token>`"
+    else:
+        token = find_token(session, secret.strip())
+        problem = token_problem(token)
     if problem is not None:
+        limits.hit(FAILED_AUTHENTICATIONS, address)
         raise _unauthorized(problem)
     assert token is not None
     now = utc_now()
@@ -49,6 +64,13 @@ def current_token(request: Request, session: SessionDep) -> ApiToken:
 
 
 TokenDep = Annotated[ApiToken, Depends(current_token)]
+
+
+def counted_upload(request: Request, token: TokenDep) -> None:
+    """Count an upload against the token's and the client address's rate limits (429 past either)."""
+    limits = request.app.state.rate_limits
+    limits.hit(UPLOADS_PER_TOKEN, str(token.id))
+    limits.hit(UPLOADS_PER_ADDRESS, client_address(request))
 
 
 def team_token(token: TokenDep) -> ApiToken:

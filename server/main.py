@@ -9,20 +9,22 @@ from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from pydantic import TypeAdapter
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, InterfaceError, OperationalError
 
 from scorer import ENGINE_VERSION
+from server.body_limit import BodySizeLimit
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import require_migrated
-from server.models import Split, utc_now
+from server.models import Split
 from server.queue import broker_status, enqueue_submission, live_workers
-from server.routes import admin, public, submissions, web
-from server.services.errors import QuotaExceeded, ServiceError
+from server.rate_limits import RateLimits
+from server.routes import admin, metrics, public, submissions, web
+from server.services.errors import ServiceError
 from server.services.splits import register_split
 from server.services.submissions import add_baselines
 from server.settings import Settings, get_settings
@@ -35,15 +37,28 @@ WEB_DIR = Path(__file__).resolve().parent.parent / "web"
 
 def _service_error(_request: Request, error: Exception) -> JSONResponse:
     assert isinstance(error, ServiceError)
-    headers = {}
-    if isinstance(error, QuotaExceeded) and error.resets_at is not None:
-        headers["Retry-After"] = str(max(1, int((error.resets_at - utc_now()).total_seconds())))
+    retry_after = error.retry_after_s()
+    headers = {} if retry_after is None else {"Retry-After": str(retry_after)}
     return JSONResponse(
         # pydantic's JSON mode, as for every response model: UTC times end in "Z".
         TypeAdapter(Any).dump_python({"detail": error.message, **error.extra}, mode="json"),
         status_code=error.http_status,
         headers=headers,
     )
+
+
+DATABASE_DOWN = "the database is not answering right now; nothing was changed, try again in a few seconds"
+DATABASE_RETRY_AFTER_S = 5
+
+
+def _database_down(request: Request, error: Exception) -> Response:
+    """A database outage is a 503 the client may retry, not a 500: the transaction was rolled back."""
+    log.error("database unavailable during %s %s: %s", request.method, request.url.path, error)
+    headers = {"Retry-After": str(DATABASE_RETRY_AFTER_S)}
+    if request.url.path.startswith(API_PREFIX):
+        return JSONResponse({"detail": DATABASE_DOWN}, status_code=503, headers=headers)
+    page = f"<!doctype html><title>Unavailable</title><p>NAVSIM Leaderboard: {DATABASE_DOWN}.</p>"
+    return HTMLResponse(page, status_code=503, headers=headers)
 
 
 def register_configured_splits(app: FastAPI) -> None:
@@ -86,11 +101,16 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     app.state.broker_status = broker_status
     app.state.live_workers = live_workers
     app.state.leaderboard_cache = TTLCache(settings.leaderboard_cache_seconds)
+    app.state.rate_limits = RateLimits(settings.rate_limit_storage)
     app.add_exception_handler(ServiceError, _service_error)
+    app.add_middleware(BodySizeLimit, upload_limit=lambda: app.state.settings.max_upload_bytes)
+    for outage in (OperationalError, InterfaceError):
+        app.add_exception_handler(outage, _database_down)
     app.include_router(public.router, prefix=API_PREFIX)
     app.include_router(submissions.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(web.router)
+    app.include_router(metrics.router)
     app.mount("/static", StaticFiles(directory=WEB_DIR / "static"), name="static")
     register_configured_splits(app)
     return app

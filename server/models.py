@@ -247,12 +247,46 @@ class Submission(Base):
     queued_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
-    lease_expires_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # When a worker last claimed the run and cut it into chunks (scoring_chunks say how they fare).
+    claimed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     worker: Mapped[str | None] = mapped_column(String(300))
 
     team: Mapped[Team] = relationship()
     split: Mapped[Split] = relationship()
     phase: Mapped[Phase | None] = relationship()
+
+
+class ChunkState(StrEnum):
+    queued = "queued"  # sent to the broker, not started
+    running = "running"  # a worker process scores it and beats while it does
+    done = "done"  # its rows are written
+    split = "split"  # a worker died holding it: its tokens went out again one per chunk
+    failed = "failed"  # one token whose workers died with it twice: written as failed rows
+
+
+class ScoringChunk(Base):
+    """Some tokens of one run, scored by one task: the SQL record the reaper holds the broker to.
+
+    A broker may lose a message (flushed, restarted) or hold it for a dead worker until its visibility
+    timeout; the chunk's state, last send and the beat of the process scoring it say what to send again.
+    """
+
+    __tablename__ = "scoring_chunks"
+    __table_args__ = (Index("ix_scoring_chunks_submission_run", "submission_id", "run"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    submission_id: Mapped[int] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"))
+    run: Mapped[int] = mapped_column(Integer)
+    tokens: Mapped[list[str]] = mapped_column(JSON)
+    state: Mapped[str] = mapped_column(String(16), default=ChunkState.queued, index=True)
+    # Worker processes that died while scoring these tokens (inherited by the chunks of a split).
+    deaths: Mapped[int] = mapped_column(Integer, default=0)
+    starts: Mapped[int] = mapped_column(Integer, default=0)
+    worker: Mapped[str | None] = mapped_column(String(300))  # the process scoring it: host/pid
+    sent_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    beat_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
 
 
 class MetricColumns:

@@ -61,6 +61,22 @@ def enqueue_submission(submission_id: int, settings: Settings | None = None) -> 
     celery_client(settings or get_settings()).send_task(SCORE_TASK, args=[submission_id])
 
 
+def waiting_tasks(settings: Settings) -> int:
+    """Declare the queue with its binding again and return how many tasks wait in it (taken by no worker).
+
+    A broker that lost its state (Redis flushed) keeps the connections, so nobody declares again what
+    each connection declared once, and kombu's Redis transport drops a message sent to an exchange with
+    no binding: the reaper calls this at every pass, which makes such a broker route again.
+    """
+    client = celery_client(settings)
+    queue = client.amqp.queues[settings.queue_name]
+    with client.connection_for_write() as connection:
+        bound = queue.bind(connection.default_channel)
+        bound.declare()
+        _, count, _ = bound.queue_declare()
+    return int(count)
+
+
 def prune_embedded_broker(settings: Settings) -> int:
     """Delete the messages the embedded broker handed out already; return how many.
 

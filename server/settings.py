@@ -25,7 +25,9 @@ class Settings(BaseSettings):
     # Split directories registered at startup: JSON object name -> directory.
     splits: dict[str, Path] = Field(default_factory=dict, validation_alias="SPLITS")
     max_upload_bytes: int = Field(256 * 1024 * 1024, validation_alias="MAX_UPLOAD_BYTES")
-    lease_seconds: float = Field(900.0, validation_alias="LEASE_SECONDS")
+    # Where failed logins and uploads are counted (server.rate_limits): memory:// for one API process,
+    # redis://host:port/db to share the counts between API processes.
+    rate_limit_storage: str = Field("memory://", validation_alias="RATE_LIMIT_STORAGE")
     bootstrap_samples: int = Field(2000, validation_alias="BOOTSTRAP_SAMPLES")
     # The public leaderboard is served from memory for this long (0 disables the cache).
     leaderboard_cache_seconds: float = Field(2.0, validation_alias="LEADERBOARD_CACHE_SECONDS")
@@ -35,7 +37,7 @@ class Settings(BaseSettings):
     # Hard limit of one task; the soft limit (the task's own clean failure) comes 30 s earlier.
     task_time_limit: float = Field(600.0, gt=30, validation_alias="TASK_TIME_LIMIT")
     reaper_interval: float = Field(30.0, gt=0, validation_alias="REAPER_INTERVAL")
-    # Claims of one run (first try, then re-queues after lost leases) before it fails as infrastructure.
+    # Claims of one run (first try, then re-queues of a run left with nothing in flight) before it fails.
     max_attempts: int = Field(3, ge=1, validation_alias="MAX_ATTEMPTS")
 
     @model_validator(mode="after")

@@ -23,7 +23,7 @@ from scorer.versions import METRIC_COLUMNS
 from server.db import make_engine, make_session_factory, transaction
 from server.main import create_app
 from server.migrate import upgrade
-from server.models import Approval, Phase, Scope, Split, SplitSubset, Team, utc_now
+from server.models import Approval, Phase, Scope, Split, SplitSubset, Submission, Team, utc_now
 from server.services.splits import create_phase
 from server.services.teams import create_team
 from server.services.tokens import create_token
@@ -218,7 +218,7 @@ def score_run(
     from server.services.scoring import claim_submission, mark_scored, write_chunk_results
 
     with transaction(factory) as session:
-        run = claim_submission(session, submission_id, "test-worker", 60)
+        run = claim_submission(session, submission_id, "test-worker")
     assert run is not None
     for version in versions:
         for seed, scores in enumerate(per_seed):
@@ -233,10 +233,23 @@ def score_run(
                         results[start : start + chunk],
                         "test-worker",
                         0.5,
-                        60,
                     )
     with transaction(factory) as session:
         assert mark_scored(session, submission_id, run, "test-engine", 300)
+
+
+def claimed_submission(world: World, payload: bytes) -> Submission:
+    """Create a submission through the services and claim it as a worker would (status running, run 1)."""
+    from server.services.scoring import claim_submission
+    from server.services.submissions import create_submission
+
+    with transaction(world.factory) as session:
+        team, phase = team_row(session, world.team_id), phase_row(session, "test")
+        submission, _ = create_submission(
+            session, team, phase, upload_of(payload), world.settings.storage_dir
+        )
+        assert claim_submission(session, submission.id, "test-worker") == 1
+        return submission
 
 
 def submit_scored(

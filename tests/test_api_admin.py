@@ -143,7 +143,7 @@ def test_admin_sees_failures_in_detail_teams_only_the_summary(world: World) -> N
             upload_of(b"x"),
             world.settings.storage_dir,
         )
-        run = claim_submission(session, submission.id, "w", 60)
+        run = claim_submission(session, submission.id, "w")
         mark_failed(
             session,
             submission.id,

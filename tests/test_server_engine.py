@@ -42,7 +42,7 @@ def test_leaderboard_equals_the_devkit_mean_for_a_reference_family(world: World,
         )
         submission_id = submission.id
     with transaction(world.factory) as session:
-        run = claim_submission(session, submission_id, "engine-test", 600)
+        run = claim_submission(session, submission_id, "engine-test")
     for version in ("v1.0", "v1.1"):
         started = time.perf_counter()
         results = score_tokens(REFERENCE_DIR, tmp_path / "cache", predictions, version)
@@ -55,7 +55,6 @@ def test_leaderboard_equals_the_devkit_mean_for_a_reference_family(world: World,
                 results,
                 "engine-test",
                 time.perf_counter() - started,
-                600,
             )
     with transaction(world.factory) as session:
         assert mark_scored(session, submission_id, run, "engine", 200)

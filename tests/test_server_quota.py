@@ -78,7 +78,7 @@ def test_in_flight_quota_frees_when_a_run_ends(world: World) -> None:
         _submit(world, b"2", "busy")
     assert caught.value.quota == "in_flight"
     with transaction(world.factory) as session:
-        run = claim_submission(session, first, "w1", 60)
+        run = claim_submission(session, first, "w1")
         assert run == 1
         mark_failed(session, first, run, FailureKind.submission, "poses diverge")
     _submit(world, b"2", "busy")

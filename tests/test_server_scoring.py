@@ -1,4 +1,4 @@
-"""The services a worker calls: claim, chunk writes (idempotent, run-checked), progress, scored/failed, leases."""
+"""The services a worker calls: claim, chunk writes (idempotent, run-checked), progress, scored/failed, stalled runs."""
 
 from __future__ import annotations
 
@@ -19,22 +19,23 @@ from server_testing import (
     uniform,
     upload_of,
 )
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db import transaction
 from server.migrate import upgrade
-from server.models import Result, Status, Submission, TokenResultRow, utc_now
+from server.models import ChunkState, Result, ScoringChunk, Status, Submission, TokenResultRow, utc_now
+from server.services.chunks import plan_chunks
 from server.services.errors import Conflict
 from server.services.scoring import (
     cancel,
     claim_submission,
-    expired_leases,
     load_job,
     mark_scored,
     requeue,
     reset_for_rerun,
     stale_queued,
+    stalled_runs,
     write_chunk_results,
 )
 from server.services.submissions import create_submission
@@ -72,17 +73,17 @@ def test_job_holds_the_stored_file_and_the_split(world: World) -> None:
 
 def _check_idempotent_chunks(factory: sessionmaker[Session], submission_id: int) -> None:
     with transaction(factory) as session:
-        run = claim_submission(session, submission_id, "w1", 60)
+        run = claim_submission(session, submission_id, "w1")
     assert run == 1 and _get(factory, submission_id).status == Status.running
     chunk = token_results(uniform(0.5, TOKENS[:20]))
     for _ in range(2):  # the broker redelivers the chunk
         with transaction(factory) as session:
-            assert write_chunk_results(session, submission_id, run, "v1.1", chunk, "w1", 1.0, 60)
+            assert write_chunk_results(session, submission_id, run, "v1.1", chunk, "w1", 1.0)
     assert _rows(factory, submission_id) == 20
     assert _get(factory, submission_id).progress == 25  # 20 of 40 tokens x 2 versions
     changed = token_results(uniform(0.25, TOKENS[:20]))
     with transaction(factory) as session:
-        write_chunk_results(session, submission_id, run, "v1.1", changed, "w2", 1.0, 60)
+        write_chunk_results(session, submission_id, run, "v1.1", changed, "w2", 1.0)
     with factory() as session:
         scores = set(
             session.scalars(select(TokenResultRow.score).where(TokenResultRow.submission_id == submission_id))
@@ -112,8 +113,8 @@ def test_redelivered_chunks_overwrite_on_postgresql(postgres_url: str, tmp_path:
 def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:
     submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
     with transaction(world.factory) as session:
-        run = claim_submission(session, submission_id, "w1", 60)
-        write_chunk_results(session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1.0, 60)
+        run = claim_submission(session, submission_id, "w1")
+        write_chunk_results(session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1.0)
     with pytest.raises(Conflict, match="40 of 80"), transaction(world.factory) as session:
         mark_scored(session, submission_id, 1, "e", 100)
     assert _get(world.factory, submission_id).status == Status.running
@@ -122,13 +123,13 @@ def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:
 def test_cancelled_or_rerun_submissions_drop_late_writes(world: World) -> None:
     submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
     with transaction(world.factory) as session:
-        run = claim_submission(session, submission_id, "w1", 60)
+        run = claim_submission(session, submission_id, "w1")
         cancel(session, session.get(Submission, submission_id))
     with transaction(world.factory) as session:
         assert not write_chunk_results(
             session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1, 60
         )
-        assert claim_submission(session, submission_id, "w2", 60) is None
+        assert claim_submission(session, submission_id, "w2") is None
     assert _rows(world.factory, submission_id) == 0
     with transaction(world.factory) as session:
         reset_for_rerun(session, session.get(Submission, submission_id))
@@ -136,7 +137,7 @@ def test_cancelled_or_rerun_submissions_drop_late_writes(world: World) -> None:
         assert not write_chunk_results(
             session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1, 60
         )
-        assert claim_submission(session, submission_id, "w2", 60) == run + 1
+        assert claim_submission(session, submission_id, "w2") == run + 1
 
 
 def test_a_rerun_keeps_the_old_results_until_it_is_scored(world: World) -> None:
@@ -160,13 +161,22 @@ def test_a_rerun_keeps_the_old_results_until_it_is_scored(world: World) -> None:
     assert results[0].duration_s == pytest.approx(3 * 0.5)  # three chunks (16, 16, 8 tokens) of 0.5 s each
 
 
-def test_expired_leases_are_found_and_requeued(world: World) -> None:
+def test_a_claimed_run_without_live_chunks_is_stalled_and_requeued(world: World) -> None:
     submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
     with transaction(world.factory) as session:
-        claim_submission(session, submission_id, "w1", 30)
+        claim_submission(session, submission_id, "w1")
     with world.session() as session:
-        assert expired_leases(session, utc_now()) == []
-        assert expired_leases(session, utc_now() + timedelta(seconds=31)) == [submission_id]
+        assert stalled_runs(session, utc_now() - timedelta(seconds=30)) == []  # claimed a moment ago
+        assert stalled_runs(session, utc_now() + timedelta(seconds=1)) == [submission_id]
+    with transaction(world.factory) as session:
+        submission = session.get(Submission, submission_id)
+        plan_chunks(session, submission, TOKENS[:3], 2)
+    with world.session() as session:  # a queued chunk is in flight: not stalled
+        assert stalled_runs(session, utc_now() + timedelta(seconds=1)) == []
+    with transaction(world.factory) as session:
+        session.execute(update(ScoringChunk).values(state=ChunkState.done))
+    with world.session() as session:
+        assert stalled_runs(session, utc_now() + timedelta(seconds=1)) == [submission_id]
     with transaction(world.factory) as session:
         assert requeue(session, submission_id)
     assert _get(world.factory, submission_id).status == Status.queued
@@ -178,6 +188,6 @@ def test_submissions_queued_too_long_are_found(world: World) -> None:
         assert stale_queued(session, utc_now() - timedelta(minutes=5)) == []
         assert stale_queued(session, utc_now() + timedelta(seconds=1)) == [submission_id]
     with transaction(world.factory) as session:
-        claim_submission(session, submission_id, "w1", 30)
+        claim_submission(session, submission_id, "w1")
     with world.session() as session:
         assert stale_queued(session, utc_now() + timedelta(seconds=1)) == []

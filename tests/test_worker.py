@@ -1,6 +1,6 @@
 """Real Celery worker processes (not eager mode) behind a real API process, on the embedded defaults (SQLite
 database, SQLite broker) and on PostgreSQL + Redis: uploads are scored like the engine scores them, chunks
-delivered twice never duplicate rows, the reaper recovers lost leases, and broken inputs fail one
+delivered twice never duplicate rows, the reaper recovers runs left without chunks, and broken inputs fail one
 submission with a message while the worker goes on."""
 
 from __future__ import annotations
@@ -13,11 +13,10 @@ import sys
 from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
-from typing import Any
 
 import pytest
 from server_testing import fresh_postgres_database
-from sqlalchemy import func, select
+from sqlalchemy import select
 from worker_testing import (
     Service,
     SplitFixture,
@@ -30,17 +29,14 @@ from worker_testing import (
 
 from navsim_lb.scratch import scratch_redis_queue
 from scorer.blas import engine_provenance
-from scorer.submission import Submission as Predictions
-from scorer.submission import dump_submission_json
 from scorer.versions import VERSIONS
 from server.db import transaction
-from server.models import FailureKind, Phase, Result, Status, Submission, Team, TokenResultRow, utc_now
+from server.models import FailureKind, Result, Status, Submission, utc_now
 from server.queue import celery_client, enqueue_submission
+from server.services.chunks import plan_chunks
 from server.services.leaderboard import subscore_columns
 from server.services.scoring import claim_submission
-from server.services.splits import create_phase, register_split, split_tokens
-from server.services.submissions import create_submission
-from server.services.validation import validate_upload
+from server.services.splits import create_phase, register_split
 from worker.app import CHUNK_TASK
 from worker.tasks import ENGINE_FAILURE
 
@@ -68,62 +64,10 @@ def service(
             yield running
 
 
-def _submission(service: Service, submission_id: int) -> Submission:
-    with service.factory() as session:
-        submission = session.get(Submission, submission_id)
-        assert submission is not None
-        return submission
-
-
-def _final(service: Service, submission_id: int) -> Submission:
-    """Wait until a submission is scored, failed or cancelled; return it."""
-    return wait_for(  # type: ignore[return-value]
-        lambda: (
-            (s := _submission(service, submission_id)).status not in (Status.queued, Status.running) and s
-        ),
-        f"submission {submission_id} to finish",
-    )
-
-
-def _stored(service: Service, entry: Predictions, phase: str = "test") -> int:
-    """Create a queued submission through the services, without sending it to the workers; return its id."""
-    data = dump_submission_json(entry)
-    with transaction(service.factory) as session:
-        phase_row = session.scalar(select(Phase).where(Phase.name == phase))
-        team = session.scalar(select(Team).where(Team.name == "alpha"))
-        assert phase_row is not None and team is not None
-        upload = validate_upload(data, "entry.json", split_tokens(phase_row.split))
-        submission, _ = create_submission(session, team, phase_row, upload, service.settings.storage_dir)
-        return submission.id
-
-
-def _rows(service: Service, submission_id: int) -> int:
-    with service.factory() as session:
-        query = select(func.count()).where(TokenResultRow.submission_id == submission_id)
-        return session.scalar(query) or 0
-
-
 def _chunks_ended(service: Service, submission_id: int) -> int:
     """Return how many chunk tasks of a submission the worker log shows as ended (whatever they did)."""
     pattern = rf"score_chunk\[[^\]]+\] succeeded in [^:]+: 'submission {submission_id} run"
     return len(re.findall(pattern, service.worker_log()))
-
-
-def _leaderboard_row(service: Service, version: str, submission_id: int) -> dict[str, Any]:
-    with service.client() as client:
-        response = client.get("/api/v1/leaderboard", params={"version": version, "phase": "test"})
-    assert response.status_code == 200, response.text
-    rows = [row for row in response.json()["rows"] if row["submission_id"] == submission_id]
-    assert len(rows) == 1, response.json()["rows"]
-    return rows[0]
-
-
-def _result(service: Service, submission_id: int, version: str) -> dict[str, Any]:
-    """Return a submission's results on all tokens under `version`, as the team sees them."""
-    with service.client() as client:
-        response = client.get(f"/api/v1/submissions/{submission_id}")
-    assert response.status_code == 200, response.text
-    return response.json()["results"][version]["all"]
 
 
 def test_submit_cli_upload_is_scored_as_the_engine_scores_it(
@@ -142,9 +86,9 @@ def test_submit_cli_upload_is_scored_as_the_engine_scores_it(
     assert done.returncode == 0, done.stderr
     submission_id = int(done.stdout.strip())
     assert "PDMS" in done.stderr  # the results table
-    submission = _submission(service, submission_id)
+    submission = service.submission(submission_id)
     assert (submission.status, submission.progress, submission.seed_count) == (Status.scored, 100, 2)
-    assert _rows(service, submission_id) == len(entry.seeds[0]) * 2 * len(VERSIONS)
+    assert service.rows(submission_id) == len(entry.seeds[0]) * 2 * len(VERSIONS)
     with service.factory() as session:  # the worker processes ran the kernels this process runs
         provenances = session.scalars(
             select(Result.engine_version).where(Result.submission_id == submission_id)
@@ -155,7 +99,7 @@ def test_submit_cli_upload_is_scored_as_the_engine_scores_it(
             client.patch(f"/api/v1/submissions/{submission_id}", json={"selected": True}).status_code == 200
         )
     for version in VERSIONS:
-        row = _leaderboard_row(service, version, submission_id)
+        row = service.leaderboard_row(version, submission_id)
         expected = direct_means(synthetic_split, entry, version)
         assert row["seeds"]["count"] == 2
         # Equal up to summation order: the service averages seeds x tokens at once, the engine per seed.
@@ -184,36 +128,39 @@ def test_submit_cli_lists_every_problem_of_a_refused_file(
 
 def test_redelivered_chunks_never_duplicate_rows(service: Service, synthetic_split: SplitFixture) -> None:
     entry = predictions(synthetic_split.directory, seeds=2, noise=0.3, method="redelivered")
-    submission_id = _stored(service, entry)
-    with transaction(service.factory) as session:  # play the coordinator: claim, then send chunks by hand
-        run = claim_submission(session, submission_id, "test-coordinator", 600)
+    submission_id = service.stored(entry)
     tokens = sorted(entry.seeds[0])
-    first, rest = tokens[:4], tokens[4:]
+    with transaction(service.factory) as session:  # play the coordinator: claim and plan, then send by hand
+        run = claim_submission(session, submission_id, "test-coordinator")
+        submission = session.get(Submission, submission_id)
+        first, rest = plan_chunks(session, submission, tokens, len(tokens) - 4)
     sender = celery_client(service.settings)
     rows_per_token = 2 * len(VERSIONS)
 
     sender.send_task(CHUNK_TASK, args=[submission_id, run, first])
-    wait_for(lambda: _rows(service, submission_id) == len(first) * rows_per_token, "the first chunk's rows")
+    wait_for(lambda: service.rows(submission_id) == 8 * rows_per_token, "the first chunk's rows")
     # The same chunk again after its rows were written, and the rest delivered twice at the same time.
     for chunk in (first, rest, rest):
         sender.send_task(CHUNK_TASK, args=[submission_id, run, chunk])
-    assert _final(service, submission_id).status == Status.scored
+    assert service.final(submission_id).status == Status.scored
     wait_for(lambda: _chunks_ended(service, submission_id) == 4, "all four chunk deliveries to end")
-    assert _rows(service, submission_id) == len(tokens) * rows_per_token
+    assert service.rows(submission_id) == len(tokens) * rows_per_token
+    # Every line a chunk logs names its submission and run as fields.
+    assert f"submission={submission_id} run={run} " in service.worker_log()
     assert "raised unexpected" not in service.worker_log()
-    assert _result(service, submission_id, "v1.1")["score"] == pytest.approx(
+    assert service.result(submission_id, "v1.1")["score"] == pytest.approx(
         direct_means(synthetic_split, entry, "v1.1")["score"], rel=1e-12
     )
 
 
-def test_reaper_requeues_an_expired_lease_and_fails_a_run_out_of_attempts(
+def test_reaper_requeues_a_run_left_without_chunks_and_fails_one_out_of_attempts(
     service: Service, synthetic_split: SplitFixture
 ) -> None:
-    lost = _stored(service, predictions(synthetic_split.directory, seeds=1, noise=0.4, method="lost once"))
-    exhausted = _stored(
-        service, predictions(synthetic_split.directory, seeds=1, noise=0.5, method="lost often")
+    lost = service.stored(predictions(synthetic_split.directory, seeds=1, noise=0.4, method="lost once"))
+    exhausted = service.stored(
+        predictions(synthetic_split.directory, seeds=1, noise=0.5, method="lost often")
     )
-    with transaction(service.factory) as session:  # as if a worker had claimed them and died
+    with transaction(service.factory) as session:  # as if a worker had claimed them and died before planning
         for submission_id, attempts in ((lost, 1), (exhausted, MAX_ATTEMPTS)):
             submission = session.get(Submission, submission_id)
             assert submission is not None
@@ -222,11 +169,11 @@ def test_reaper_requeues_an_expired_lease_and_fails_a_run_out_of_attempts(
                 attempts,
                 "lost-worker",
             )
-            submission.lease_expires_at = utc_now() - timedelta(seconds=1)
+            submission.claimed_at = utc_now() - timedelta(seconds=5)
 
-    recovered = _final(service, lost)
+    recovered = service.final(lost)
     assert (recovered.status, recovered.attempts) == (Status.scored, 2)
-    failed = _final(service, exhausted)
+    failed = service.final(exhausted)
     assert (failed.status, failed.failure_kind, failed.charged) == (
         Status.failed,
         FailureKind.infrastructure,
@@ -239,8 +186,8 @@ def test_reaper_requeues_an_expired_lease_and_fails_a_run_out_of_attempts(
 def test_a_damaged_file_or_an_engine_error_fails_the_submission_and_the_worker_goes_on(
     service: Service, synthetic_split: SplitFixture, tmp_path: Path
 ) -> None:
-    damaged = _stored(service, predictions(synthetic_split.directory, seeds=1, noise=0.6, method="damaged"))
-    stored = _submission(service, damaged)
+    damaged = service.stored(predictions(synthetic_split.directory, seeds=1, noise=0.6, method="damaged"))
+    stored = service.submission(damaged)
     (service.settings.storage_dir / stored.stored_name).write_bytes(b'{"format": "navsim-lb/submission"')
     enqueue_submission(damaged, service.settings)
 
@@ -254,13 +201,13 @@ def test_a_damaged_file_or_an_engine_error_fails_the_submission_and_the_worker_g
     scene.unlink()
     scene.mkdir()  # the hidden scene cannot be read: an error inside the engine, not a token problem
     entry = predictions(synthetic_split.directory, seeds=1, noise=0.7, method="engine error")
-    engine_error = _stored(service, entry, phase=f"broken-{tmp_path.name}")
+    engine_error = service.stored(entry, phase=f"broken-{tmp_path.name}")
     enqueue_submission(engine_error, service.settings)
 
-    failed = _final(service, damaged)
+    failed = service.final(damaged)
     assert (failed.status, failed.failure_kind) == (Status.failed, FailureKind.infrastructure)
     assert "damaged" in (failed.error or "")
-    failed = _final(service, engine_error)
+    failed = service.final(engine_error)
     assert (failed.status, failed.failure_kind) == (Status.failed, FailureKind.infrastructure)
     assert (failed.error or "").startswith(ENGINE_FAILURE)
     assert str(broken_split) not in (failed.error or "")  # hidden paths stay in the admins' detail
@@ -271,14 +218,7 @@ def test_a_damaged_file_or_an_engine_error_fails_the_submission_and_the_worker_g
 
     assert service.worker.poll() is None
     after = predictions(synthetic_split.directory, seeds=1, noise=0.8, method="after the failures")
-    with service.client() as client:
-        response = client.post(
-            "/api/v1/submissions",
-            files={"file": ("after.json", dump_submission_json(after))},
-            data={"phase": "test"},
-        )
-    assert response.status_code == 202, response.text
-    assert _final(service, response.json()["id"]).status == Status.scored
+    assert service.final(service.upload(after, "after.json")).status == Status.scored
 
 
 def test_health_reports_database_broker_and_the_running_worker(service: Service) -> None:

@@ -12,10 +12,12 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
 import pytest
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from navsim_lb.processes import api_command, child_process
@@ -27,10 +29,12 @@ from scorer.synth import synthesize_split
 from scorer.versions import METRIC_COLUMNS, VERSIONS
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import upgrade
-from server.models import Approval, Scope
-from server.services.splits import create_phase, register_split
+from server.models import ACTIVE_STATUSES, Approval, Phase, Scope, Submission, Team, TokenResultRow
+from server.services.splits import create_phase, register_split, split_tokens
+from server.services.submissions import create_submission
 from server.services.teams import create_team
 from server.services.tokens import create_token
+from server.services.validation import validate_upload
 from server.settings import Settings
 from worker.cli import worker_command
 
@@ -105,6 +109,7 @@ class Service:
     team_token: str
     logs: Path
     worker: subprocess.Popen[bytes]
+    api: subprocess.Popen[bytes]
 
     def client(self) -> httpx.Client:
         return httpx.Client(
@@ -113,6 +118,64 @@ class Service:
 
     def worker_log(self) -> str:
         return (self.logs / "worker.log").read_text(errors="replace")
+
+    def submission(self, submission_id: int) -> Submission:
+        with self.factory() as session:
+            submission = session.get(Submission, submission_id)
+            assert submission is not None
+            return submission
+
+    def final(self, submission_id: int, timeout: float = SERVICE_TIMEOUT_S) -> Submission:
+        """Wait until a submission is scored, failed or cancelled; return it."""
+        return wait_for(  # type: ignore[return-value]
+            lambda: (s := self.submission(submission_id)).status not in ACTIVE_STATUSES and s,
+            f"submission {submission_id} to finish",
+            timeout,
+        )
+
+    def stored(self, entry: Predictions, phase: str = "test") -> int:
+        """Create a queued submission through the services, without sending it to the workers; return its id."""
+        data = dump_submission_json(entry)
+        with transaction(self.factory) as session:
+            phase_row = session.scalar(select(Phase).where(Phase.name == phase))
+            team = session.scalar(select(Team).where(Team.name == "alpha"))
+            assert phase_row is not None and team is not None
+            upload = validate_upload(data, "entry.json", split_tokens(phase_row.split))
+            submission, _ = create_submission(session, team, phase_row, upload, self.settings.storage_dir)
+            return submission.id
+
+    def upload(self, entry: Predictions, name: str = "entry.json") -> int:
+        """Upload a submission through the API as the team; return its id."""
+        with self.client() as client:
+            response = client.post(
+                "/api/v1/submissions",
+                files={"file": (name, dump_submission_json(entry))},
+                data={"phase": "test"},
+            )
+        assert response.status_code == 202, response.text
+        return int(response.json()["id"])
+
+    def rows(self, submission_id: int) -> int:
+        """Return how many per-token rows of the submission are stored."""
+        with self.factory() as session:
+            query = select(func.count()).where(TokenResultRow.submission_id == submission_id)
+            return session.scalar(query) or 0
+
+    def leaderboard_row(self, version: str, submission_id: int) -> dict[str, Any]:
+        """Return the submission's one row on the public leaderboard of phase "test"."""
+        with self.client() as client:
+            response = client.get("/api/v1/leaderboard", params={"version": version, "phase": "test"})
+        assert response.status_code == 200, response.text
+        rows = [row for row in response.json()["rows"] if row["submission_id"] == submission_id]
+        assert len(rows) == 1, response.json()["rows"]
+        return rows[0]
+
+    def result(self, submission_id: int, version: str) -> dict[str, Any]:
+        """Return a submission's results on all tokens under `version`, as the team sees them."""
+        with self.client() as client:
+            response = client.get(f"/api/v1/submissions/{submission_id}")
+        assert response.status_code == 200, response.text
+        return response.json()["results"][version]["all"]
 
 
 def _variables(root: Path, split: SplitFixture, overrides: dict[str, str]) -> dict[str, str]:
@@ -135,12 +198,30 @@ def _answers(url: str) -> bool:
         return False
 
 
+def fault_worker_command(concurrency: int, beat: bool, name: str) -> list[str]:
+    """Return the command of a worker named `name` running tests/fault_worker.py's app (faults from the env)."""
+    command = [
+        "--app=fault_worker" if argument == "--app=worker.app" else argument
+        for argument in worker_command(concurrency, beat)
+    ]
+    return [*command, f"--hostname={name}@%h"]
+
+
 @contextmanager
 def running_service(
-    root: Path, split: SplitFixture, overrides: dict[str, str] | None = None, concurrency: int = 2
+    root: Path,
+    split: SplitFixture,
+    overrides: dict[str, str] | None = None,
+    concurrency: int = 2,
+    faults: bool = False,
 ) -> Iterator[Service]:
-    """Start worker (with beat) and API on a fresh database under `root`, configured by the environment."""
+    """Start worker (with beat) and API on a fresh database under `root`, configured by the environment.
+
+    With `faults`, the worker runs tests/fault_worker.py's app, which injects the faults `overrides` name.
+    """
     variables = _variables(root, split, overrides or {})
+    if faults:
+        variables["PYTHONPATH"] = str(Path(__file__).parent)
     env = {**os.environ, **variables}
     with pytest.MonkeyPatch.context() as patch:  # the test reads the settings the children will read
         for name, value in variables.items():
@@ -160,16 +241,22 @@ def running_service(
     try:
         with ExitStack() as stack:
             worker = stack.enter_context(
-                child_process(worker_command(concurrency, beat=True), env, logs / "worker.log")
+                child_process(
+                    fault_worker_command(concurrency, True, "first")
+                    if faults
+                    else worker_command(concurrency, beat=True),
+                    env,
+                    logs / "worker.log",
+                )
             )
             # Only the worker creates the embedded broker's tables, before anything is sent.
             wait_for(
                 lambda: "ready." in (logs / "worker.log").read_text(errors="replace"), "the worker to start"
             )
-            stack.enter_context(child_process(api_command("127.0.0.1", port), env, logs / "api.log"))
+            api = stack.enter_context(child_process(api_command("127.0.0.1", port), env, logs / "api.log"))
             url = f"http://127.0.0.1:{port}"
             wait_for(lambda: _answers(url), "the API to answer")
-            yield Service(settings, env, factory, url, team_token, logs, worker)
+            yield Service(settings, env, factory, url, team_token, logs, worker, api)
     finally:
         engine.dispose()
 

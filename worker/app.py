@@ -21,9 +21,10 @@ from celery import Celery, bootsteps
 from server.queue import celery_config
 from server.settings import Settings, get_settings
 from worker.heartbeat import DatabaseHeartbeat
+from worker.logs import LOG_FORMAT, TASK_LOG_FORMAT
 
 CHUNK_TASK = "worker.tasks.score_chunk"
-REAP_TASK = "worker.tasks.reap_leases"
+REAP_TASK = "worker.tasks.reap_lost_work"
 SOFT_LIMIT_MARGIN_S = 30.0
 EMBEDDED_POLL_S = 0.1
 
@@ -57,7 +58,7 @@ def create_celery(settings: Settings) -> Celery:
         task_soft_time_limit=settings.task_time_limit - SOFT_LIMIT_MARGIN_S,
         task_ignore_result=True,
         beat_schedule={
-            "reap-expired-leases": {
+            "reap-lost-work": {
                 "task": REAP_TASK,
                 "schedule": settings.reaper_interval,
                 # A reaper message nobody took in time is useless: the next one follows.
@@ -65,6 +66,8 @@ def create_celery(settings: Settings) -> Celery:
             }
         },
         beat_schedule_filename=str(settings.data_dir / "celerybeat-schedule"),
+        worker_log_format=LOG_FORMAT,
+        worker_task_log_format=TASK_LOG_FORMAT,
     )
     app.steps["consumer"].add(EmbeddedBrokerPolling)
     app.steps["consumer"].add(DatabaseHeartbeat)

@@ -32,7 +32,7 @@ def run_worker(
         int, typer.Option("--concurrency", "-c", help="scoring processes (default: one per core)")
     ] = os.cpu_count() or 1,
     beat: Annotated[
-        bool, typer.Option("--beat", help="also run the periodic lease reaper (in exactly one worker)")
+        bool, typer.Option("--beat", help="also run the periodic reaper of lost work (in exactly one worker)")
     ] = False,
     loglevel: Annotated[str, typer.Option(help="debug, info, warning or error")] = "info",
 ) -> None:

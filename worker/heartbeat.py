@@ -1,21 +1,27 @@
-"""Each worker writes a heartbeat to the database every few seconds (`server.services.workers`).
+"""Liveness written to the database every HEARTBEAT_SECONDS: each worker's, and each running chunk's.
 
 Celery's own ping is a broadcast, which the embedded broker cannot send; the database every worker already
 uses can say who runs. A consumer bootstep starts one thread per worker (the main process, not the pool):
 it records the worker at start and every HEARTBEAT_SECONDS, keeps going through database outages (a beat
-that fails is logged and retried), and removes the worker when it stops.
+that fails is logged and retried), and removes the worker when it stops. The pool process scoring a chunk
+beats for that chunk the same way (`beating`): when the process dies, whatever killed it, the beat stops
+and the reaper sends the chunk again (server.services.chunks).
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import ClassVar
 
 from celery import bootsteps
+from sqlalchemy.orm import Session, sessionmaker
 
 from server.db import make_engine, make_session_factory, transaction
 from server.models import utc_now
+from server.services.chunks import beat_chunk
 from server.services.workers import HEARTBEAT_SECONDS, forget_worker, record_heartbeat
 from server.settings import get_settings
 
@@ -68,3 +74,25 @@ class DatabaseHeartbeat(bootsteps.StartStopStep):
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2 * HEARTBEAT_SECONDS)
+
+
+@contextmanager
+def beating(sessions: sessionmaker[Session], chunk_id: int, worker: str) -> Iterator[None]:
+    """Beat for chunk `chunk_id`, held by `worker`, every HEARTBEAT_SECONDS while the block runs."""
+    stop = threading.Event()
+
+    def run() -> None:
+        while not stop.wait(HEARTBEAT_SECONDS):
+            try:
+                with transaction(sessions) as session:
+                    beat_chunk(session, chunk_id, worker)
+            except Exception:
+                log.warning("beat of chunk %s not written", chunk_id, exc_info=True)
+
+    thread = threading.Thread(target=run, name=f"chunk-{chunk_id}-beat", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()

@@ -1,16 +1,18 @@
 """Scoring tasks: a submission fans out into chunk tasks, and the chunk that writes the last rows aggregates.
 
-`score_submission` claims the submission (status running, with a lease), checks its stored file and
-sends one `score_chunk` per slice of the tokens not scored yet. Each chunk scores its tokens under every
-metric version and seed and upserts the rows; in the same transaction, under the submission's row lock,
-it marks the run scored when every expected row is there. The SQL row count is the barrier a chord would
-be: a chord needs a result backend and, on a broker without native chord support (the embedded SQLite
-one), a `chord_unlock` task polling it every second; this works the same on every broker, and a lost or
-repeated chunk cannot produce a wrong count (rows are keyed by submission, version, seed and token).
+`score_submission` claims the submission (status running) and, in the same transaction, records one chunk
+per slice of the tokens not scored yet (server.services.chunks), then sends them. Each chunk scores its
+tokens under every metric version and seed, beating while it does, and upserts the rows; in the same
+transaction, under the submission's row lock, it marks the run scored when every expected row is there.
+The SQL row count is the barrier a chord would be: a chord needs a result backend and, on a broker without
+native chord support (the embedded SQLite one), a `chord_unlock` task polling it every second; this works
+the same on every broker, and a lost or repeated chunk cannot produce a wrong count (rows are keyed by
+submission, version, seed and token).
 
-`reap_leases` (beat) re-queues runs whose lease ran out without a chunk being written, and fails them
-(refunded) after `max_attempts` claims. Database and broker outages are retried; every other error
-fails the run with a message the team may read, and the worker goes on with the next task.
+`reap_lost_work` (beat) holds the broker to the SQL record: it re-sends the chunks of processes that
+stopped beating (splitting, then failing, a token that kills its workers), what the broker lost, and runs
+left with nothing in flight (failed, refunded, after `max_attempts` claims). Database and broker outages
+are retried; every other error fails the run with a message the team may read, and the worker goes on.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from collections.abc import Callable, Sequence
 from datetime import timedelta
 from functools import lru_cache
 from pathlib import Path
-from time import perf_counter
+from time import monotonic, perf_counter, sleep
 from typing import Any
 
 import kombu.exceptions
@@ -38,35 +40,58 @@ from scorer.evaluate import TokenResult, score_tokens
 from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionError, load_submission, validate_submission
 from server.db import make_engine, make_session_factory, transaction
-from server.models import FailureKind, Submission, utc_now
-from server.queue import SCORE_TASK, prune_embedded_broker
+from server.models import ChunkState, FailureKind, Submission, utc_now
+from server.queue import SCORE_TASK, prune_embedded_broker, waiting_tasks
+from server.services.chunks import (
+    StartAction,
+    dead_chunks,
+    finish_chunk,
+    forgotten_chunks,
+    plan_chunks,
+    resend_chunk,
+    start_chunk,
+)
 from server.services.errors import NotFound
 from server.services.scoring import (
     ScoringJob,
+    add_admin_detail,
     claim_submission,
     completed_tokens,
-    expired_leases,
     finish_if_complete,
     load_job,
     mark_failed,
+    mark_requeued,
     requeue,
     stale_queued,
+    stalled_runs,
     write_chunk_results,
 )
+from server.services.splits import split_tokens
 from server.settings import get_settings
 from worker.app import CHUNK_TASK, REAP_TASK, app
+from worker.heartbeat import beating
 
 log = get_task_logger(__name__)
 
 # Only these are worth retrying: the next attempt may find the database or the broker back.
-INFRASTRUCTURE_ERRORS = (sqlalchemy.exc.OperationalError, kombu.exceptions.OperationalError)
+DATABASE_OUTAGES = (sqlalchemy.exc.OperationalError, sqlalchemy.exc.InterfaceError)
+INFRASTRUCTURE_ERRORS = (*DATABASE_OUTAGES, kombu.exceptions.OperationalError)
+# Before a task holds anything: 2 + 4 + ... + 60 s, about six minutes of outage, without jitter.
 RETRY: dict[str, Any] = {
     "autoretry_for": INFRASTRUCTURE_ERRORS,
     "retry_backoff": 2,
     "retry_backoff_max": 60,
-    "max_retries": 5,
+    "retry_jitter": False,
+    "max_retries": 10,
 }
+# A chunk's scored rows are in memory: their write waits out a database outage this long, in the task.
+DATABASE_OUTAGE_S = 360.0
+DATABASE_RETRY_MAX_S = 15.0
 ENGINE_FAILURE = "the scoring engine failed on this submission (not a problem of the file)"
+POISONED_TOKEN = (
+    "scoring this token stopped the worker process twice (a crash or running out of memory); "
+    "it was not scored and counts as a failed token"
+)
 MAX_LISTED_PROBLEMS = 5
 
 
@@ -95,10 +120,6 @@ def _worker_name(task: Task) -> str:
     return f"{task.request.hostname or 'worker'}/{os.getpid()}"
 
 
-def _chunks(tokens: Sequence[str], size: int) -> list[list[str]]:
-    return [list(tokens[start : start + size]) for start in range(0, len(tokens), size)]
-
-
 def _job(session: Session, submission_id: int, storage_dir: Path) -> ScoringJob:
     """Return the run's scoring job; raise Rejected when the stored file is gone."""
     try:
@@ -113,16 +134,16 @@ def _unscored(
     sessions: sessionmaker[Session],
     submission_id: int,
     run: int,
-    tokens: Sequence[str] | None,
+    tokens: Sequence[str],
     storage_dir: Path,
 ) -> tuple[ScoringJob, list[str]] | None:
-    """Return the run's job and which of `tokens` (None: all the split's) lack rows; None if the run was dropped."""
+    """Return the run's job and which of `tokens` lack rows; None if the run is no longer wanted."""
     with sessions() as session:
         done = completed_tokens(session, submission_id, run)
         if done is None:
             return None
         job = _job(session, submission_id, storage_dir)
-    return job, [token for token in (job.tokens if tokens is None else tokens) if token not in done]
+    return job, [token for token in tokens if token not in done]
 
 
 def _predictions(job: ScoringJob) -> Predictions:
@@ -147,6 +168,23 @@ def _predictions(job: ScoringJob) -> Predictions:
             "; ".join(str(problem) for problem in problems[:MAX_LISTED_PROBLEMS]),
         )
     return predictions
+
+
+def _through_database_outages(write: Callable[[], str]) -> str:
+    """Run a database write, retrying while the database is unreachable (a chunk keeps its scored rows).
+
+    Retrying the whole task instead would score again, and its chunk, held by this task, would not start.
+    """
+    deadline, delay = monotonic() + DATABASE_OUTAGE_S, 1.0
+    while True:
+        try:
+            return write()
+        except DATABASE_OUTAGES as error:
+            if monotonic() > deadline:
+                raise
+            log.warning("database unreachable, writing again in %.0f s: %s", delay, error)
+            sleep(delay)
+            delay = min(2 * delay, DATABASE_RETRY_MAX_S)
 
 
 def _guarded(submission_id: int, run: int, work: Callable[[], str]) -> str:
@@ -177,117 +215,162 @@ def _guarded(submission_id: int, run: int, work: Callable[[], str]) -> str:
 
 @app.task(name=SCORE_TASK, bind=True, **RETRY)
 def score_submission(self: Task, submission_id: int) -> str:
-    """Claim a submission, check its stored file and send its unscored tokens out as chunk tasks."""
+    """Claim a submission and send its unscored tokens out as chunk tasks (or aggregate, if none is left)."""
     settings = get_settings()
     sessions = _sessions(settings.database_url)
     try:
         with transaction(sessions) as session:
-            run = claim_submission(session, submission_id, _worker_name(self), settings.lease_seconds)
+            run = claim_submission(session, submission_id, _worker_name(self))
     except NotFound:
         return f"submission {submission_id}: missing"
     if run is None:
         return f"submission {submission_id}: not active"
 
     def dispatch() -> str:
-        unscored = _unscored(sessions, submission_id, run, None, settings.storage_dir)
-        if unscored is None:
-            return "dropped"
-        job, missing = unscored
-        predictions = _predictions(job)
-        if not missing:  # every row was written before an interruption: only the aggregation is left
-            with transaction(sessions) as session:
+        # A run claimed but never planned (this process died in between) is re-planned by the reaper.
+        with transaction(sessions) as session:
+            submission = session.get(Submission, submission_id)
+            done = completed_tokens(session, submission_id, run)
+            if submission is None or done is None:
+                return "dropped"
+            missing = [token for token in split_tokens(submission.split) if token not in done]
+            if not missing:  # every row was written before an interruption: only the aggregation is left
                 finish_if_complete(
                     session, submission_id, run, engine_provenance(), settings.bootstrap_samples
                 )
-            return "finished"
-        # A chunk holds about chunk_size (token, seed) pairs, whatever the number of seeds.
-        size = max(1, settings.chunk_size // len(predictions.seeds))
-        chunks = _chunks(missing, size)
-        for chunk in chunks:
-            score_chunk.delay(submission_id, run, chunk)
+                return "finished"
+            # A chunk holds about chunk_size (token, seed) pairs, whatever the number of seeds.
+            size = max(1, settings.chunk_size // submission.seed_count)
+            chunks = plan_chunks(session, submission, missing, size)
+        for chunk_id in chunks:  # a chunk recorded but never sent is re-sent by the reaper
+            score_chunk.delay(submission_id, run, chunk_id)
         return f"{len(chunks)} chunks"
 
     return f"submission {submission_id} run {run}: {_guarded(submission_id, run, dispatch)}"
 
 
+def _failed_rows(job: ScoringJob, tokens: Sequence[str]) -> dict[str, list[TokenResult]]:
+    """Return failed rows for `tokens` under every version and seed of the job (a poisoned token)."""
+    rows = [
+        TokenResult(token, seed, valid=False, error=POISONED_TOKEN)
+        for seed in range(job.seed_count)
+        for token in tokens
+    ]
+    return {version: rows for version in job.versions}
+
+
 @app.task(name=CHUNK_TASK, bind=True, **RETRY)
-def score_chunk(self: Task, submission_id: int, run: int, tokens: list[str]) -> str:
-    """Score some tokens of a run under every metric version and seed; aggregate if they were the last."""
+def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
+    """Score a chunk's tokens under every metric version and seed; aggregate if they were the last."""
     settings = get_settings()
     sessions = _sessions(settings.database_url)
     worker = _worker_name(self)
+    with transaction(sessions) as session:
+        start = start_chunk(session, chunk_id, run, worker)
+    if start.action == StartAction.drop:
+        return f"submission {submission_id} run {run}: chunk {chunk_id} dropped"
+    if start.action == StartAction.split:
+        for child in start.children:
+            score_chunk.delay(submission_id, run, child)
+        return f"submission {submission_id} run {run}: chunk {chunk_id} split into {len(start.children)}"
 
     def score() -> str:
-        unscored = _unscored(sessions, submission_id, run, tokens, settings.storage_dir)
+        unscored = _unscored(sessions, submission_id, run, start.tokens, settings.storage_dir)
         if unscored is None:
             return "dropped"
         job, todo = unscored
-        results: dict[str, tuple[list[TokenResult], float]] = {}
-        if todo:  # a redelivered chunk whose rows are all written only checks for completion
+        poisoned = start.action == StartAction.poisoned and bool(todo)
+        timed: dict[str, tuple[list[TokenResult], float]] = {}
+        if poisoned:
+            timed = {version: (rows, 0.0) for version, rows in _failed_rows(job, todo).items()}
+        elif todo:  # a chunk whose rows were all written by an earlier holder only checks for completion
             predictions = _predictions(job)
-            for version in job.versions:
-                started = perf_counter()
-                rows = [
-                    row
-                    for seed, poses in enumerate(predictions.seeds)
-                    for row in score_tokens(job.split_dir, settings.cache_dir, poses, version, todo, seed)
-                ]
-                results[version] = rows, perf_counter() - started
-        with transaction(sessions) as session:
-            for version, (rows, duration) in results.items():
-                wanted = write_chunk_results(
-                    session, submission_id, run, version, rows, worker, duration, settings.lease_seconds
+            with beating(sessions, chunk_id, worker):
+                for version in job.versions:
+                    started = perf_counter()
+                    rows = [
+                        row
+                        for seed, poses in enumerate(predictions.seeds)
+                        for row in score_tokens(job.split_dir, settings.cache_dir, poses, version, todo, seed)
+                    ]
+                    timed[version] = rows, perf_counter() - started
+
+        def write() -> str:
+            with transaction(sessions) as session:
+                for version, (rows, duration) in timed.items():
+                    if not write_chunk_results(session, submission_id, run, version, rows, worker, duration):
+                        return "dropped"
+                finish_chunk(session, chunk_id, ChunkState.failed if poisoned else ChunkState.done)
+                if poisoned:
+                    detail = f"token {', '.join(todo)}: written as failed, {POISONED_TOKEN}"
+                    add_admin_detail(session, submission_id, detail)
+                finished = finish_if_complete(
+                    session, submission_id, run, engine_provenance(), settings.bootstrap_samples
                 )
-                if not wanted:
-                    return "dropped"
-            finished = finish_if_complete(
-                session, submission_id, run, engine_provenance(), settings.bootstrap_samples
-            )
-        return "scored" if finished else f"{len(todo)} tokens"
+            return "scored" if finished else f"{len(todo)} tokens"
+
+        return _through_database_outages(write)
 
     return f"submission {submission_id} run {run}: {_guarded(submission_id, run, score)}"
 
 
-def _waiting_tasks() -> int:
-    """Return how many tasks wait in the queue (not yet taken by any worker)."""
-    queue = app.amqp.queues[app.conf.task_default_queue]
-    with app.connection_for_read() as connection:
-        _, count, _ = queue.bind(connection.default_channel).queue_declare()
-    return int(count)
-
-
 @app.task(name=REAP_TASK)
-def reap_leases() -> dict[str, list[int]]:
-    """Re-queue runs whose lease expired (failing those out of attempts) and re-send long-queued ones."""
+def reap_lost_work() -> dict[str, list[int]]:
+    """Re-send what died or what the broker lost, and fail what cannot finish (see the module docstring)."""
     settings = get_settings()
+    sessions = _sessions(settings.database_url)
     pruned = prune_embedded_broker(settings)
     if pruned:
         log.info("reaper: deleted %d delivered messages from the embedded broker", pruned)
-    # Tasks still waiting in the queue may be the chunks of an expired lease that are merely late behind
-    # other work: only an idle queue proves a run lost. Redis hands lost messages back by itself; the
-    # embedded broker cannot, so this is how its runs recover.
-    if _waiting_tasks():
-        return {"postponed": []}
     now = utc_now()
-    failed, resend = [], []
-    with transaction(_sessions(settings.database_url)) as session:
-        for submission_id in expired_leases(session, now):
-            submission = session.get(Submission, submission_id)
-            assert submission is not None
-            if submission.attempts >= settings.max_attempts:
-                message = (
-                    f"scoring was interrupted {submission.attempts} times (a worker was lost or too slow)"
-                )
-                detail = f"lease expired at {submission.lease_expires_at}; last worker {submission.worker}"
+    chunks: list[tuple[int, int, int]] = []
+    submissions: list[int] = []
+    failed: list[int] = []
+    with transaction(sessions) as session:
+        # A beat that stopped is proof on its own: its chunk is sent again whatever the queue holds.
+        for chunk in dead_chunks(session, now):
+            assert chunk.started_at is not None
+            if (now - chunk.started_at).total_seconds() >= settings.task_time_limit:
+                message = f"scoring was stopped at the hard time limit of {settings.task_time_limit:.0f} s"
+                detail = f"chunk {chunk.id} of {len(chunk.tokens)} tokens, started {chunk.started_at} by {chunk.worker}"
                 mark_failed(
-                    session, submission_id, submission.run, FailureKind.infrastructure, message, detail
+                    session, chunk.submission_id, chunk.run, FailureKind.infrastructure, message, detail
                 )
-                failed.append(submission_id)
-            elif requeue(session, submission_id):
-                resend.append(submission_id)
-        resend += stale_queued(session, now - timedelta(seconds=2 * settings.reaper_interval))
-    for submission_id in resend:
+                failed.append(chunk.submission_id)
+            else:
+                chunks.append(
+                    (chunk.submission_id, chunk.run, resend_chunk(session, chunk, died=True, now=now))
+                )
+    # What waits in SQL but not in an idle queue was lost by the broker, or is held by a worker that took
+    # it a moment ago: after one reaper interval it is sent again (a duplicate drops).
+    if not waiting_tasks(settings):
+        sent_before = now - timedelta(seconds=settings.reaper_interval)
+        with transaction(sessions) as session:
+            for chunk in forgotten_chunks(session, sent_before):
+                chunks.append(
+                    (chunk.submission_id, chunk.run, resend_chunk(session, chunk, died=False, now=now))
+                )
+            for submission_id in stalled_runs(session, sent_before):
+                submission = session.get(Submission, submission_id)
+                assert submission is not None
+                if submission.attempts >= settings.max_attempts:
+                    message = (
+                        f"scoring was interrupted {submission.attempts} times (a worker was lost or too slow)"
+                    )
+                    detail = f"claimed at {submission.claimed_at}; last worker {submission.worker}"
+                    mark_failed(
+                        session, submission_id, submission.run, FailureKind.infrastructure, message, detail
+                    )
+                    failed.append(submission_id)
+                elif requeue(session, submission_id):
+                    submissions.append(submission_id)
+            resent = stale_queued(session, sent_before)
+            mark_requeued(session, resent, now)
+            submissions += resent
+    for submission_id, run, chunk_id in chunks:
+        score_chunk.delay(submission_id, run, chunk_id)
+    for submission_id in submissions:
         score_submission.delay(submission_id)
-    if failed or resend:
-        log.warning("reaper: re-sent %s, failed %s", resend, failed)
-    return {"resent": resend, "failed": failed}
+    if chunks or submissions or failed:
+        log.warning("reaper: re-sent chunks %s and submissions %s, failed %s", chunks, submissions, failed)
+    return {"chunks": [chunk_id for _, _, chunk_id in chunks], "submissions": submissions, "failed": failed}

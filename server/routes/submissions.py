@@ -5,12 +5,13 @@ from __future__ import annotations
 import logging
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, Header, HTTPException, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy.orm import Session
 
 from scorer.versions import DEFAULT_VERSION, VersionName
-from server.auth import ApprovedTeamDep, SessionDep, TeamDep, TokenDep
+from server.auth import ApprovedTeamDep, SessionDep, TeamDep, counted_upload
+from server.body_limit import upload_too_large
 from server.models import Phase, Status
 from server.routes.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
 from server.routes.views import submission_views, token_result_views
@@ -31,7 +32,7 @@ def _read_upload(file: UploadFile, limit: int) -> bytes:
     while chunk := file.file.read(UPLOAD_READ_BYTES):
         size += len(chunk)
         if size > limit:
-            raise HTTPException(status_code=413, detail=f"file larger than the limit of {limit} bytes")
+            raise HTTPException(status_code=413, detail=upload_too_large(limit))
         chunks.append(chunk)
     return b"".join(chunks)
 
@@ -52,12 +53,13 @@ FormField = Annotated[str | None, Form()]
 
 @router.post(
     "/submissions",
+    dependencies=[Depends(counted_upload)],
     status_code=202,
     response_model=SubmissionAccepted,
     responses={
         409: {"description": "same file already submitted, or Idempotency-Key reused with another file"},
         422: {"description": "every problem of the file: token, field, message"},
-        429: {"description": "a quota is exhausted; says which and when it resets"},
+        429: {"description": "a quota is exhausted, or too many uploads; says which and when to retry"},
     },
 )
 def submit(
@@ -101,13 +103,16 @@ def submit(
 
 @router.post(
     "/submissions:validate",
+    dependencies=[Depends(counted_upload)],
     response_model=ValidationReport,
-    responses={422: {"description": "every problem of the file: token, field, message"}},
+    responses={
+        422: {"description": "every problem of the file: token, field, message"},
+        429: {"description": "too many uploads from this token or address; Retry-After says when to retry"},
+    },
 )
 def validate(
     request: Request,
     session: SessionDep,
-    _token: TokenDep,
     file: Annotated[UploadFile, File()],
     phase: FormField = None,
 ) -> ValidationReport:

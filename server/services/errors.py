@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any
 
 
@@ -15,6 +15,10 @@ class ServiceError(Exception):
         super().__init__(message)
         self.message = message
         self.extra = extra
+
+    def retry_after_s(self) -> int | None:
+        """Seconds after which the same request may succeed (the Retry-After header), if that is known."""
+        return None
 
 
 class NotFound(ServiceError):
@@ -56,3 +60,8 @@ class QuotaExceeded(ServiceError):
         self.limit = limit
         self.used = used
         self.resets_at = resets_at
+
+    def retry_after_s(self) -> int | None:
+        if self.resets_at is None:
+            return None
+        return max(1, int((self.resets_at - datetime.now(UTC)).total_seconds()))

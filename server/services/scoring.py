@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime, timedelta
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -19,13 +19,23 @@ from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
 from scorer.versions import METRIC_COLUMNS, VERSIONS
-from server.models import ACTIVE_STATUSES, FailureKind, Status, Submission, TokenResultRow, utc_now
+from server.models import (
+    ACTIVE_STATUSES,
+    FailureKind,
+    ScoringChunk,
+    Status,
+    Submission,
+    TokenResultRow,
+    utc_now,
+)
+from server.services.chunks import LIVE_STATES
 from server.services.errors import Conflict, NotFound
 from server.services.leaderboard import aggregate_submission
 from server.services.splits import split_tokens, subset_tokens
 from server.storage import read_file
 
 MAX_ERROR_CHARS = 2000
+MAX_DETAIL_CHARS = 20000
 UPSERT_KEY = ("submission_id", "metric_version", "seed", "token")
 
 
@@ -85,9 +95,9 @@ def load_job(session: Session, submission_id: int, storage_dir: Path) -> Scoring
 
 
 def claim_submission(
-    session: Session, submission_id: int, worker: str, lease_seconds: float, now: datetime | None = None
+    session: Session, submission_id: int, worker: str, now: datetime | None = None
 ) -> int | None:
-    """Mark an active submission running under `worker` with a lease; return its run, or None if it is done."""
+    """Mark an active submission running, claimed by `worker`; return its run, or None if it is done."""
     now = now or utc_now()
     submission = _locked(session, submission_id)
     if submission.status not in ACTIVE_STATUSES:
@@ -96,7 +106,7 @@ def claim_submission(
     submission.worker = worker
     submission.attempts += 1
     submission.started_at = submission.started_at or now
-    submission.lease_expires_at = now + timedelta(seconds=lease_seconds)
+    submission.claimed_at = now
     session.flush()
     return submission.run
 
@@ -147,10 +157,9 @@ def write_chunk_results(
     results: Sequence[Any],
     worker: str,
     duration_s: float,
-    lease_seconds: float,
     now: datetime | None = None,
 ) -> bool:
-    """Upsert one chunk of scorer TokenResults (seed None counts as 0), update progress and renew the lease.
+    """Upsert one chunk of scorer TokenResults (seed None counts as 0) and update the run's progress.
 
     Returns False, writing nothing, when the run is no longer wanted (cancelled, finished or re-run):
     the worker should then stop.
@@ -183,7 +192,6 @@ def write_chunk_results(
     done = rows_written(session, submission_id, run)
     # 100 only once the results are aggregated (mark_scored).
     submission.progress = min(99, int(100 * done / max(expected_rows(submission), 1)))
-    submission.lease_expires_at = now + timedelta(seconds=lease_seconds)
     session.flush()
     return True
 
@@ -211,7 +219,6 @@ def mark_scored(
     submission.status = Status.scored
     submission.progress = 100
     submission.finished_at = now or utc_now()
-    submission.lease_expires_at = None
     session.flush()
     return True
 
@@ -248,16 +255,23 @@ def mark_failed(
     submission.error_detail = detail
     submission.charged = submission.charged and not refund
     submission.finished_at = now or utc_now()
-    submission.lease_expires_at = None
     session.flush()
     return True
 
 
-def expired_leases(session: Session, now: datetime | None = None) -> list[int]:
-    """Return the ids of running submissions whose worker lease has expired (for the reaper)."""
-    now = now or utc_now()
+def stalled_runs(session: Session, claimed_before: datetime) -> list[int]:
+    """Return the ids of running submissions claimed before `claimed_before` that have no live chunk.
+
+    Planning writes a run's chunks in its claim's transaction, and the last chunk aggregates in its own:
+    a run left running with nothing queued or running was interrupted in a way nothing else repairs.
+    """
+    live = select(ScoringChunk.id).where(
+        ScoringChunk.submission_id == Submission.id,
+        ScoringChunk.run == Submission.run,
+        ScoringChunk.state.in_(LIVE_STATES),
+    )
     query = select(Submission.id).where(
-        Submission.status == Status.running, Submission.lease_expires_at < now
+        Submission.status == Status.running, Submission.claimed_at < claimed_before, ~live.exists()
     )
     return list(session.scalars(query.order_by(Submission.id)).all())
 
@@ -269,9 +283,23 @@ def requeue(session: Session, submission_id: int) -> bool:
         return False
     submission.status = Status.queued
     submission.queued_at = utc_now()
-    submission.lease_expires_at = None
     session.flush()
     return True
+
+
+def mark_requeued(session: Session, submission_ids: Sequence[int], now: datetime | None = None) -> None:
+    """Record that queued submissions were sent again now (so they are not re-sent at every reaper pass)."""
+    for submission_id in submission_ids:
+        submission = _locked(session, submission_id)
+        submission.queued_at = now or utc_now()
+    session.flush()
+
+
+def add_admin_detail(session: Session, submission_id: int, line: str) -> None:
+    """Append a line to what admins see of a run's problems (the team sees per-token errors instead)."""
+    submission = _locked(session, submission_id)
+    submission.error_detail = "\n".join(filter(None, [submission.error_detail, line]))[-MAX_DETAIL_CHARS:]
+    session.flush()
 
 
 def stale_queued(session: Session, queued_before: datetime) -> list[int]:
@@ -289,7 +317,7 @@ def reset_for_rerun(session: Session, submission: Submission) -> None:
     submission.queued_at = utc_now()
     submission.progress = 0
     submission.error = submission.error_detail = submission.failure_kind = None
-    submission.finished_at = submission.lease_expires_at = None
+    submission.finished_at = submission.claimed_at = None
     submission.worker = None
     session.flush()
 
@@ -303,5 +331,4 @@ def cancel(session: Session, submission: Submission, now: datetime | None = None
     submission.status = Status.cancelled
     submission.charged = False
     submission.finished_at = now or utc_now()
-    submission.lease_expires_at = None
     session.flush()

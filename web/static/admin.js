@@ -64,7 +64,7 @@ async function fillWorkers() {
     if (workers.ok === null) items.push(`Workers: unknown (${workers.detail}).`);
     else items.push(workers.count ? `Workers ${how}: ${workers.names.join(", ")}.` : `No worker is ${how} (${workers.detail}).`);
   }
-  // Every transport: the workers that hold a run's lease right now.
+  // Every transport: the workers that claimed the runs in progress.
   const holding = new Map();
   for (const s of state.submissions.filter((s) => s.status === "running" && s.worker)) {
     holding.set(s.worker, [...(holding.get(s.worker) || []), s.id]);

@@ -1,0 +1,137 @@
+"""Servers of a test's own, which the test stops and restarts: Redis and PostgreSQL, each on its own port and
+data directory (never the machine's shared servers, which other tests use at the same time)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+
+import redis
+from sqlalchemy import create_engine, text
+from sqlalchemy.exc import OperationalError
+from worker_testing import free_port, wait_for
+
+from navsim_lb.processes import child_process
+
+POSTGRES_USER = "postgres"  # PostgreSQL refuses to run as root
+
+
+class OwnRedis:
+    """A Redis server (no persistence, as the machine's) that the test can restart on the same port."""
+
+    def __init__(self, directory: Path) -> None:
+        self.port, self.directory = free_port(), directory
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self._process = ExitStack()
+
+    def client(self) -> redis.Redis:
+        return redis.Redis(port=self.port)
+
+    def start(self) -> None:
+        command = ["redis-server", "--port", str(self.port), "--bind", "127.0.0.1", "--save", ""]
+        command += ["--appendonly", "no", "--dir", str(self.directory)]
+        self._process.enter_context(child_process(command, dict(os.environ), self.directory / "redis.log"))
+        wait_for(self._pings, f"redis on port {self.port}")
+
+    def _pings(self) -> bool:
+        try:
+            return bool(self.client().ping())
+        except redis.ConnectionError:
+            return False
+
+    def stop(self) -> None:
+        self._process.close()
+
+    def restart(self) -> None:
+        self.stop()
+        self.start()
+
+
+@contextmanager
+def own_redis(directory: Path) -> Iterator[OwnRedis]:
+    directory.mkdir()
+    server = OwnRedis(directory)
+    server.start()
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+def _postgres_bin(program: str) -> str:
+    found = shutil.which(program) or next(Path("/usr/lib/postgresql").glob(f"*/bin/{program}"), None)
+    assert found is not None, f"{program} is not installed (Debian package postgresql)"
+    return str(found)
+
+
+class OwnPostgres:
+    """A PostgreSQL cluster in a temporary directory, run by the postgres user, that the test stops and starts."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory, self.port = directory, free_port()
+        self.url = f"postgresql://{POSTGRES_USER}@127.0.0.1:{self.port}/postgres"
+
+    def _as_postgres(self, *command: str) -> None:
+        subprocess.run(["runuser", "-u", POSTGRES_USER, "--", *command], check=True, capture_output=True)
+
+    def initialise(self) -> None:
+        self._as_postgres(
+            _postgres_bin("initdb"), "-D", str(self.directory / "data"), "-A", "trust", "-U", "postgres"
+        )
+
+    def start(self) -> None:
+        options = f"-p {self.port} -k {self.directory} -c listen_addresses=127.0.0.1"
+        log = str(self.directory / "postgres.log")
+        self._as_postgres(
+            _postgres_bin("pg_ctl"),
+            "-D",
+            str(self.directory / "data"),
+            "-o",
+            options,
+            "-l",
+            log,
+            "-w",
+            "start",
+        )
+        wait_for(self._answers, f"postgresql on port {self.port}")
+
+    def _answers(self) -> bool:
+        engine = create_engine(self.url.replace("postgresql://", "postgresql+psycopg://"))
+        try:
+            with engine.connect() as connection:
+                return connection.execute(text("SELECT 1")).scalar() == 1
+        except OperationalError:
+            return False
+        finally:
+            engine.dispose()
+
+    def stop(self) -> None:
+        self._as_postgres(
+            _postgres_bin("pg_ctl"), "-D", str(self.directory / "data"), "-m", "fast", "-w", "stop"
+        )
+
+
+@contextmanager
+def own_postgres() -> Iterator[OwnPostgres]:
+    """Yield a running cluster of the test's own; removed afterwards (its directory must be the postgres user's)."""
+    directory = Path(tempfile.mkdtemp(prefix="navsim-lb-postgres-"))
+    try:
+        directory.chmod(0o755)
+        shutil.chown(directory, POSTGRES_USER, POSTGRES_USER)
+        server = OwnPostgres(directory)
+        server.initialise()
+        server.start()
+        try:
+            yield server
+        finally:
+            try:
+                server.stop()
+            except subprocess.CalledProcessError:
+                pass  # already stopped
+    finally:
+        shutil.rmtree(directory, ignore_errors=True)

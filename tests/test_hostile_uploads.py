@@ -1,0 +1,268 @@
+"""Hostile uploads over HTTP: each is answered 4xx with a message that says what is wrong, nothing is stored or
+queued, and nothing the file names is executed: pickles that call os.system, eval or subprocess or import other
+modules, unknown classes, object arrays, gzip, xz and zip bombs, NaN and Inf, wrong shapes and dtypes, missing,
+extra and duplicate tokens, invalid UTF-8, deeply nested or huge JSON; hostile file names are only labels."""
+
+from __future__ import annotations
+
+import importlib
+import io
+import json
+import lzma
+import os
+import pickle
+import re
+import socket
+import subprocess
+import zipfile
+import zlib
+from collections import OrderedDict
+from collections.abc import Callable
+from functools import cache
+from pathlib import Path
+from select import select as wait_readable
+
+import numpy as np
+import pytest
+from server_testing import REFERENCE_SUBMISSIONS, World
+from sqlalchemy import func, select
+from worker_testing import Service, SplitFixture, running_service
+
+from scorer.submission import MAX_DECOMPRESSED_BYTES
+from server.models import AuditEntry, Submission
+
+HUMAN = (REFERENCE_SUBMISSIONS / "human.json").read_bytes()
+MARKER = Path(os.environ.get("TMPDIR", "/tmp")) / f"navsim-lb-hostile-{os.getpid()}"
+
+
+class _Calls:
+    """Pickles as `__reduce__` makes them: unpickling calls `function(*arguments)`."""
+
+    def __init__(self, function: Callable[..., object], *arguments: object) -> None:
+        self.function, self.arguments = function, arguments
+
+    def __reduce__(self) -> tuple[object, tuple[object, ...]]:
+        return self.function, self.arguments
+
+
+def _in_submission(payload: object) -> bytes:
+    return pickle.dumps({"team_name": "t", "predictions": [{"a1": payload}]}, protocol=4)
+
+
+def _document(edit: Callable[[dict], None]) -> bytes:
+    document = json.loads(HUMAN)
+    edit(document)
+    return json.dumps(document, allow_nan=True).encode()
+
+
+def _first_token(document: dict) -> str:
+    return min(document["predictions"])
+
+
+def _bomb(compressor: object, flush: Callable[[], bytes]) -> bytes:
+    """Return a small file that inflates past the decompression limit (zeros, chunk by chunk)."""
+    block = bytes(1 << 20)
+    parts = [compressor.compress(block) for _ in range(MAX_DECOMPRESSED_BYTES // len(block) + 8)]  # type: ignore[attr-defined]
+    return b"".join([*parts, flush()])
+
+
+@cache
+def _gzip_bomb() -> bytes:
+    compressor = zlib.compressobj(1, wbits=31)
+    return _bomb(compressor, compressor.flush)
+
+
+@cache
+def _xz_bomb() -> bytes:
+    compressor = lzma.LZMACompressor(preset=0)
+    return _bomb(compressor, compressor.flush)
+
+
+@cache
+def _zip_bomb() -> bytes:
+    buffer = io.BytesIO()
+    with (
+        zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive,
+        archive.open("submission.json", "w", force_zip64=True) as member,
+    ):
+        for _ in range(64):
+            member.write(bytes(1 << 20))
+    return buffer.getvalue()
+
+
+def _nested(depth: int) -> bytes:
+    return b'{"format": ' + b"[" * depth + b"]" * depth + b"}"
+
+
+def _duplicate_token() -> bytes:
+    text = HUMAN.decode()
+    token = _first_token(json.loads(HUMAN))
+    value = json.dumps(json.loads(HUMAN)["predictions"][token])
+    return text.replace(f'"{token}":', f'"{token}": {value}, "{token}":', 1).encode()
+
+
+# (case, bytes, words the message must contain)
+HOSTILE: list[tuple[str, Callable[[], bytes], str]] = [
+    ("pickle calls os.system", lambda: _in_submission(_Calls(os.system, f"touch {MARKER}")), "never holds"),
+    ("pickle calls eval", lambda: _in_submission(_Calls(eval, f"open({str(MARKER)!r}, 'w')")), "never holds"),
+    (
+        "pickle calls subprocess",
+        lambda: _in_submission(_Calls(subprocess.call, ["touch", str(MARKER)])),
+        "never holds",
+    ),
+    (
+        "pickle imports a module",
+        lambda: _in_submission(_Calls(importlib.import_module, "antigravity")),
+        "never holds",
+    ),
+    ("pickle holds an unknown class", lambda: _in_submission(OrderedDict(a=1)), "never holds"),
+    (
+        "pickle holds an object array",
+        lambda: _in_submission(np.array([[0.0] * 3] * 8, dtype=object)),
+        "dtype 'O8' is not allowed",
+    ),
+    ("gzip bomb", _gzip_bomb, "decompresses to more than"),
+    ("xz bomb", _xz_bomb, "decompresses to more than"),
+    ("zip bomb", _zip_bomb, "not valid JSON"),
+    (
+        "NaN pose",
+        lambda: _document(lambda d: d["predictions"][_first_token(d)][0].__setitem__(0, float("nan"))),
+        "finite",
+    ),
+    (
+        "Inf pose",
+        lambda: _document(lambda d: d["predictions"][_first_token(d)][1].__setitem__(1, float("inf"))),
+        "finite",
+    ),
+    (
+        "wrong shape",
+        lambda: _document(lambda d: d["predictions"].__setitem__(_first_token(d), [[0.0, 0.0]] * 8)),
+        "shape",
+    ),
+    (
+        "text for a number",
+        lambda: _document(lambda d: d["predictions"][_first_token(d)][0].__setitem__(0, "1.0")),
+        "text",
+    ),
+    ("missing token", lambda: _document(lambda d: d["predictions"].pop(_first_token(d))), "missing"),
+    (
+        "extra token",
+        lambda: _document(lambda d: d["predictions"].__setitem__("f" * 16, [[0.0] * 3] * 8)),
+        "not in the split",
+    ),
+    ("duplicate token", _duplicate_token, "more than once"),
+    ("invalid UTF-8", lambda: HUMAN.replace(b'"format"', b'"form\xff\xfet"', 1), "not valid JSON"),
+    ("deeply nested JSON", lambda: _nested(100_000), "nested too deeply"),
+    ("huge JSON of no submission", lambda: b"[" + b"0," * 20_000_000 + b"0]", "must be an object"),
+]
+
+
+def _state(world: World) -> tuple[int, int, list[Path]]:
+    """Everything stored: submissions, audit events and the stored files."""
+    with world.session() as session:
+        submissions = session.scalar(select(func.count()).select_from(Submission)) or 0
+        events = session.scalar(select(func.count()).select_from(AuditEntry)) or 0
+    return submissions, events, sorted(p for p in Path(world.settings.storage_dir).rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize(("case", "make", "words"), HOSTILE, ids=[case for case, _, _ in HOSTILE])
+def test_a_hostile_upload_is_refused_with_its_reason_and_changes_nothing(
+    world: World, case: str, make: Callable[[], bytes], words: str
+) -> None:
+    before = _state(world)
+    for route in ("/api/v1/submissions", "/api/v1/submissions:validate"):
+        response = world.client.post(
+            route,
+            headers=world.team_headers(),
+            files={"file": ("entry.pkl", make())},
+            data={"phase": world.phase},
+        )
+        assert 400 <= response.status_code < 500, (case, response.status_code, response.text[:300])
+        assert words in response.text, (case, response.text[:500])
+        assert "Traceback" not in response.text and str(world.settings.data_dir) not in response.text
+    assert _state(world) == before and world.queued == []
+    assert not MARKER.exists()
+
+
+def test_hostile_file_names_and_metadata_are_labels_only(world: World) -> None:
+    traversal = "../../../../tmp/navsim-lb-traversal.json"
+    response = world.client.post(
+        "/api/v1/submissions",
+        headers=world.team_headers(),
+        files={"file": (traversal, HUMAN)},
+        data={"phase": world.phase, "method": "../../etc/passwd", "authors": "<script>alert(1)</script>"},
+    )
+    assert response.status_code == 202, response.text
+    stored = [p for p in Path(world.settings.storage_dir).rglob("*") if p.is_file()]
+    assert len(stored) == 1 and ".." not in stored[0].name
+    assert not Path("/tmp/navsim-lb-traversal.json").exists()
+    detail = world.client.get(response.headers["Location"], headers=world.team_headers()).json()
+    assert (detail["method"], detail["authors"]) == ("../../etc/passwd", "<script>alert(1)</script>")
+
+
+def _rss_bytes(pid: int) -> int:
+    """Return the resident memory of process `pid` and its children (uvicorn runs the app in-process)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:"))) * 1024
+
+
+def _stream_until_answered(service: Service, limit: int, declared: int | None = None) -> tuple[int, bytes]:
+    """Stream an upload that never ends until the API answers; return the bytes sent and the answer.
+
+    With `declared`, the request says it holds that many bytes (Content-Length); otherwise it is chunked.
+    """
+    host, port = service.url.removeprefix("http://").split(":")
+    framing = f"Content-Length: {declared}" if declared else "Transfer-Encoding: chunked"
+    head = (
+        f"POST /api/v1/submissions HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer {service.team_token}\r\n"
+        f"Content-Type: multipart/form-data; boundary=x\r\n{framing}\r\n\r\n"
+    )
+    preamble = b'--x\r\nContent-Disposition: form-data; name="file"; filename="big.json"\r\n\r\n'
+    block = b"0" * (1 << 20)
+    if declared:
+        first, frame = preamble, block
+    else:
+        first, frame = (
+            b"%x\r\n" % len(preamble) + preamble + b"\r\n",
+            b"%x\r\n" % len(block) + block + b"\r\n",
+        )
+    sent = 0
+    with socket.create_connection((host, int(port)), timeout=10) as connection:
+        connection.sendall(head.encode() + first)
+        while sent < 8 * limit and not wait_readable([connection], [], [], 0)[0]:
+            try:
+                connection.sendall(frame)
+            except (BrokenPipeError, ConnectionResetError, TimeoutError):
+                break
+            sent += len(block)
+        return sent, _response(connection)
+
+
+def _response(connection: socket.socket) -> bytes:
+    """Read one HTTP response: its head, then as many body bytes as its Content-Length says."""
+    answer = b""
+    while b"\r\n\r\n" not in answer:
+        answer += connection.recv(1 << 16)
+    head, _, body = answer.partition(b"\r\n\r\n")
+    length = int(re.search(rb"content-length: (\d+)", head, re.IGNORECASE).group(1))  # type: ignore[union-attr]
+    while len(body) < length:
+        body += connection.recv(1 << 16)
+    return head + b"\r\n\r\n" + body
+
+
+def test_an_oversized_upload_is_refused_while_it_streams(
+    tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    limit = 32 << 20
+    with running_service(tmp_path, synthetic_split, {"MAX_UPLOAD_BYTES": str(limit)}) as service:
+        before = _rss_bytes(service.api.pid)
+        # Declared too large: refused before the body is read. Not declared (chunked): counted as it
+        # streams and refused at the limit, not at its end.
+        for declared in (8 * limit, None):
+            sent, answer = _stream_until_answered(service, limit, declared)
+            assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
+            assert f"limit of {limit} bytes".encode() in answer
+            assert sent < 2 * limit, f"the API read {sent / 2**20:.0f} MiB of a {limit / 2**20:.0f} MiB limit"
+        grown = _rss_bytes(service.api.pid) - before
+        assert grown < limit // 2, f"the API grew by {grown / 2**20:.0f} MiB"
+        assert service.rows(1) == 0 and not any(service.settings.storage_dir.iterdir())

@@ -1,0 +1,125 @@
+"""The chunk record the reaper holds the broker to: planning skips tokens in flight, only a queued chunk starts
+(a duplicate message drops), a stopped beat is a death, a death splits a chunk one token per chunk, and a
+single token with two deaths is poisoned; a chunk sent long ago and still queued is forgotten."""
+
+from __future__ import annotations
+
+from datetime import datetime, timedelta
+
+from server_testing import World, claimed_submission, reference_tokens
+
+from server.db import transaction
+from server.models import ChunkState, ScoringChunk, Submission, utc_now
+from server.services.chunks import (
+    POISON_DEATHS,
+    StartAction,
+    beat_chunk,
+    dead_chunks,
+    finish_chunk,
+    forgotten_chunks,
+    live_chunks,
+    plan_chunks,
+    resend_chunk,
+    start_chunk,
+)
+from server.services.scoring import cancel
+from server.services.workers import LIVE_WITHIN_S
+
+TOKENS = reference_tokens()
+
+
+def _chunk(world: World, chunk_id: int) -> ScoringChunk:
+    with world.session() as session:
+        chunk = session.get(ScoringChunk, chunk_id)
+        assert chunk is not None
+        return chunk
+
+
+def _plan(world: World, submission: Submission, tokens: list[str], size: int) -> list[int]:
+    with transaction(world.factory) as session:
+        return plan_chunks(session, session.get(Submission, submission.id), tokens, size)
+
+
+def _start(world: World, chunk_id: int, worker: str, now: datetime | None = None) -> StartAction:
+    with transaction(world.factory) as session:
+        return start_chunk(session, chunk_id, 1, worker, now).action
+
+
+def _kill(world: World, chunk_id: int, started: datetime) -> list[int]:
+    """Let the chunk's process stop beating and the reaper find it: return the dead chunks it re-sends."""
+    with transaction(world.factory) as session:
+        dead = dead_chunks(session, started + timedelta(seconds=LIVE_WITHIN_S + 1))
+        return [resend_chunk(session, chunk, died=True) for chunk in dead if chunk.id == chunk_id]
+
+
+def test_planning_skips_the_tokens_live_chunks_hold(world: World) -> None:
+    submission = claimed_submission(world, b"plan")
+    first = _plan(world, submission, TOKENS[:5], 2)
+    assert [_chunk(world, chunk).tokens for chunk in first] == [TOKENS[:2], TOKENS[2:4], TOKENS[4:5]]
+    # Planned again (a duplicate claim): only the tokens no live chunk holds get chunks.
+    again = _plan(world, submission, TOKENS[:7], 2)
+    assert [_chunk(world, chunk).tokens for chunk in again] == [TOKENS[5:7]]
+    with transaction(world.factory) as session:
+        finish_chunk(session, first[0])
+        assert live_chunks(session, submission.id, 1) == 3
+    assert [_chunk(world, chunk).tokens for chunk in _plan(world, submission, TOKENS[:2], 2)] == [TOKENS[:2]]
+
+
+def test_only_a_queued_chunk_of_the_current_run_starts(world: World) -> None:
+    submission = claimed_submission(world, b"start")
+    chunk_id, other = _plan(world, submission, TOKENS[:4], 2)
+    assert _start(world, chunk_id, "host/1") == StartAction.score
+    assert _start(world, chunk_id, "host/2") == StartAction.drop  # a duplicate message while it runs
+    started = _chunk(world, chunk_id)
+    assert (started.state, started.worker, started.starts) == (ChunkState.running, "host/1", 1)
+    with transaction(world.factory) as session:
+        assert beat_chunk(session, chunk_id, "host/1")
+        assert not beat_chunk(session, chunk_id, "host/2")  # not its chunk
+        finish_chunk(session, chunk_id)
+        assert not beat_chunk(session, chunk_id, "host/1")
+        assert start_chunk(session, 10_000, 1, "host/1").action == StartAction.drop  # no such chunk
+        cancel(session, session.get(Submission, submission.id))
+    assert _start(world, other, "host/1") == StartAction.drop  # the run is no longer wanted
+
+
+def test_a_stopped_beat_is_a_death_and_a_death_splits_then_poisons(world: World) -> None:
+    submission = claimed_submission(world, b"poison")
+    (chunk_id,) = _plan(world, submission, TOKENS[:3], 3)
+    started = utc_now()
+    assert _start(world, chunk_id, "host/1", started) == StartAction.score
+    with world.session() as session:  # beating: alive
+        assert dead_chunks(session, started + timedelta(seconds=LIVE_WITHIN_S - 1)) == []
+    assert _kill(world, chunk_id, started) == [chunk_id]
+    died = _chunk(world, chunk_id)
+    assert (died.state, died.deaths) == (ChunkState.queued, 1)
+
+    with transaction(world.factory) as session:
+        split = start_chunk(session, chunk_id, 1, "host/2")
+    assert split.action == StartAction.split and len(split.children) == 3
+    assert _chunk(world, chunk_id).state == ChunkState.split
+    children = [_chunk(world, child) for child in split.children]
+    assert [(child.tokens, child.deaths) for child in children] == [([token], 1) for token in TOKENS[:3]]
+
+    # Each single token starts once more; the one that kills its process again is poisoned.
+    poisoned = split.children[1]
+    started = utc_now()
+    assert _start(world, poisoned, "host/3", started) == StartAction.score
+    assert _kill(world, poisoned, started) == [poisoned]
+    assert _chunk(world, poisoned).deaths == POISON_DEATHS
+    with transaction(world.factory) as session:
+        verdict = start_chunk(session, poisoned, 1, "host/4")
+    assert (verdict.action, verdict.tokens) == (StartAction.poisoned, (TOKENS[1],))
+    assert _start(world, split.children[0], "host/4") == StartAction.score
+
+
+def test_a_chunk_queued_since_before_the_cut_is_forgotten(world: World) -> None:
+    submission = claimed_submission(world, b"forgotten")
+    queued, running = _plan(world, submission, TOKENS[:4], 2)
+    _start(world, running, "host/1")
+    with world.session() as session:
+        assert forgotten_chunks(session, utc_now() - timedelta(seconds=30)) == []
+        assert [chunk.id for chunk in forgotten_chunks(session, utc_now() + timedelta(seconds=1))] == [queued]
+    with transaction(world.factory) as session:
+        (chunk,) = forgotten_chunks(session, utc_now() + timedelta(seconds=1))
+        resend_chunk(session, chunk, died=False)
+    assert _chunk(world, queued).deaths == 0  # lost by the broker is not a death

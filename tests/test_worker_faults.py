@@ -1,0 +1,265 @@
+"""Faults with real processes: worker processes killed mid-chunk (the pool process, the main process), a token
+that kills its worker every time, a chunk past the hard time limit, a graceful shutdown, and a Redis broker
+flushed and restarted under load. Each time the submission ends with exactly one result set, equal to the
+engine's, or fails with the reason and is refunded; nothing is lost and nothing is scored twice.
+
+The workers run tests/fault_worker.py's app, which injects the faults named in the environment. A test that
+stops a server starts its own instance, on its own port and data directory.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager, nullcontext
+from pathlib import Path
+
+import pytest
+from own_servers import own_postgres, own_redis
+from server_testing import fresh_postgres_database
+from sqlalchemy import func, select
+from worker_testing import (
+    Service,
+    SplitFixture,
+    direct_means,
+    fault_worker_command,
+    predictions,
+    running_service,
+    wait_for,
+)
+
+from navsim_lb.processes import child_process
+from navsim_lb.scratch import scratch_redis_queue
+from scorer.submission import Submission as Predictions
+from scorer.versions import VERSIONS
+from server.main import DATABASE_DOWN
+from server.models import ChunkState, FailureKind, ScoringChunk, Status, Summary, TokenResultRow
+from worker.tasks import POISONED_TOKEN
+
+REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
+# The promise: a killed worker costs a submission at most two minutes, with the default settings.
+RECOVERY_S = 120.0
+OUTAGE_S = 20.0
+BACKENDS = ["embedded", pytest.param("postgresql+redis", marks=pytest.mark.services)]
+# Each test appends how long its recovery took: docs/reliability.md quotes the last run.
+FIGURES = Path(__file__).parent / "artifacts" / "reliability-figures.txt"
+
+
+def _record(case: str, since: float) -> None:
+    FIGURES.parent.mkdir(parents=True, exist_ok=True)
+    with FIGURES.open("a") as figures:
+        figures.write(f"{case}: {time.monotonic() - since:.1f} s\n")
+
+
+@contextmanager
+def _backend(kind: str) -> Iterator[dict[str, str]]:
+    """Yield the settings of the embedded defaults, or of a fresh PostgreSQL database and a Redis queue."""
+    if kind == "embedded":
+        yield {}
+        return
+    with (
+        fresh_postgres_database() as database_url,
+        scratch_redis_queue(REDIS_URL, "navsim-lb-faults") as queue,
+    ):
+        yield {"DATABASE_URL": database_url, "BROKER_URL": REDIS_URL, "QUEUE_NAME": queue}
+
+
+def _chunks(service: Service, submission_id: int) -> list[ScoringChunk]:
+    with service.factory() as session:
+        query = (
+            select(ScoringChunk).where(ScoringChunk.submission_id == submission_id).order_by(ScoringChunk.id)
+        )
+        return list(session.scalars(query).all())
+
+
+def _running_chunk(service: Service, submission_id: int) -> ScoringChunk:
+    """Wait until a chunk of the submission is being scored; return it."""
+    return wait_for(  # type: ignore[return-value]
+        lambda: next((c for c in _chunks(service, submission_id) if c.state == ChunkState.running), None),
+        f"a chunk of submission {submission_id} to run",
+    )
+
+
+def _assert_scored_once(
+    service: Service, split: SplitFixture, submission_id: int, entry: Predictions
+) -> None:
+    """The submission is scored with every row once, one leaderboard entry per version, the engine's numbers."""
+    submission = service.submission(submission_id)
+    assert submission.status == Status.scored, (submission.status, submission.error, submission.error_detail)
+    assert service.rows(submission_id) == len(entry.seeds[0]) * len(entry.seeds) * len(VERSIONS)
+    with service.factory() as session:
+        query = select(Summary.metric_version, func.count()).where(Summary.submission_id == submission_id)
+        entries = dict(session.execute(query.group_by(Summary.metric_version)).all())
+    assert entries == dict.fromkeys(VERSIONS, 1)  # the split has one subset, "all"
+    for version in VERSIONS:
+        expected = direct_means(split, entry, version)["score"]
+        assert service.result(submission_id, version)["score"] == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("victim", ["pool process", "main process"])
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_worker_process_killed_mid_chunk_costs_under_two_minutes(
+    backend: str, victim: str, tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    faults = {"FAULT_CHUNK_SECONDS": "2", "CHUNK_SIZE": "4"}
+    with (
+        _backend(backend) as settings,
+        running_service(tmp_path, synthetic_split, settings | faults, faults=True) as service,
+    ):
+        entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method=f"{victim} killed")
+        submission_id = service.upload(entry)
+        chunk = _running_chunk(service, submission_id)
+        assert chunk.worker is not None
+        supervisor: AbstractContextManager[object] = nullcontext()
+        killed = time.monotonic()
+        if victim == "pool process":
+            os.kill(int(chunk.worker.rsplit("/", 1)[1]), signal.SIGKILL)
+        else:  # the worker and its beat; its pool processes are orphans
+            service.worker.send_signal(signal.SIGKILL)
+            service.worker.wait()
+            # What a supervisor (systemd, a container's restart policy) does: start the worker again.
+            command = fault_worker_command(2, True, "second")
+            supervisor = child_process(command, service.env, service.logs / "second-worker.log")
+        with supervisor:
+            service.final(submission_id, timeout=RECOVERY_S)
+        _record(f"{victim} killed ({backend}): kill to scored", killed)
+        _assert_scored_once(service, synthetic_split, submission_id, entry)
+        if victim == "pool process":
+            assert {c.deaths for c in _chunks(service, submission_id) if c.id == chunk.id} == {1}
+            assert service.worker.poll() is None  # the worker replaced its pool process and went on
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_token_that_kills_its_worker_every_time_fails_alone(
+    backend: str, tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    entry = predictions(synthetic_split.directory, seeds=2, noise=0.3, method="poisoned")
+    poison = sorted(entry.seeds[0])[5]
+    faults = {"FAULT_POISON_TOKEN": poison, "CHUNK_SIZE": "8", "REAPER_INTERVAL": "2"}
+    with (
+        _backend(backend) as settings,
+        running_service(tmp_path, synthetic_split, settings | faults, faults=True) as service,
+    ):
+        uploaded = time.monotonic()
+        submission_id = service.upload(entry)
+        submission = service.final(submission_id, timeout=RECOVERY_S)
+        _record(f"poisoned token ({backend}): upload to scored", uploaded)
+        assert submission.status == Status.scored, (submission.error, submission.error_detail)
+        with service.factory() as session:
+            rows = session.scalars(
+                select(TokenResultRow).where(TokenResultRow.submission_id == submission_id)
+            ).all()
+        assert len(rows) == len(entry.seeds[0]) * 2 * len(VERSIONS)
+        failed = {(row.token, row.error) for row in rows if not row.valid}
+        assert failed == {(poison, POISONED_TOKEN)}
+        assert poison in (submission.error_detail or "")  # named for the admins
+        with service.client() as client:  # the team sees the token failed, and why
+            seen = client.get(
+                f"/api/v1/submissions/{submission_id}/tokens", params={"version": "v1.1"}
+            ).json()
+        assert [row["error"] for row in seen if not row["valid"]] == [POISONED_TOKEN] * 2
+        assert service.result(submission_id, "v1.1")["failed_tokens"] == 1
+        deaths = sorted(
+            (len(c.tokens), c.deaths, c.state) for c in _chunks(service, submission_id) if c.deaths
+        )
+        assert deaths[-1] == (4, 1, ChunkState.split) and (1, 2, ChunkState.failed) in deaths
+
+
+def test_a_chunk_past_the_hard_time_limit_fails_the_run_refunded(
+    tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method="hangs")
+    faults = {"FAULT_HANG_TOKEN": min(entry.seeds[0]), "TASK_TIME_LIMIT": "35", "REAPER_INTERVAL": "2"}
+    with running_service(tmp_path, synthetic_split, faults, faults=True) as service:
+        uploaded = time.monotonic()
+        submission_id = service.upload(entry)
+        submission = service.final(submission_id, timeout=RECOVERY_S)
+        _record("hard time limit of 35 s: upload to failed", uploaded)
+    assert (submission.status, submission.failure_kind, submission.charged) == (
+        Status.failed,
+        FailureKind.infrastructure,
+        False,
+    )
+    assert "hard time limit of 35 s" in (submission.error or "") and "refunded" in (submission.error or "")
+
+
+def test_a_worker_stopped_with_sigterm_finishes_its_chunk_and_loses_nothing(
+    tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    faults = {"FAULT_CHUNK_SECONDS": "2", "CHUNK_SIZE": "4"}
+    with running_service(tmp_path, synthetic_split, faults, faults=True) as service:
+        entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method="sigterm")
+        submission_id = service.upload(entry)
+        chunk = _running_chunk(service, submission_id)
+        stopped = time.monotonic()
+        service.worker.send_signal(signal.SIGTERM)
+        service.worker.wait(timeout=60)
+        _record("SIGTERM: signal to worker exit", stopped)
+        assert {c.state for c in _chunks(service, submission_id) if c.id == chunk.id} == {ChunkState.done}
+        command = fault_worker_command(2, True, "second")
+        with child_process(command, service.env, service.logs / "second-worker.log"):
+            service.final(submission_id)
+        _assert_scored_once(service, synthetic_split, submission_id, entry)
+        assert all(c.deaths == 0 for c in _chunks(service, submission_id))
+
+
+@pytest.mark.services
+def test_a_redis_broker_flushed_then_restarted_under_load_loses_nothing(
+    tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    faults = {"FAULT_CHUNK_SECONDS": "1", "CHUNK_SIZE": "4", "REAPER_INTERVAL": "5"}
+    entries = [
+        predictions(synthetic_split.directory, seeds=1, noise=0.2 + 0.1 * index, method=f"broker {index}")
+        for index in range(3)
+    ]
+    with fresh_postgres_database() as database_url, own_redis(tmp_path / "redis") as broker:
+        settings = {"DATABASE_URL": database_url, "BROKER_URL": broker.url}
+        with running_service(tmp_path, synthetic_split, settings | faults, faults=True) as service:
+            ids = [service.upload(entry) for entry in entries]
+            _running_chunk(service, ids[0])
+            broker.client().flushall()  # a broker that lost its queue: the others wait in SQL only
+            _running_chunk(service, ids[1])
+            restarted = time.monotonic()
+            broker.restart()
+            for submission_id in ids:
+                service.final(submission_id, timeout=RECOVERY_S)
+            _record("redis flushed, then restarted: restart to all three scored", restarted)
+            for submission_id, entry in zip(ids, entries, strict=True):
+                _assert_scored_once(service, synthetic_split, submission_id, entry)
+
+
+@pytest.mark.services
+def test_a_database_down_for_twenty_seconds_is_a_503_and_everything_recovers(
+    tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    faults = {"FAULT_CHUNK_SECONDS": "2", "CHUNK_SIZE": "4", "REAPER_INTERVAL": "5"}
+    entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method="database outage")
+    with own_postgres() as database, scratch_redis_queue(REDIS_URL, "navsim-lb-faults") as queue:
+        settings = {"DATABASE_URL": database.url, "BROKER_URL": REDIS_URL, "QUEUE_NAME": queue}
+        with running_service(tmp_path, synthetic_split, settings | faults, faults=True) as service:
+            submission_id = service.upload(entry)
+            _running_chunk(service, submission_id)
+            database.stop()
+            stopped = time.monotonic()
+            with service.client() as client:
+                while time.monotonic() - stopped < OUTAGE_S:
+                    board = client.get("/api/v1/leaderboard", params={"phase": "test"})
+                    assert board.status_code == 503, board.text
+                    assert board.json() == {"detail": DATABASE_DOWN} and board.headers["Retry-After"]
+                    upload = client.post("/api/v1/submissions", files={"file": ("late.json", b"{}")})
+                    assert upload.status_code == 503, upload.text
+                    page = client.get("/")
+                    assert page.status_code == 503 and "not answering" in page.text
+                    time.sleep(1)
+            database.start()
+            started = time.monotonic()
+            service.final(submission_id, timeout=RECOVERY_S)
+            _record("postgresql down 20 s: restart to scored", started)
+            _assert_scored_once(service, synthetic_split, submission_id, entry)
+            after = predictions(synthetic_split.directory, seeds=1, noise=0.4, method="after the outage")
+            after_id = service.upload(after)
+            service.final(after_id)
+            _assert_scored_once(service, synthetic_split, after_id, after)
+            assert service.worker.poll() is None  # no restart was needed
