@@ -1,5 +1,5 @@
-"""Access control over the whole API, and rate limits: every admin route refuses a team token (403) and no
-token (401); a team cannot see another team's unpublished submission, its per-token rows or its pictures;
+"""Access control over the whole API, and rate limits: every write needs a token (registering a team aside),
+every admin route refuses a team token (403) and no token (401); a team cannot see another team's unpublished submission, its per-token rows or its pictures;
 failed authentications are limited per client address and uploads per token, each a 429 with Retry-After."""
 
 from __future__ import annotations
@@ -31,6 +31,20 @@ def test_every_admin_route_refuses_a_team_token_and_no_token(world: World) -> No
         assert as_team.status_code == 403, (method, path, as_team.text)
         anonymous = world.client.request(method, path)
         assert anonymous.status_code == 401, (method, path, anonymous.text)
+
+
+def test_every_write_needs_a_token_but_self_registration(world: World) -> None:
+    schema = world.client.get("/openapi.json").json()
+    writes = [
+        (method, _concrete(path))
+        for path, operations in schema["paths"].items()
+        for method in operations
+        if method in ("post", "put", "patch", "delete") and path != "/api/v1/teams"
+    ]
+    assert len(writes) > 15
+    for method, path in writes:
+        response = world.client.request(method, path)
+        assert response.status_code == 401, (method, path, response.status_code, response.text)
 
 
 def test_a_team_sees_nothing_of_another_teams_unpublished_submission(world: World) -> None:
