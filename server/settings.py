@@ -36,7 +36,8 @@ class Settings(BaseSettings):
     chunk_size: int = Field(128, ge=1, validation_alias="CHUNK_SIZE")  # (token, seed) pairs per chunk task
     # Hard limit of one task; the soft limit (the task's own clean failure) comes 30 s earlier.
     task_time_limit: float = Field(600.0, gt=30, validation_alias="TASK_TIME_LIMIT")
-    reaper_interval: float = Field(30.0, gt=0, validation_alias="REAPER_INTERVAL")
+    # A pass costs a few queries: often enough that a lost chunk is re-sent within seconds of its last beat.
+    reaper_interval: float = Field(10.0, gt=0, validation_alias="REAPER_INTERVAL")
     # Claims of one run (first try, then re-queues of a run left with nothing in flight) before it fails.
     max_attempts: int = Field(3, ge=1, validation_alias="MAX_ATTEMPTS")
 

@@ -17,6 +17,7 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 
 from celery import Celery, bootsteps
+from celery.signals import worker_process_init
 
 from server.queue import celery_config
 from server.settings import Settings, get_settings
@@ -27,6 +28,14 @@ CHUNK_TASK = "worker.tasks.score_chunk"
 REAP_TASK = "worker.tasks.reap_lost_work"
 SOFT_LIMIT_MARGIN_S = 30.0
 EMBEDDED_POLL_S = 0.1
+# Scoring is batch work: where it shares a machine with the API (the demo, a small deployment), the pool
+# processes yield the CPU to the requests people wait for.
+SCORING_NICENESS = 10
+
+
+@worker_process_init.connect
+def _lower_priority(**_: object) -> None:
+    os.nice(SCORING_NICENESS)
 
 
 class EmbeddedBrokerPolling(bootsteps.StartStopStep):
