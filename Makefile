@@ -18,10 +18,11 @@ install: $(BIN)/navsim-lb
 demo: install
 	PORT=$(PORT) $(BIN)/navsim-lb demo
 
-## make test: everything CI runs (.ci/run calls exactly this): lint, the tests, the regression goldens.
+## make test: everything CI runs (.ci/run calls exactly this): lint, types, the tests, the regression goldens.
 test: install services browser
 	$(BIN)/ruff check --quiet .
 	$(BIN)/ruff format --check --quiet .
+	$(BIN)/mypy
 	$(BIN)/pytest -q -p no:cacheprovider
 	$(BIN)/navsim-lb regress
 

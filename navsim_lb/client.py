@@ -7,7 +7,7 @@ import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Annotated, Any
+from typing import IO, Annotated, Any, cast
 
 import httpx
 import typer
@@ -98,7 +98,14 @@ def upload(
     with file.open("rb") as handle:
         response = client.post(
             f"{API_PREFIX}/submissions",
-            files={"file": (file.name, ReadProgress(handle, advance), "application/octet-stream")},
+            # httpx reads it as it reads a file.
+            files={
+                "file": (
+                    file.name,
+                    cast(IO[bytes], ReadProgress(handle, advance)),
+                    "application/octet-stream",
+                )
+            },
             data=fields,
             # One key per invocation: a retried request cannot create a second submission.
             headers={"Idempotency-Key": uuid.uuid4().hex},

@@ -101,13 +101,16 @@ def _demo_entry(split_dir: Path, out: Path) -> Path:
     import numpy as np
 
     from scorer.baselines import baseline_submission
+    from scorer.geometry import FloatArray
     from scorer.submission import Submission as Predictions
     from scorer.submission import dump_submission_json
 
     human = baseline_submission(split_dir, "human", "Noisy human (demo)")
     rng = np.random.default_rng(NOISE_SEED)
     scale = np.array([NOISE_XY_M, NOISE_XY_M, NOISE_HEADING_RAD])
-    noisy = {token: poses + rng.normal(0.0, scale, poses.shape) for token, poses in human.seeds[0].items()}
+    noisy: dict[str, FloatArray] = {
+        token: poses + rng.normal(0.0, scale, poses.shape) for token, poses in human.seeds[0].items()
+    }
     metadata = replace(human.metadata, team_name=TEAM, authors="Demo Member", institution="Demo Lab")
     out.write_bytes(dump_submission_json(Predictions(metadata, (noisy,))))
     return out
@@ -205,7 +208,6 @@ def demo(
     data_dir = settings.data_dir.resolve()
     logs = data_dir / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    assert settings.storage_dir is not None and settings.cache_dir is not None
     upgrade(settings.database_url)
     split_dir = _split_dir(data_dir, scenes)
     scene_count = len(list((split_dir / "scenes").iterdir()))

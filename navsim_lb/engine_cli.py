@@ -80,8 +80,8 @@ def cache(
     warn_about_kernels()
     with progress_bar(f"caching {', '.join(versions)}", total) as advance:
         failures = build_split_cache(split, cache_dir or default_cache_dir(split), versions, workers, advance)
-    for name, error in failures.items():
-        console.print(f"[red]{escape(name)}[/red]: {escape(error)}")
+    for name, problem in failures.items():
+        console.print(f"[red]{escape(name)}[/red]: {escape(problem)}")
     console.print(f"cached {total - len(failures)} of {total} scenes")
     if failures:
         raise typer.Exit(code=1)

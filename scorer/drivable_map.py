@@ -18,10 +18,8 @@ import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import FloatArray, ego_center
+from scorer.geometry import BoolArray, FloatArray, ego_center
 from scorer.scene import Lane, Scene
-
-BoolArray = npt.NDArray[np.bool_]
 
 MAP_RADIUS = 100.0  # half-side of the proximity square, m
 ROADBLOCK = "ROADBLOCK"

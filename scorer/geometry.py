@@ -6,11 +6,13 @@ Three angle helpers exist because the devkit uses three (spec 0.2); mixing them 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+FloatArray = npt.NDArray[np.floating[Any]]  # float64 in practice; numpy types arithmetic results this wide
+BoolArray = npt.NDArray[np.bool_]
 
 # Chrysler Pacifica (nuplan/common/actor_state/vehicle_parameters.py), spec 0.3.
 EGO_HALF_WIDTH = 1.1485

@@ -22,10 +22,9 @@ import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import FloatArray, box_corners, normalize_angle
+from scorer.geometry import BoolArray, FloatArray, box_corners, normalize_angle
 from scorer.scene import AGENT_CATEGORIES, Scene
 
-BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
 OBSERVATION_STEPS = 51  # occupancy maps at k * 0.1 s, k = 0..50

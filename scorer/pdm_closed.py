@@ -223,8 +223,11 @@ class IdmUnroll:
         observations = [plan.observation for plan in scenes]
         offsets = np.cumsum([0] + [len(observation.tokens) for observation in observations])
         self.polygons = np.concatenate([observation.polygons for observation in observations], axis=1)
-        for name in ("is_agent", "is_red_light", "speeds", "headings", "collided"):
-            setattr(self, name, np.concatenate([getattr(observation, name) for observation in observations]))
+        self.is_agent = np.concatenate([observation.is_agent for observation in observations])
+        self.is_red_light = np.concatenate([observation.is_red_light for observation in observations])
+        self.speeds = np.concatenate([observation.speeds for observation in observations])
+        self.headings = np.concatenate([observation.headings for observation in observations])
+        self.collided = np.concatenate([observation.collided for observation in observations])
         hit_map, hit_path, hit_object, start = [], [], [], []
         for index, plan in enumerate(scenes):
             point = shapely.Point(*plan.rear_axle)
@@ -365,7 +368,8 @@ def plan_scene(scene: Scene, drivable_map: DrivableMap) -> ScenePlan:
     ego = scene.current_frame.ego
     rear_x, rear_y = rear_axle_round_trip(ego.x, ego.y, ego.heading)
     rear_axle = (float(rear_x), float(rear_y), ego.heading)  # what EgoState.rear_axle reports
-    center = tuple(float(value) for value in ego_center(ego.x, ego.y, ego.heading))
+    center_x, center_y = ego_center(ego.x, ego.y, ego.heading)
+    center = (float(center_x), float(center_y))
     footprint = ego_polygons(np.array([[ego.x, ego.y, ego.heading]]))[0]
 
     graph = build_road_graph(scene.map)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -56,14 +57,13 @@ class ProposalScores:
     def token(self, index: int) -> ProposalScores:
         """Return the (P,) results of token `index` of a batch."""
         values = {field.name: getattr(self, field.name) for field in fields(self)}
-        return ProposalScores(
-            **{
-                name: {row: array[index] for row, array in value.items()}
-                if isinstance(value, dict)
-                else value[index]
-                for name, value in values.items()
-            }
-        )
+        row_of_token: dict[str, Any] = {
+            name: {row: array[index] for row, array in value.items()}
+            if isinstance(value, dict)
+            else value[index]
+            for name, value in values.items()
+        }
+        return ProposalScores(**row_of_token)
 
     def subscores(self, proposal: int) -> dict[str, float]:
         """Return one proposal's rows and score under the devkit's names (e.g. `pdm_closed_subscores`)."""

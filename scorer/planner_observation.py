@@ -22,6 +22,7 @@ import numpy.typing as npt
 import shapely
 
 from scorer.geometry import (
+    BoolArray,
     FloatArray,
     arctan2_avx512,
     box_corners,
@@ -30,8 +31,6 @@ from scorer.geometry import (
 )
 from scorer.observation import Observation, polygon_corners
 from scorer.scene import AGENT_CATEGORIES, Lane, Scene
-
-BoolArray = npt.NDArray[np.bool_]
 
 RED_LIGHT_TOKEN = "red_light"  # the devkit recognises red lights by this substring of the token
 MAP_RADIUS = 100.0  # objects farther than this from the ego centre are not seen (Euclidean)

@@ -125,8 +125,8 @@ def build_road_graph(excerpt: MapExcerpt) -> RoadGraph:
         block_predecessors[connector] = tuple(
             roadblocks[i] for i in connector.incoming[:1] if i in roadblocks
         )
-    for connector in excerpt.lane_connectors:
-        lane_successors[connector] = tuple(lanes[i] for i in connector.outgoing[:1] if i in lanes)
+    for lane_connector in excerpt.lane_connectors:
+        lane_successors[lane_connector] = tuple(lanes[i] for i in lane_connector.outgoing[:1] if i in lanes)
     return RoadGraph(
         roadblocks=roadblocks,
         roadblock_connectors=connectors,

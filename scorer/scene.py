@@ -262,7 +262,7 @@ def _read_frame(reader: _Reader, raw: Any, where: str) -> Frame:
         token=token,
         timestamp_us=timestamp_us,
         ego=ego,
-        driving_command=tuple(command),  # type: ignore[arg-type]
+        driving_command=tuple(command),
         tracks=tuple(tracks),
         categories=tuple(categories),
         boxes=np.array(boxes, dtype=np.float64).reshape(len(boxes), 7),

@@ -18,7 +18,7 @@ import re
 import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -433,9 +433,10 @@ def _check_opcodes(data: bytes) -> None:
         if opcode.name == "MEMOIZE":
             memo_size += 1
         elif opcode.name in ("PUT", "BINPUT", "LONG_BINPUT"):
-            if argument > memo_size:
-                raise pickle.UnpicklingError(f"memo index {argument} out of sequence")
-            memo_size = max(memo_size, argument + 1)
+            index = cast(int, argument)  # these opcodes carry an integer
+            if index > memo_size:
+                raise pickle.UnpicklingError(f"memo index {index} out of sequence")
+            memo_size = max(memo_size, index + 1)
 
 
 def _unpickle(data: bytes) -> Any:
@@ -514,6 +515,7 @@ def _load_pickle(data: bytes) -> Submission:
     if not isinstance(per_seed, list) or not per_seed:
         problems.add(None, "predictions", "must be a dict token -> Trajectory or a non-empty list of them")
         problems.raise_if_any()
+    assert isinstance(per_seed, list)  # raise_if_any raised otherwise
     seeds = []
     seed_tokens = []
     for seed, mapping in enumerate(per_seed):

@@ -56,7 +56,7 @@ def initial_state(ego: EgoStatus) -> FloatArray:
     """Return the (11,) state array of the initial EgoState (rear axle after the round trip, spec 2.1)."""
     x, y = rear_axle_round_trip(ego.x, ego.y, ego.heading)
     state = np.zeros(STATE_SIZE, dtype=np.float64)
-    state[: StateIndex.ACCELERATION_Y + 1] = [x, y, ego.heading, ego.vx, ego.vy, ego.ax, ego.ay]
+    state[: StateIndex.ACCELERATION_Y + 1] = (x, y, ego.heading, ego.vx, ego.vy, ego.ax, ego.ay)
     return state
 
 
@@ -74,7 +74,8 @@ def agent_knot_times_us(t0_us: int | IntArray, num_poses: int, interval_length: 
 
 def _seconds(t0_us: int | IntArray) -> FloatArray:
     # TimePoint.time_s is a multiplication (a TimeDuration would divide).
-    return (np.asarray(t0_us, dtype=np.int64) * 1e-6)[..., None]
+    seconds: FloatArray = np.asarray(t0_us, dtype=np.int64) * 1e-6
+    return seconds[..., None]
 
 
 def _truncate_to_us(times_s: FloatArray) -> IntArray:

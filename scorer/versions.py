@@ -113,6 +113,6 @@ VERSIONS: dict[VersionName, MetricVersion] = {
 def get_version(name: str) -> MetricVersion:
     """Return the registered metric version `name`, or raise with the list of known versions."""
     try:
-        return VERSIONS[name]
-    except KeyError:
+        return VERSIONS[VersionName(name)]
+    except ValueError:
         raise ValueError(f"unknown metric version {name!r}; known: {', '.join(VERSIONS)}") from None

@@ -81,7 +81,6 @@ def register_configured_splits(app: FastAPI) -> None:
 def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] | None = None) -> FastAPI:
     """Return the API and web app on a migrated database; raises NotMigratedError (with the fix) otherwise."""
     settings = settings or get_settings()
-    assert settings.storage_dir is not None
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     settings.storage_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.database_url)

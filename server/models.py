@@ -260,7 +260,7 @@ class ChunkState(StrEnum):
     queued = "queued"  # sent to the broker, not started
     running = "running"  # a worker process scores it and beats while it does
     done = "done"  # its rows are written
-    split = "split"  # a worker died holding it: its tokens went out again one per chunk
+    split_up = "split"  # a worker died holding it: its tokens went out again one per chunk
     failed = "failed"  # one token whose workers died with it twice: written as failed rows
 
 

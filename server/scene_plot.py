@@ -149,7 +149,7 @@ def render(explanation: Explanation, image_format: str = "png") -> bytes:
                 zorder=9,
             )
         what = (
-            f" with {infraction.object_type.lower()} {infraction.object_token[:8]}"
+            f" with {(infraction.object_type or 'object').lower()} {infraction.object_token[:8]}"
             if infraction.object_token
             else ""
         )

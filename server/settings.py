@@ -20,8 +20,9 @@ class Settings(BaseSettings):
     # Defaults below are derived from data_dir when left empty.
     database_url: str = Field("", validation_alias="DATABASE_URL")
     broker_url: str = Field("", validation_alias="BROKER_URL")
-    storage_dir: Path | None = Field(None, validation_alias="STORAGE_DIR")
-    cache_dir: Path | None = Field(None, validation_alias="CACHE_DIR")
+    # Where uploads and metric caches live, as configured (None: under data_dir; see the properties).
+    storage_dir_option: Path | None = Field(None, validation_alias="STORAGE_DIR")
+    cache_dir_option: Path | None = Field(None, validation_alias="CACHE_DIR")
     # Split directories registered at startup: JSON object name -> directory.
     splits: dict[str, Path] = Field(default_factory=dict, validation_alias="SPLITS")
     max_upload_bytes: int = Field(256 * 1024 * 1024, validation_alias="MAX_UPLOAD_BYTES")
@@ -48,11 +49,17 @@ class Settings(BaseSettings):
         if not self.broker_url:
             # kombu's SQLAlchemy transport: a broker in an SQLite file, no server to run.
             self.broker_url = f"sqla+sqlite:///{self.data_dir / 'broker.sqlite'}"
-        if self.storage_dir is None:
-            self.storage_dir = self.data_dir / "submissions"
-        if self.cache_dir is None:
-            self.cache_dir = self.data_dir / "cache"
         return self
+
+    @property
+    def storage_dir(self) -> Path:
+        """Where uploaded files are stored."""
+        return self.storage_dir_option or self.data_dir / "submissions"
+
+    @property
+    def cache_dir(self) -> Path:
+        """Where the metric caches of the splits are built."""
+        return self.cache_dir_option or self.data_dir / "cache"
 
 
 @lru_cache(maxsize=1)

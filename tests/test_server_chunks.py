@@ -95,8 +95,8 @@ def test_a_stopped_beat_is_a_death_and_a_death_splits_then_poisons(world: World)
 
     with transaction(world.factory) as session:
         split = start_chunk(session, chunk_id, 1, "host/2")
-    assert split.action == StartAction.split and len(split.children) == 3
-    assert _chunk(world, chunk_id).state == ChunkState.split
+    assert split.action == StartAction.split_up and len(split.children) == 3
+    assert _chunk(world, chunk_id).state == ChunkState.split_up
     children = [_chunk(world, child) for child in split.children]
     assert [(child.tokens, child.deaths) for child in children] == [([token], 1) for token in TOKENS[:3]]
 

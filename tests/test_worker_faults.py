@@ -164,7 +164,7 @@ def test_a_token_that_kills_its_worker_every_time_fails_alone(
         deaths = sorted(
             (len(c.tokens), c.deaths, c.state) for c in _chunks(service, submission_id) if c.deaths
         )
-        assert deaths[-1] == (4, 1, ChunkState.split) and (1, 2, ChunkState.failed) in deaths
+        assert deaths[-1] == (4, 1, ChunkState.split_up) and (1, 2, ChunkState.failed) in deaths
 
 
 def test_a_chunk_past_the_hard_time_limit_fails_the_run_refunded(

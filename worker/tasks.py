@@ -269,7 +269,7 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
         start = start_chunk(session, chunk_id, run, worker)
     if start.action == StartAction.drop:
         return f"submission {submission_id} run {run}: chunk {chunk_id} dropped"
-    if start.action == StartAction.split:
+    if start.action == StartAction.split_up:
         for child in start.children:
             score_chunk.delay(submission_id, run, child)
         return f"submission {submission_id} run {run}: chunk {chunk_id} split into {len(start.children)}"

@@ -18,11 +18,12 @@ rounded value, and so every check, is the devkit's.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import FloatArray
+from scorer.geometry import BoolArray, FloatArray
 from scorer.metrics.savgol import filter_batch, savgol_filter
 from scorer.trajectory import StateIndex
 
@@ -111,7 +112,7 @@ def filtered_series(series: FloatArray, step_s: float) -> tuple[list[FloatArray]
         return np.round(filtered, DECIMALS)
 
     outputs = _filtered_series(series, delta, rounded_in_batch)
-    regrouped = ambiguous.any(axis=-1)
+    regrouped = cast(BoolArray, ambiguous.any(axis=-1))
     for token in np.flatnonzero(regrouped):
         for output, again in zip(
             outputs, _filtered_series(series[token], delta, _rounded_as_group), strict=True

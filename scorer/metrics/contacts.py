@@ -8,17 +8,17 @@ contact counts iff it comes before the first not-at-fault contact of the same (p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import FloatArray
+from scorer.geometry import BoolArray, FloatArray
 from scorer.metrics.convex import is_convex_counterclockwise, quads_intersect, segment_meets_quad
 from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, same_token_pairs
 from scorer.observation import ObservationBatch
 
-BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
 AHEAD_ANGLE = float(np.deg2rad(30.0))  # nuPlan `is_agent_ahead`
@@ -69,7 +69,7 @@ def find_contacts(
 
 def _exact_pairs(ego_corners: FloatArray, object_corners: FloatArray) -> BoolArray:
     """Return which pairs the exact box tests can take: both proper counterclockwise boxes."""
-    valid = np.isfinite(object_corners).all(axis=(-2, -1))
+    valid = cast(BoolArray, np.isfinite(object_corners).all(axis=(-2, -1)))
     valid[valid] = is_convex_counterclockwise(
         np.stack([ego_corners[valid], object_corners[valid]], axis=1)
     ).all(axis=1)

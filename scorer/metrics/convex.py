@@ -12,13 +12,13 @@ edges cross properly: touching edges either cross or overlap along a line, whose
 from __future__ import annotations
 
 from fractions import Fraction
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import FloatArray
+from scorer.geometry import BoolArray, FloatArray
 
-BoolArray = npt.NDArray[np.bool_]
 SignArray = npt.NDArray[np.int8]
 
 # GEOS `CGAlgorithmsDD::orientationIndexFilter` (DP_SAFE_EPSILON): a determinant this far from 0,
@@ -54,7 +54,8 @@ AFTER_NEXT = np.array([2, 3, 0, 1])
 
 def is_convex_counterclockwise(quads: FloatArray) -> BoolArray:
     """Return whether quads (..., 4, 2) turn strictly left at every corner (a proper counterclockwise box)."""
-    return (orientation(quads, quads[..., NEXT, :], quads[..., AFTER_NEXT, :]) > 0).all(axis=-1)
+    turns_left: BoolArray = orientation(quads, quads[..., NEXT, :], quads[..., AFTER_NEXT, :]) > 0
+    return cast(BoolArray, turns_left.all(axis=-1))
 
 
 def _sides(quads: FloatArray, points: FloatArray) -> SignArray:
@@ -67,11 +68,11 @@ def quads_intersect(first: FloatArray, second: FloatArray) -> BoolArray:
     pairs = np.stack([first, second], axis=1)  # (K, 2, 4, 2)
     # sides[k, 0, i, j]: vertex j of second against edge i of first; sides[k, 1, j, i] the other way round.
     sides = _sides(pairs, pairs[:, ::-1])
-    vertex_inside = (sides >= 0).all(axis=2).any(axis=(1, 2))
+    vertex_inside = np.any(np.all(sides >= 0, axis=2), axis=(1, 2))
     # Edge i of one crosses edge j of the other properly: each separates the other's two ends strictly.
     straddles = sides * sides[..., NEXT] < 0
-    crossing = (straddles[:, 0] & straddles[:, 1].transpose(0, 2, 1)).any(axis=(1, 2))
-    return vertex_inside | crossing
+    crossing = np.any(straddles[:, 0] & straddles[:, 1].transpose(0, 2, 1), axis=(1, 2))
+    return cast(BoolArray, vertex_inside | crossing)
 
 
 def segment_meets_quad(start: FloatArray, end: FloatArray, quads: FloatArray) -> BoolArray:

@@ -8,11 +8,10 @@ import numpy as np
 import numpy.typing as npt
 
 from scorer.drivable_map import MapBatch
-from scorer.geometry import FloatArray
+from scorer.geometry import BoolArray, FloatArray
 from scorer.metrics.ego_box import BoxPoint
 from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, points_inside, same_token_pairs
 
-BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
 CORNERS = int(BoxPoint.CENTER)  # points 0..3 are the corners

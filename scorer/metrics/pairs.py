@@ -11,9 +11,8 @@ import numpy.typing as npt
 import shapely
 
 from scorer.drivable_map import MapBatch
-from scorer.geometry import FloatArray
+from scorer.geometry import BoolArray, FloatArray
 
-BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.intp]
 
 

@@ -41,7 +41,7 @@ class EgoPose:
     heading: float
 
 
-def quaternion_yaw(wxyz: Sequence[float]) -> float:
+def quaternion_yaw(wxyz: Sequence[float] | FloatArray) -> float:
     """Return pyquaternion's `yaw_pitch_roll[0]` of a [w, x, y, z] quaternion, normalised as pyquaternion does."""
     q = np.asarray([float(value) for value in wxyz])
     sum_of_squares = np.dot(q, q)

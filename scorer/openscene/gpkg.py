@@ -12,7 +12,7 @@ import json
 import math
 import sqlite3
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Collection
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -329,6 +329,6 @@ def _quote(name: str) -> str:
     return '"' + name.replace('"', '""') + '"'
 
 
-def layer_rows(layer: Layer, ids: Sequence[str]) -> list[int]:
+def layer_rows(layer: Layer, ids: Collection[str]) -> list[int]:
     """Return the rows of the given ids that exist in `layer`, in table order."""
     return sorted(layer.row_of[object_id] for object_id in ids if object_id in layer.row_of)

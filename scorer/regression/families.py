@@ -10,7 +10,7 @@ from scorer.baselines import constant_velocity, human
 from scorer.geometry import FloatArray
 from scorer.scene import Scene
 
-POSE_TIMES = np.arange(1, 9) * 0.5
+POSE_TIMES: FloatArray = np.arange(1, 9) * 0.5
 
 
 def _smoothstep(t: FloatArray, duration: float) -> FloatArray:

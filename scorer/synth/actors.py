@@ -52,7 +52,9 @@ def vehicle(
     return moving_track("vehicle", vehicle_size(rng), path, s0, speed, lateral)
 
 
-def parked(rng: np.random.Generator, category: str, size_kind: str, pose: Sequence[float]) -> Track:
+def parked(
+    rng: np.random.Generator, category: str, size_kind: str, pose: Sequence[float] | FloatArray
+) -> Track:
     """Return a static object (or a vehicle standing still) at pose x, y, heading."""
     return static_track(category, object_size(rng, size_kind), float(pose[0]), float(pose[1]), float(pose[2]))
 

@@ -169,7 +169,7 @@ def _crosswalk(dice: Dice, road_map: RoadMap, corridor: Corridor, vertex: int, e
 
 def _vertex_at(path: Polyline, s: float) -> int:
     """Return the first vertex of a lane path at arc length >= s, leaving room for a crosswalk before the road's end."""
-    return int(min(np.searchsorted(path.arclength, s), ROAD_VERTICES - 6))
+    return min(int(np.searchsorted(path.arclength, s)), ROAD_VERTICES - 6)
 
 
 def _traffic(

@@ -4,18 +4,26 @@ the check that keeps boxes from overlapping."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import EGO_LENGTH, EGO_WIDTH, FloatArray, arctan2_avx512, box_corners, ego_center
+from scorer.geometry import (
+    EGO_LENGTH,
+    EGO_WIDTH,
+    BoolArray,
+    FloatArray,
+    arctan2_avx512,
+    box_corners,
+    ego_center,
+)
 from scorer.synth.polyline import Polyline
 
 FRAME_COUNT = 14
 CURRENT_INDEX = 3
 FRAME_INTERVAL_S = 0.5
 FRAME_TIMES = (np.arange(FRAME_COUNT) - CURRENT_INDEX) * FRAME_INTERVAL_S
-BoolArray = npt.NDArray[np.bool_]
 
 
 def smoothstep(u: npt.ArrayLike) -> FloatArray:
@@ -195,7 +203,7 @@ def drop_conflicts(ego: EgoMotion, tracks: list[Track], ego_margin: float, pair_
     if not tracks:
         return []
     boxes = track_boxes(tracks)
-    hits_ego = boxes_overlap(boxes, ego.boxes()[None], ego_margin).any(axis=1)
+    hits_ego = cast(BoolArray, boxes_overlap(boxes, ego.boxes()[None], ego_margin).any(axis=1))
     first, second = np.triu_indices(len(tracks), k=1)
     near = _may_touch(boxes[first], boxes[second], pair_margin).any(axis=1)
     first, second = first[near], second[near]

@@ -22,11 +22,11 @@ class Polyline:
     arclength: FloatArray  # (n,)
 
     @classmethod
-    def from_points(cls, points: npt.ArrayLike) -> Polyline:
-        """Return the path through `points`, dropping repeated vertices."""
-        points = np.asarray(points, dtype=np.float64)
-        keep = np.concatenate([[True], np.any(np.diff(points, axis=0) != 0.0, axis=1)])
-        points = points[keep]
+    def from_points(cls, vertices: npt.ArrayLike) -> Polyline:
+        """Return the path through `vertices`, dropping repeated ones."""
+        given: FloatArray = np.asarray(vertices, dtype=np.float64)
+        keep = np.concatenate([[True], np.any(np.diff(given, axis=0) != 0.0, axis=1)])
+        points = given[keep]
         segments = np.diff(points, axis=0)
         segment_heading = arctan2_avx512(segments[:, 1], segments[:, 0])
         turns = np.diff(segment_heading)
@@ -61,8 +61,8 @@ class Polyline:
 
     def curvature(self, s: npt.ArrayLike) -> FloatArray:
         """Return the path curvature (1/m, positive to the left) at arc lengths `s`."""
-        kappa = np.gradient(self.heading, self.arclength)
-        return np.interp(s, self.arclength, kappa, left=0.0, right=0.0)
+        kappa: FloatArray = np.gradient(self.heading, self.arclength)
+        return np.interp(np.asarray(s, dtype=np.float64), self.arclength, kappa, left=0.0, right=0.0)
 
     def poses(self, s: npt.ArrayLike, lateral: npt.ArrayLike = 0.0) -> FloatArray:
         """Return poses (..., 3) x, y, heading at arc lengths `s`, shifted `lateral` to the left.
@@ -80,7 +80,7 @@ class Polyline:
         return np.stack(np.broadcast_arrays(x, y, heading), axis=-1)
 
 
-def road_line(start: Sequence[float], heading: float, curvature: FloatArray) -> Polyline:
+def road_line(start: Sequence[float] | FloatArray, heading: float, curvature: FloatArray) -> Polyline:
     """Return the reference line starting at `start` whose k-th GRID_STEP segment has curvature[k]."""
     segment_heading = heading + np.cumsum(curvature) * GRID_STEP - 0.5 * curvature * GRID_STEP
     steps = GRID_STEP * np.stack([np.cos(segment_heading), np.sin(segment_heading)], axis=-1)

@@ -94,7 +94,7 @@ def cached_board(app: FastAPI, version: str, subset: str | None, sort: str, phas
     if board is None:
         with app.state.session_factory() as session:
             view = leaderboard_view(session, version, subset, sort, phase)
-        board = Board(view, JSONResponse(view).body)
+        board = Board(view, bytes(JSONResponse(view).body))
         app.state.leaderboard_cache.put(key, board)
     return board
 
@@ -143,7 +143,7 @@ def health(request: Request, session: SessionDep) -> JSONResponse:
     """Database, broker and live workers; 503 when the database does not answer."""
     try:
         session.execute(text("SELECT 1"))
-        database = {"ok": True, "revision": current_revision(session.get_bind()), "detail": ""}
+        database = {"ok": True, "revision": current_revision(request.app.state.engine), "detail": ""}
     except Exception as error:  # noqa: BLE001 - health reports, it does not fail
         database = {"ok": False, "revision": None, "detail": f"{type(error).__name__}: {error}"}
     settings = request.app.state.settings

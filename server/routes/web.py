@@ -11,7 +11,7 @@ from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from sqlalchemy import select
 
-from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, VERSIONS
+from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, VERSIONS, VersionName
 from server.auth import SessionDep
 from server.models import Phase
 from server.routes.params import RowId
@@ -43,7 +43,7 @@ def leaderboard_page(
         "labels": METRIC_LABELS,
         "query": query,
         "here": here,
-        "ddc_role": VERSIONS[version].ddc_role if version in VERSIONS else "",
+        "ddc_role": VERSIONS[VersionName(version)].ddc_role if version in VERSIONS else "",
     }
     status = 200
     try:

@@ -21,8 +21,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from enum import StrEnum
+from typing import Any, cast
 
-from sqlalchemy import Select, func, select, update
+from sqlalchemy import CursorResult, Select, func, select, update
 from sqlalchemy.orm import Session
 
 from server.models import ChunkState, ScoringChunk, Status, Submission, utc_now
@@ -34,7 +35,7 @@ LIVE_STATES = (ChunkState.queued, ChunkState.running)
 
 class StartAction(StrEnum):
     score = "score"  # the caller holds the chunk: score it, then finish it
-    split = "split"  # re-planned one token per chunk: send `children`
+    split_up = "split"  # re-planned one token per chunk: send `children`
     poisoned = "poisoned"  # its one token killed its workers: write it as failed, then finish it
     drop = "drop"  # done, held by another process, or no longer wanted
 
@@ -87,7 +88,7 @@ def _split(session: Session, chunk: ScoringChunk, now: datetime) -> tuple[int, .
         for token in chunk.tokens
     ]
     session.add_all(children)
-    chunk.state, chunk.finished_at = ChunkState.split, now
+    chunk.state, chunk.finished_at = ChunkState.split_up, now
     session.flush()
     return tuple(child.id for child in children)
 
@@ -104,7 +105,7 @@ def start_chunk(
         return ChunkStart(StartAction.drop)
     tokens = tuple(chunk.tokens)
     if chunk.deaths and len(tokens) > 1:
-        return ChunkStart(StartAction.split, tokens, _split(session, chunk, now))
+        return ChunkStart(StartAction.split_up, tokens, _split(session, chunk, now))
     if chunk.deaths >= POISON_DEATHS:
         return ChunkStart(StartAction.poisoned, tokens)
     chunk.state, chunk.worker = ChunkState.running, worker
@@ -125,7 +126,7 @@ def beat_chunk(session: Session, chunk_id: int, worker: str, now: datetime | Non
         )
         .values(beat_at=now or utc_now())
     )
-    return bool(session.execute(statement).rowcount)
+    return bool(cast(CursorResult[Any], session.execute(statement)).rowcount)
 
 
 def finish_chunk(
@@ -139,7 +140,7 @@ def finish_chunk(
     )
 
 
-def _of_running_runs(state: ChunkState) -> Select[tuple[ScoringChunk]]:
+def _of_running_runs(state: ChunkState) -> Select[ScoringChunk]:
     return (
         select(ScoringChunk)
         .join(Submission, Submission.id == ScoringChunk.submission_id)

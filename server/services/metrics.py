@@ -9,18 +9,19 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from datetime import timedelta
+from typing import Any
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.models import ChunkState, Result, ScoringChunk, Status, Submission, utc_now
+from server.models import ChunkState, FailureKind, Result, ScoringChunk, Status, Submission, utc_now
 from server.services.workers import workers_from_heartbeats
 
 RATE_WINDOW_S = 600.0  # tokens per second over the runs aggregated in the last ten minutes
 
 
-def _gauge(name: str, documentation: str, label: str, counts: dict[str, int], every: list[str]) -> Metric:
+def _gauge(name: str, documentation: str, label: str, counts: dict[Any, int], every: list[str]) -> Metric:
     gauge = GaugeMetricFamily(name, documentation, labels=[label])
     for value in every:
         gauge.add_metric([value], counts.get(value, 0))
@@ -47,7 +48,7 @@ def service_metrics(session: Session, queue_depth: int | None) -> Iterator[Metri
         "Failed runs by kind (infrastructure ones are refunded)",
         "kind",
         failures,
-        sorted(filter(None, failures)) or ["infrastructure", "submission"],
+        list(FailureKind),
     )
     chunks = dict(
         session.execute(select(ScoringChunk.state, func.count()).group_by(ScoringChunk.state)).all()

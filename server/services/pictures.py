@@ -62,7 +62,6 @@ def scene_picture(
     from server.scene_plot import render
 
     scene = _checked(submission, token, seed, admin)
-    assert settings.cache_dir is not None and settings.storage_dir is not None
     path = (
         settings.data_dir
         / "pictures"

@@ -56,7 +56,7 @@ def register_split(
     if public_tokens is not None:
         unknown = sorted(set(public_tokens) - set(tokens))
         if unknown:
-            problems = [
+            problems: list[dict[str, str | None]] = [
                 {"token": t, "field": "public_tokens", "message": "not a token of the split"} for t in unknown
             ]
             raise Invalid(f"{len(unknown)} public tokens are not in split {name!r}", problems)
