@@ -36,14 +36,16 @@ def test_every_admin_route_refuses_a_team_token_and_no_token(world: World) -> No
 def test_every_write_needs_a_token_but_self_registration(world: World) -> None:
     schema = world.client.get("/openapi.json").json()
     writes = [
-        (method, _concrete(path))
+        (method, path, operation)
         for path, operations in schema["paths"].items()
-        for method in operations
+        for method, operation in operations.items()
         if method in ("post", "put", "patch", "delete") and path != "/api/v1/teams"
     ]
     assert len(writes) > 15
-    for method, path in writes:
-        response = world.client.request(method, path)
+    assert schema["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+    for method, path, operation in writes:
+        assert operation.get("security") == [{"HTTPBearer": []}], (method, path)  # the schema says so too
+        response = world.client.request(method, _concrete(path))
         assert response.status_code == 401, (method, path, response.status_code, response.text)
 
 
