@@ -6,7 +6,6 @@ trajectory family under every registered version, and compared with the versione
 
 from __future__ import annotations
 
-import gzip
 import json
 import tempfile
 from collections.abc import Callable
@@ -48,12 +47,12 @@ def compute_results(
 
 
 def _golden_path(version: str) -> Path:
-    return GOLDEN_DIR / f"{version}.jsonl.gz"
+    # Plain JSON lines, one row per (family, token) in that order: a changed golden shows in a diff.
+    return GOLDEN_DIR / f"{version}.jsonl"
 
 
 def _read_golden(version: str) -> dict[tuple[str, str], dict[str, object]]:
-    with gzip.open(_golden_path(version), "rt") as handle:
-        rows = [json.loads(line) for line in handle]
+    rows = [json.loads(line) for line in _golden_path(version).read_text().splitlines()]
     return {(row["family"], row["token"]): row for row in rows}
 
 
@@ -91,8 +90,10 @@ def run_regression(
     for version, rows in results.items():
         if update:
             GOLDEN_DIR.mkdir(parents=True, exist_ok=True)
-            with gzip.GzipFile(_golden_path(version), "wb", mtime=0) as handle:
-                handle.write("".join(json.dumps(row, sort_keys=True) + "\n" for row in rows).encode())
+            ordered = sorted(rows, key=lambda row: (str(row["family"]), str(row["token"])))
+            _golden_path(version).write_text(
+                "".join(json.dumps(row, sort_keys=True) + "\n" for row in ordered)
+            )
             continue
         if not _golden_path(version).exists():
             changes.append(
