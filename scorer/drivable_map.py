@@ -1,11 +1,11 @@
-"""The drivable-area map around the ego: the map polygons the scorer tests ego points against (spec 5).
+"""The drivable-area map around the ego: the map polygons the scorer tests ego points against.
 
 As `PDMDrivableMap.from_simulation` with nuPlan's `get_proximal_map_objects`: every roadblock,
 roadblock connector, intersection and car park whose polygon meets the axis-aligned square of
 half-side 100 m around the ego *box centre* (touching counts). The polygon list is, in this order: the
 roadblocks; the lanes of each of those roadblocks, then the lane connectors of each roadblock
 connector (connector polygons themselves are left out); the intersections; the car parks. Each layer
-keeps the order of the excerpt's layer list, as nuPlan's map tables do.
+keeps the order of the excerpt's layer list, as nuPlan's map tables do (docs/engine.md, "Drivable-area map").
 """
 
 from __future__ import annotations
@@ -127,7 +127,10 @@ def _interior_edges(blocks: Sequence[str], edges: Sequence[Lane]) -> list[Lane]:
 
 
 def build_drivable_map(scene: Scene) -> DrivableMap:
-    """Return the drivable-area map around the ego box centre of the current frame (spec 5)."""
+    """Return the drivable-area map around the ego box centre of the current frame.
+
+    See docs/engine.md, "Drivable-area map".
+    """
     ego = scene.current_frame.ego
     center_x, center_y = (float(value) for value in ego_center(ego.x, ego.y, ego.heading))
     excerpt = scene.map

@@ -1,7 +1,8 @@
-"""Score submitted trajectories against a split: caches in, per-token results out (spec 1, 10).
+"""Score submitted trajectories against a split: caches in, per-token results out.
 
 Unlike the devkit, one bad token never aborts the others: it becomes an invalid row with an error
-text. Summaries count such a token as 0 (the devkit's average row skips it) and report how many.
+text. Summaries count such a token as 0 (the devkit's average row skips it) and report how many
+(docs/engine.md, "Split results").
 """
 
 from __future__ import annotations

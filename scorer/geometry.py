@@ -1,6 +1,7 @@
 """Angles, the ego vehicle's geometry and the nuPlan EgoState rear-axle round trip.
 
-Three angle helpers exist because the devkit uses three (spec 0.2); mixing them changes last bits.
+Three angle helpers exist because the devkit uses three (docs/engine.md, "Conventions: angles");
+mixing them changes last bits.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.floating[Any]]  # float64 in practice; numpy types arithmetic results this wide
 BoolArray = npt.NDArray[np.bool_]
 
-# Chrysler Pacifica (nuplan/common/actor_state/vehicle_parameters.py), spec 0.3.
+# Chrysler Pacifica (nuplan/common/actor_state/vehicle_parameters.py); docs/engine.md,
+# "Conventions: the ego vehicle and its box".
 EGO_HALF_WIDTH = 1.1485
 EGO_WIDTH = EGO_HALF_WIDTH * 2.0
 EGO_FRONT_LENGTH = 4.049
@@ -214,9 +216,10 @@ def principal_value(angle: npt.ArrayLike) -> FloatArray:
 def rear_axle_round_trip(
     x: npt.ArrayLike, y: npt.ArrayLike, heading: npt.ArrayLike
 ) -> tuple[FloatArray, FloatArray]:
-    """Return the rear axle an EgoState built from this rear-axle pose reports back (spec 0.5).
+    """Return the rear axle an EgoState built from this rear-axle pose reports back.
 
-    nuPlan stores the box centre and derives the rear axle from it, which can move x, y by one ulp.
+    nuPlan stores the box centre and derives the rear axle from it, which can move x, y by one ulp
+    (docs/engine.md, "Conventions: the rear-axle round trip").
     """
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
@@ -228,7 +231,10 @@ def rear_axle_round_trip(
 
 
 def ego_center(x: npt.ArrayLike, y: npt.ArrayLike, heading: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """Return the ego box centre for rear-axle poses (spec 3)."""
+    """Return the ego box centre for rear-axle poses.
+
+    See docs/engine.md, "Conventions: the ego vehicle and its box".
+    """
     heading = np.asarray(heading, dtype=np.float64)
     return (
         np.asarray(x, dtype=np.float64) + REAR_AXLE_TO_CENTER * np.cos(heading),
@@ -236,7 +242,8 @@ def ego_center(x: npt.ArrayLike, y: npt.ArrayLike, heading: npt.ArrayLike) -> tu
     )
 
 
-# Corner order of every box in the engine: front-left, rear-left, rear-right, front-right (spec 0.4).
+# Corner order of every box in the engine: front-left, rear-left, rear-right, front-right
+# (docs/engine.md, "Conventions: state arrays").
 _CORNER_SIGNS = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
 
 
@@ -247,7 +254,10 @@ def box_corners(
     half_length: npt.ArrayLike,
     half_width: npt.ArrayLike,
 ) -> FloatArray:
-    """Return the 4 corners (..., 4, 2) of boxes, FL, RL, RR, FR, with PDM's translation formula (spec 3)."""
+    """Return the 4 corners (..., 4, 2) of boxes, FL, RL, RR, FR, with PDM's translation formula.
+
+    See docs/engine.md, "Conventions: the ego vehicle and its box".
+    """
     center_x = np.asarray(center_x, dtype=np.float64)[..., None]
     center_y = np.asarray(center_y, dtype=np.float64)[..., None]
     heading = np.asarray(heading, dtype=np.float64)[..., None]

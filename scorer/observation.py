@@ -1,15 +1,16 @@
-"""The evaluation observation: the recorded future of every tracked object at 10 Hz (spec 4).
+"""The evaluation observation: the recorded future of every tracked object at 10 Hz
+(docs/engine.md, "Observation and forecasts: the recorded future").
 
 NAVSIM's metric caching (`_interpolate_gt_observation`) takes the boxes of the current frame and the 10
 frames after it (2 Hz, 0.0 ... 5.0 s), interpolates each track linearly to 51 occupancy maps at 0.1 s
 and keeps, per track, the object of its first appearance ("unique object") for collision classes.
 Scene files hold boxes in the global frame already, so they are used as given (no ego-frame step).
 
-Quirks kept on purpose: a track seen in exactly one frame stands still at that box in all 51 maps,
-also before and after the frame it was seen in (pitfall 10); a track seen more often exists from its
-first to its last sighting, gaps bridged linearly; length, width and type come from the first
-sighting (pitfall 11). Interpolated headings are wrapped with the AVX-512 arctan2 of the machine that
-made the official results (`geometry.normalize_angle`).
+Quirks kept on purpose (docs/engine.md, "Observation and forecasts: the recorded future"): a track
+seen in exactly one frame stands still at that box in all 51 maps, also before and after the frame it
+was seen in; a track seen more often exists from its first to its last sighting, gaps bridged
+linearly; length, width and type come from the first sighting. Interpolated headings are wrapped with
+the AVX-512 arctan2 of the machine that made the official results (`geometry.normalize_angle`).
 """
 
 from __future__ import annotations
@@ -129,7 +130,10 @@ def _track_indices(tracks: npt.NDArray[np.str_]) -> tuple[IntArray, IntArray]:
 
 
 def observe_scene(scene: Scene) -> Observation:
-    """Return the 10 Hz evaluation observation of the scene's current frame and 10 future frames (spec 4)."""
+    """Return the 10 Hz evaluation observation of the scene's current frame and 10 future frames.
+
+    See docs/engine.md, "Observation and forecasts: the recorded future".
+    """
     frames = scene.future_frames
     frame_of = np.concatenate([np.full(len(frame.tracks), index) for index, frame in enumerate(frames)])
     tracks = np.array([track for frame in frames for track in frame.tracks], dtype=str)

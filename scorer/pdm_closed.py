@@ -1,15 +1,17 @@
-"""The PDM-Closed reference trajectory of a scene, as NAVSIM's metric caching computes it (spec 9).
+"""The PDM-Closed reference trajectory of a scene, as NAVSIM's metric caching computes it
+(docs/engine.md, "PDM-Closed").
 
 One planning iteration: route correction and centerline (`scorer.route`), the forecast observation
 (`scorer.planner_observation`), 15 IDM proposals (3 paths: the centerline and its -1 m / +1 m
 offsets, x 5 target speeds), simulated (`scorer.simulation`) and scored with the version's
 planner scorer (`scorer.pdm_scorer`); the best one, extended to 5 s, is the cached trajectory.
 
-The IDM unroll mirrors `PDMGenerator` including its quirks (spec 9.4, 12.22): the leading agent is
+The IDM unroll mirrors `PDMGenerator` including its quirks: the leading agent is
 searched at even time indices only and index 1 copies the never-filled index 0 (so the first step
 brakes against a phantom obstacle at progress 0), and the 3-value leading-agent buffer is shared by
 the proposals of a path within a step, so values a proposal does not write are those of the previous
-proposal (the selected proposal's extension to 5 s runs alone, from a fresh buffer).
+proposal (the selected proposal's extension to 5 s runs alone, from a fresh buffer). See
+docs/engine.md, "PDM-Closed: the IDM unroll".
 
 Headings the devkit keeps (path poses, the leading agent's relative heading) are wrapped with numpy's
 AVX-512 arctan2, as on the machine that made the official results (`geometry.normalize_angle`).
@@ -186,7 +188,7 @@ def _shared_buffer(
     """Return, per row, the value last written at or before it within its group, else 0.
 
     The devkit fills one 3-value buffer per path and step, proposal after proposal, so a value a
-    proposal does not write is the previous proposal's (spec 9.4).
+    proposal does not write is the previous proposal's (docs/engine.md, "PDM-Closed: the IDM unroll").
     """
     rows = np.arange(len(values))
     last_written = np.maximum.accumulate(np.where(written, rows, -1))
@@ -364,7 +366,10 @@ class ScenePlan:
 
 
 def plan_scene(scene: Scene, drivable_map: DrivableMap) -> ScenePlan:
-    """Return the corrected route, starting lane, centerline, paths, targets and forecast (spec 9.1-9.3)."""
+    """Return the corrected route, starting lane, centerline, paths, targets and forecast.
+
+    See docs/engine.md, "PDM-Closed" and "Observation and forecasts: PDM-Closed's forecast".
+    """
     ego = scene.current_frame.ego
     rear_x, rear_y = rear_axle_round_trip(ego.x, ego.y, ego.heading)
     rear_axle = (float(rear_x), float(rear_y), ego.heading)  # what EgoState.rear_axle reports
@@ -412,7 +417,10 @@ class Proposals:
 
 
 def unroll_proposals(plans: Sequence[ScenePlan]) -> Proposals:
-    """Return the scenes' 15 proposals each, unrolled over the 40 proposal steps (spec 9.4)."""
+    """Return the scenes' 15 proposals each, unrolled over the 40 proposal steps.
+
+    See docs/engine.md, "PDM-Closed: proposals and paths" and "PDM-Closed: the IDM unroll".
+    """
     unroll = IdmUnroll(plans)
     rows = np.arange(len(unroll.path_of))
     unroll.run(rows, range(1, PROPOSAL_STEPS + 1), groups=unroll.path_of)

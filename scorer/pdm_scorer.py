@@ -1,4 +1,5 @@
-"""Score simulated proposals as NAVSIM's `PDMScorer` does (spec 6-8), for evaluation and for PDM-Closed.
+"""Score simulated proposals as NAVSIM's `PDMScorer` does, for evaluation and for PDM-Closed
+(docs/engine.md, "Metrics").
 
 In evaluation proposal 0 is the re-simulated PDM-Closed reference and proposal 1 the submission;
 PDM-Closed scores its 15 proposals against its own forecast observation with the planner config. A
@@ -118,7 +119,10 @@ def score_proposals(
     route_lane_ids: Collection[str],
     config: ScorerConfig,
 ) -> ProposalScores:
-    """Return the scores of simulated proposals (P, 41, 11) against an observation and map (spec 6-8)."""
+    """Return the scores of simulated proposals (P, 41, 11) against an observation and map.
+
+    See docs/engine.md, "Metrics".
+    """
     states = np.asarray(states, dtype=np.float64)
     return score_batch(
         states[None], [observation], [drivable_map], [centerline_xy], [route_lane_ids], config

@@ -1,15 +1,17 @@
-"""PDM-Closed's own view of the world: a constant-velocity forecast of the current frame (spec 9.3).
+"""PDM-Closed's own view of the world: a constant-velocity forecast of the current frame.
 
 Unlike the evaluation observation (recorded future, `scorer.observation`), the planner sees only the
 current frame's objects within 100 m of the ego centre (the nearest 50 vehicles, 25 pedestrians,
 10 bicycles and 50 static objects), agents moving straight at constant speed, plus the polygons of
 red lane connectors on the route. Forecast maps exist at samples 0, 2, ..., 50 (0.1 s each); time
-index k reads map k // 2. Map order: static objects, agents, red lights (as `PDMObservation`).
+index k reads map k // 2. Map order: static objects, agents, red lights (as `PDMObservation`;
+docs/engine.md, "Observation and forecasts: PDM-Closed's forecast").
 
 Per-scene isolation: the devkit's planner keeps a running list of "collided" tokens (objects the ego
 overlaps at t0, red lights that contain it) across all scenes of a caching worker, so a later scene
-can ignore objects of an earlier one (spec 12.21). Here the list starts empty for every scene, as in
-the reference run, and holds only this scene's own t0 overlaps.
+can ignore objects of an earlier one. Here the list starts empty for every scene, as in the reference
+run, and holds only this scene's own t0 overlaps
+(docs/engine.md, "Observation and forecasts: the collided list").
 """
 
 from __future__ import annotations
@@ -69,7 +71,10 @@ def _nearest_first(distances: FloatArray, limit: int) -> npt.NDArray[np.intp]:
 def observe_for_planner(
     scene: Scene, route_lanes: Mapping[str, Lane], footprint: shapely.Polygon
 ) -> PlannerObservation:
-    """Return PDM-Closed's forecast observation of the current frame (`PDMObservation.update`, spec 9.3)."""
+    """Return PDM-Closed's forecast observation of the current frame (`PDMObservation.update`).
+
+    See docs/engine.md, "Observation and forecasts: PDM-Closed's forecast".
+    """
     frame = scene.current_frame
     center = np.array(ego_center(frame.ego.x, frame.ego.y, frame.ego.heading))
     boxes, velocities = frame.boxes, frame.velocities

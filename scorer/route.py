@@ -1,4 +1,4 @@
-"""PDM-Closed's route: loading, correction, starting lane and centerline (spec 9.1, 9.2).
+"""PDM-Closed's route: loading, correction, starting lane and centerline (docs/engine.md, "PDM-Closed").
 
 The road graph follows the reference run's reading of a map excerpt (reference README, "How the
 reference run read a scene", items 4-5): a lane's successors are the lane connectors leaving it, in
@@ -156,7 +156,10 @@ class Route:
 
 
 def load_route(graph: RoadGraph, block_ids: Sequence[str], token: str) -> Route:
-    """Return the route of these roadblock ids (first occurrence kept); a missing id raises (spec 9.1 step 1)."""
+    """Return the route of these roadblock ids (first occurrence kept); a missing id raises.
+
+    See docs/engine.md, "PDM-Closed: route correction".
+    """
     blocks: dict[str, Roadblock] = {}
     for block_id in dict.fromkeys(block_ids):
         block = graph.block(block_id)
@@ -277,7 +280,10 @@ def _remove_route_loops(graph: RoadGraph, blocks: list[Roadblock]) -> list[Roadb
 def correct_route(
     graph: RoadGraph, excerpt: MapExcerpt, route: Route, rear_axle: tuple[float, float, float], token: str
 ) -> Route:
-    """Return the route after PDM-Closed's correction at the ego's rear-axle pose (spec 9.1 step 2)."""
+    """Return the route after PDM-Closed's correction at the ego's rear-axle pose.
+
+    See docs/engine.md, "PDM-Closed: route correction".
+    """
     x, y, heading = rear_axle
     start, candidates = roadblock_candidates(graph, excerpt, route, x, y, heading)
     blocks = list(route.blocks)
@@ -325,7 +331,10 @@ def starting_lane(
     center: tuple[float, float],
     footprint: shapely.Polygon,
 ) -> Lane:
-    """Return the route lane the centerline starts from (`_get_starting_lane`, spec 9.2)."""
+    """Return the route lane the centerline starts from (`_get_starting_lane`).
+
+    See docs/engine.md, "PDM-Closed: starting lane and centerline".
+    """
     x, y, heading = rear_axle
     route_lanes = {lane.id: lane for lane in route.lanes}
     touched = drivable_tree.query(shapely.Point(x, y), predicate="intersects")

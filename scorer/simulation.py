@@ -1,4 +1,5 @@
-"""PDM's simulator: a batched LQR tracker driving a kinematic bicycle model over 4 s (spec 2).
+"""PDM's simulator: a batched LQR tracker driving a kinematic bicycle model over 4 s
+(docs/engine.md, "Simulation").
 
 Vectorised over proposals P; each row has its own reference and initial state, so proposals of many
 tokens go through one call. Bit-exactness with the devkit depends on the arithmetic, so every
@@ -16,7 +17,8 @@ from scorer.geometry import WHEEL_BASE, FloatArray, normalize_angle, principal_v
 from scorer.trajectory import SCORING_INTERVAL_S, SCORING_POSES, STATE_SIZE, StateIndex
 
 # The tracker discretises with the proposal interval; the bicycle integrates over a TimePoint
-# difference read back as `100000 * 1e-6`, one ulp below 0.1 (pitfall 1).
+# difference read back as `100000 * 1e-6`, one ulp below 0.1 (docs/engine.md,
+# "Simulation: two time steps").
 TRACKER_DT = SCORING_INTERVAL_S
 BICYCLE_DT = 100_000 * 1e-6
 
@@ -46,10 +48,11 @@ _DISPLACEMENTS = SCORING_POSES  # M displacements between the 41 reference poses
 
 
 def _velocity_regulariser(num_displacements: int) -> FloatArray:
-    """Return NAVSIM's (M-2, M) "jerk" regulariser, built wrongly as the devkit does (pitfall 26).
+    """Return NAVSIM's (M-2, M) "jerk" regulariser, built wrongly as the devkit does.
 
     The banded difference block gets +1 on its superdiagonal and is then overwritten by -I, so only
-    the last row keeps its +1: a ridge on the accelerations plus a single jerk term.
+    the last row keeps its +1: a ridge on the accelerations plus a single jerk term
+    (docs/engine.md, "Simulation: the jerk regulariser").
     """
     rows = num_displacements - 2
     banded = np.zeros((rows, rows + 1))
@@ -112,7 +115,10 @@ def _integrate(initial: FloatArray, derivatives: FloatArray, dt: float) -> Float
 
 
 def reference_profiles(poses: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Return the velocity and curvature profiles (P, M) fitted to reference poses (P, M + 1, 3) (spec 2.2)."""
+    """Return the velocity and curvature profiles (P, M) fitted to reference poses (P, M + 1, 3).
+
+    See docs/engine.md, "Simulation: reference profiles".
+    """
     batch, num_displacements = poses.shape[0], poses.shape[1] - 1
     differences = np.diff(poses, axis=1)
     xy_displacements = differences[..., :2].reshape(batch, 2 * num_displacements)  # [dx_0, dy_0, dx_1, ...]
@@ -153,13 +159,14 @@ def _previous(values: FloatArray) -> FloatArray:
 def _lateral_steering_rate(
     lateral_state: FloatArray, velocities: FloatArray, curvatures: FloatArray
 ) -> FloatArray:
-    """Return the one-step lateral LQR steering rate (B,) over the horizon (spec 2.3).
+    """Return the one-step lateral LQR steering rate (B,) over the horizon.
 
     The devkit chains the step matrices S_i = I + (v_i dt) e_01 + (v_i dt / L) e_12 with einsum from
     A = I, B = 0, g = 0. Every row of S_i has at most two non-zero entries, so each entry of the chained
     A = [[1, a, b], [0, 1, c], [0, 0, 1]], B and g is a running sum of one product per step, which numpy's
     sequential `cumsum` rounds exactly as the einsum chain does (as it does the products with the
-    diagonal Q). Only the 3-term product A x0 keeps einsum's own summation order.
+    diagonal Q). Only the 3-term product A x0 keeps einsum's own summation order
+    (docs/engine.md, "Simulation: the tracker").
     """
     heading_gains = velocities * TRACKER_DT
     steering_gains = velocities * TRACKER_DT / WHEEL_BASE
@@ -194,10 +201,11 @@ def _lateral_steering_rate(
 def _track(
     states: FloatArray, target: FloatArray, reference_speed: FloatArray, curvature_window: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """Return the commands (acceleration, steering rate), each (P,), towards the reference pose `target` (spec 2.3).
+    """Return the commands (acceleration, steering rate), each (P,), towards the reference pose `target`.
 
     `reference_speed` (P,) is the velocity profile at the lookahead index and `curvature_window` (P, 10)
-    the curvature profile over the horizon. Proposals near standstill get the stopping controller.
+    the curvature profile over the horizon. Proposals near standstill get the stopping controller
+    (docs/engine.md, "Simulation: the tracker").
     """
     x_errors = states[:, StateIndex.X] - target[:, 0]
     y_errors = states[:, StateIndex.Y] - target[:, 1]
@@ -217,7 +225,10 @@ def _track(
 
 
 def _propagate(states: FloatArray, acceleration: FloatArray, steering_rate: FloatArray) -> FloatArray:
-    """Return the states (P, 11) one bicycle step of BICYCLE_DT later (spec 2.4)."""
+    """Return the states (P, 11) one bicycle step of BICYCLE_DT later.
+
+    See docs/engine.md, "Simulation: the bicycle model".
+    """
     dt = BICYCLE_DT
     speed = states[:, StateIndex.VELOCITY_X]
     heading = states[:, StateIndex.HEADING]
@@ -254,10 +265,11 @@ def _propagate(states: FloatArray, acceleration: FloatArray, steering_rate: Floa
 
 
 def simulate(reference: FloatArray, initial: FloatArray) -> FloatArray:
-    """Return the simulated states (P, 41, 11) tracking reference poses (P, >=41, >=3) from `initial` (spec 2).
+    """Return the simulated states (P, 41, 11) tracking reference poses (P, >=41, >=3) from `initial`.
 
     `initial` is one (11,) state shared by all proposals or one (P, 11) state per proposal. Raises
-    ValueError when a reference is not finite or the simulation diverges to a non-finite heading.
+    ValueError when a reference is not finite or the simulation diverges to a non-finite heading
+    (docs/engine.md, "Simulation").
     """
     reference = np.asarray(reference, dtype=np.float64)
     if reference.ndim != 3 or reference.shape[1] < SCORING_POSES + 1 or reference.shape[2] < 3:

@@ -1,9 +1,10 @@
-"""Trajectories as the devkit samples them for scoring: global frame, 41 states at 10 Hz (spec 1.2, 1.3).
+"""Trajectories as the devkit samples them for scoring: global frame, 41 states at 10 Hz.
 
 The devkit turns every pose into a nuPlan `EgoState`, interpolates an `InterpolatedTrajectory` with
 scipy's `interp1d` at integer-microsecond query times, and reads the states back. Each of those steps
 moves the last bits (rear-axle round trip, truncated time stamps, unwrap over the knots), and the last
-bits decide knife-edge metrics, so this module reproduces the arithmetic rather than the idea.
+bits decide knife-edge metrics, so this module reproduces the arithmetic rather than the idea
+(docs/engine.md, "Sampling" and "Time stamps").
 """
 
 from __future__ import annotations
@@ -20,7 +21,10 @@ IntArray = npt.NDArray[np.int64]
 
 
 class StateIndex(IntEnum):
-    """Columns of a state array (PDM's `StateIndex`, spec 0.4); rear axle, global pose, ego-frame dynamics."""
+    """Columns of a state array (PDM's `StateIndex`): rear axle, global pose, ego-frame dynamics.
+
+    See docs/engine.md, "Conventions: state arrays".
+    """
 
     X = 0
     Y = 1
@@ -53,7 +57,10 @@ _LINEAR_COLUMNS = [
 
 
 def initial_state(ego: EgoStatus) -> FloatArray:
-    """Return the (11,) state array of the initial EgoState (rear axle after the round trip, spec 2.1)."""
+    """Return the (11,) state array of the initial EgoState (rear axle after the round trip).
+
+    See docs/engine.md, "Simulation" and "Conventions: the rear-axle round trip".
+    """
     x, y = rear_axle_round_trip(ego.x, ego.y, ego.heading)
     state = np.zeros(STATE_SIZE, dtype=np.float64)
     state[: StateIndex.ACCELERATION_Y + 1] = (x, y, ego.heading, ego.vx, ego.vy, ego.ax, ego.ay)
@@ -61,13 +68,19 @@ def initial_state(ego: EgoStatus) -> FloatArray:
 
 
 def scoring_times_us(t0_us: int | IntArray) -> IntArray:
-    """Return the 41 query times in us (..., 41), before clipping: `int((arange + t0 * 1e-6) * 1e6)` (spec 1.3)."""
+    """Return the 41 query times in us (..., 41), before clipping: `int((arange + t0 * 1e-6) * 1e6)`.
+
+    See docs/engine.md, "Time stamps".
+    """
     times_s = np.arange(0.0, SCORING_POSES * SCORING_INTERVAL_S + SCORING_INTERVAL_S, SCORING_INTERVAL_S)
     return _truncate_to_us(times_s + _seconds(t0_us))
 
 
 def agent_knot_times_us(t0_us: int | IntArray, num_poses: int, interval_length: float) -> IntArray:
-    """Return the time stamps (..., n) of submitted poses as nuPlan's `_get_fixed_timesteps` makes them (spec 1.2)."""
+    """Return the time stamps (..., n) of submitted poses as nuPlan's `_get_fixed_timesteps` makes them.
+
+    See docs/engine.md, "Time stamps".
+    """
     steps_s = np.arange(0.0, num_poses * interval_length, interval_length) + interval_length
     return _truncate_to_us(steps_s[:num_poses] + _seconds(t0_us))
 
@@ -114,7 +127,10 @@ def _poses_of(matrices: FloatArray) -> FloatArray:
 def agent_reference(
     ego: EgoStatus, t0_us: int, poses: FloatArray, interval_length: float = 0.5
 ) -> FloatArray:
-    """Return the 10 Hz reference states (..., 41, 11) of submitted poses (..., n, 3) in the ego frame (spec 1.2)."""
+    """Return the 10 Hz reference states (..., 41, 11) of submitted poses (..., n, 3) in the ego frame.
+
+    See docs/engine.md, "Sampling".
+    """
     poses = np.asarray(poses, dtype=np.float64)
     flat = poses.reshape(-1, *poses.shape[-2:])
     initial = np.broadcast_to(initial_state(ego), (len(flat), STATE_SIZE))
@@ -148,18 +164,19 @@ def agent_references(
 
 
 def pdm_reference(ego: EgoStatus, t0_us: int, pdm_poses: FloatArray) -> FloatArray:
-    """Return the 10 Hz reference states (41, 11) of the cached PDM-Closed trajectory (51, 3) (spec 1.3).
+    """Return the 10 Hz reference states (41, 11) of the cached PDM-Closed trajectory (51, 3).
 
-    The PDM trajectory's first knot is its own path pose, not the ego: `ego` does not enter the result.
+    The PDM trajectory's first knot is its own path pose, not the ego: `ego` does not enter the result
+    (docs/engine.md, "Sampling").
     """
     return pdm_references(np.array([t0_us]), np.asarray(pdm_poses, dtype=np.float64)[None])[0]
 
 
 def pdm_references(t0_us: IntArray, pdm_poses: FloatArray) -> FloatArray:
-    """Return the reference states (T, 41, 11) of T cached PDM-Closed trajectories (T, 51, 3) (spec 1.3).
+    """Return the reference states (T, 41, 11) of T cached PDM-Closed trajectories (T, 51, 3).
 
     The poses are those the cached EgoStates report (already round-tripped) at t0 + k * 0.1 s; their
-    dynamics are zero.
+    dynamics are zero (docs/engine.md, "Sampling").
     """
     pdm_poses = np.asarray(pdm_poses, dtype=np.float64)
     knots = np.zeros((*pdm_poses.shape[:-1], STATE_SIZE), dtype=np.float64)
@@ -170,11 +187,12 @@ def pdm_references(t0_us: IntArray, pdm_poses: FloatArray) -> FloatArray:
 
 
 def interpolate_states(knot_times_us: IntArray, knots: FloatArray, query_times_us: IntArray) -> FloatArray:
-    """Return states (T, q, 11) of T InterpolatedTrajectories with knots (T, k, 11) at (T, q) times (spec 1.3).
+    """Return states (T, q, 11) of T InterpolatedTrajectories with knots (T, k, 11) at (T, q) times.
 
     Query times are clipped to each knot span. Linear channels use scipy `interp1d`'s formula; the heading
     is unwrapped over the knots, interpolated and wrapped to [-pi, pi); the result is rebuilt as an
-    EgoState, so x, y go through the rear-axle round trip and the rates read back as zero.
+    EgoState, so x, y go through the rear-axle round trip and the rates read back as zero
+    (docs/engine.md, "Sampling").
     """
     queries = np.clip(query_times_us, knot_times_us[:, :1], knot_times_us[:, -1:])
     # interp1d: the knot interval comes from searchsorted (side left), clipped to [1, k - 1].

@@ -1,4 +1,5 @@
-"""Metric versions as data: one frozen config per NAVSIM release, in one registry (spec 8, 11).
+"""Metric versions as data: one frozen config per NAVSIM release, in one registry
+(docs/engine.md, "Metric versions").
 
 Adding a version means adding a `MetricVersion` here; code branches only where a metric truly differs,
 and then on a field of this config (e.g. `ddc_window_axis`), never on the version name.

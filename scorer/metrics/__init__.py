@@ -1,1 +1,1 @@
-"""The PDM Score's metrics, one module each, over arrays of proposals x time (spec 6-8)."""
+"""The PDM Score's metrics, one module each, over arrays of proposals x time (docs/engine.md, "Metrics")."""

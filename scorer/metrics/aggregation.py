@@ -1,4 +1,4 @@
-"""Aggregation of the metric rows into the PDM Score (spec 8)."""
+"""Aggregation of the metric rows into the PDM Score (docs/engine.md, "Metrics")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""No at-fault collisions (NC), a multiplier in {0, 0.5, 1} (spec 7.1).
+"""No at-fault collisions (NC), a multiplier in {0, 0.5, 1} (docs/engine.md, "Metrics").
 
 Each contact at time index k (0..40, the initial state included) is classified as nuPlan's
 `get_collision_type` does, in this order: stopped ego, stopped track (any static object, or an agent

@@ -1,4 +1,5 @@
-"""Contacts between ego boxes and observed objects, and the ignore-lists NC and TTC share (spec 7.1, 7.5).
+"""Contacts between ego boxes and observed objects, and the ignore-lists NC and TTC share
+(docs/engine.md, "Metrics").
 
 The devkit walks time in order and keeps, per proposal, a list of tokens to ignore: a contact that is
 not at fault puts its token on the list for the rest of the horizon. Resolved on arrays, an at-fault

@@ -1,4 +1,4 @@
-"""Drivable-area compliance (DAC) in {0, 1}, a multiplier (spec 7.2)."""
+"""Drivable-area compliance (DAC) in {0, 1}, a multiplier (docs/engine.md, "Metrics")."""
 
 from __future__ import annotations
 

@@ -1,9 +1,10 @@
-"""Driving-direction compliance (DDC) in {0, 0.5, 1} (spec 7.3).
+"""Driving-direction compliance (DDC) in {0, 0.5, 1} (docs/engine.md, "Metrics").
 
 The off-route distance per step (centre displacement where the centre is on no on-route lane) is
 summed over a window of 11 and the maximum is thresholded. v1.1 sums over time, as intended; v1.0's
-code sums over the *proposal* axis (proposals p-10..p at the same time index, pitfall 25), which a
-version selects with `ScorerConfig.ddc_window_axis`. Both sums keep the devkit's float order.
+code sums over the *proposal* axis (proposals p-10..p at the same time index; docs/engine.md,
+"Metric versions"), which a version selects with `ScorerConfig.ddc_window_axis`. Both sums keep the
+devkit's float order.
 """
 
 from __future__ import annotations

@@ -1,4 +1,7 @@
-"""Where the ego box is at each state: across lanes, off the drivable area, off the route (spec 6)."""
+"""Where the ego box is at each state: across lanes, off the drivable area, off the route.
+
+See docs/engine.md, "Metrics" (the three flags) and "Drivable-area map" (which polygons count).
+"""
 
 from __future__ import annotations
 

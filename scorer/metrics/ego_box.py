@@ -1,4 +1,7 @@
-"""The ego's box as the scorer sees it: 4 corners and the centre per state (spec 3)."""
+"""The ego's box as the scorer sees it: 4 corners and the centre per state.
+
+See docs/engine.md, "Conventions: the ego vehicle and its box" and "Conventions: state arrays".
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Ego progress (EP): raw progress along the centerline and its normalisation (spec 7.4, 8)."""
+"""Ego progress (EP): raw progress along the centerline and its normalisation (docs/engine.md, "Metrics")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Time to collision within bound (TTC) in {0, 1}, a weighted metric (spec 7.5).
+"""Time to collision within bound (TTC) in {0, 1}, a weighted metric (docs/engine.md, "Metrics").
 
 At every time index k the ego box is pushed along its heading by |v| * dt for dt = 0, 0.3, 0.6 and
 0.9 s and tested against the occupancy map at k + dt. A contact counts when the object is ahead

@@ -2,7 +2,8 @@
 
 The ego pose is the rear axle: (x, y) from `ego2global_translation`, heading = pyquaternion's yaw of
 `ego2global_rotation`. Boxes and agent velocities are stored in the ego frame and are rotated by that
-yaw and shifted by the rear axle of a nuPlan EgoState (which went through the centre and back, spec 0.5).
+yaw and shifted by the rear axle of a nuPlan EgoState (which went through the centre and back;
+docs/engine.md, "Conventions: the rear-axle round trip").
 Every numpy arctan2 of the devkit here (pyquaternion's yaw, PDM's `normalize_angle`) ran on the
 AVX-512 machine that made the official results, hence `geometry.arctan2_avx512`.
 """
