@@ -131,7 +131,8 @@ def test_a_worker_process_killed_mid_chunk_costs_under_two_minutes(
             assert service.worker.poll() is None  # the worker replaced its pool process and went on
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+# On PostgreSQL + Redis, where Celery also hands the killed chunk back at once: a duplicate that must drop.
+@pytest.mark.parametrize("backend", [BACKENDS[1]])
 def test_a_token_that_kills_its_worker_every_time_fails_alone(
     backend: str, tmp_path: Path, synthetic_split: SplitFixture
 ) -> None:
@@ -171,18 +172,18 @@ def test_a_chunk_past_the_hard_time_limit_fails_the_run_refunded(
     tmp_path: Path, synthetic_split: SplitFixture
 ) -> None:
     entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method="hangs")
-    faults = {"FAULT_HANG_TOKEN": min(entry.seeds[0]), "TASK_TIME_LIMIT": "35", "REAPER_INTERVAL": "2"}
+    faults = {"FAULT_HANG_TOKEN": min(entry.seeds[0]), "TASK_TIME_LIMIT": "31", "REAPER_INTERVAL": "2"}
     with running_service(tmp_path, synthetic_split, faults, faults=True) as service:
         uploaded = time.monotonic()
         submission_id = service.upload(entry)
         submission = service.final(submission_id, timeout=RECOVERY_S)
-        _record("hard time limit of 35 s: upload to failed", uploaded)
+        _record("hard time limit of 31 s: upload to failed", uploaded)
     assert (submission.status, submission.failure_kind, submission.charged) == (
         Status.failed,
         FailureKind.infrastructure,
         False,
     )
-    assert "hard time limit of 35 s" in (submission.error or "") and "refunded" in (submission.error or "")
+    assert "hard time limit of 31 s" in (submission.error or "") and "refunded" in (submission.error or "")
 
 
 def test_a_worker_stopped_with_sigterm_finishes_its_chunk_and_loses_nothing(
