@@ -1,7 +1,7 @@
 """PDM-Closed's route: loading, correction, starting lane and centerline (docs/engine.md, "PDM-Closed").
 
-The road graph follows the reference run's reading of a map excerpt (reference README, "How the
-reference run read a scene", items 4-5): a lane's successors are the lane connectors leaving it, in
+The road graph follows the reference run's reading of a map excerpt (tests/fixtures/reference/README.md,
+"How the reference run read a scene", items 4-5): a lane's successors are the lane connectors leaving it, in
 `lane_connectors` layer order; a roadblock's lanes are those naming it, in `lanes` layer order; a
 roadblock's successors are the roadblock connectors leaving it, in layer order. These orders decide
 the tie-breaks of the searches below, which mirror the devkit's `route_utils.py`,

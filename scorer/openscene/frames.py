@@ -1,4 +1,4 @@
-"""OpenScene frame dicts to scene-file frames, converted exactly as NAVSIM v1.x does (upstream-formats.md 1.5).
+"""OpenScene frame dicts to scene-file frames, converted exactly as NAVSIM v1.x does.
 
 The ego pose is the rear axle: (x, y) from `ego2global_translation`, heading = pyquaternion's yaw of
 `ego2global_rotation`. Boxes and agent velocities are stored in the ego frame and are rotated by that
