@@ -1,7 +1,7 @@
 """Scoring tasks: a submission fans out into chunk tasks, and the chunk that writes the last rows aggregates.
 
-`score_submission` claims the submission (status running) and, in the same transaction, records one chunk
-per slice of the tokens not scored yet (server.services.chunks), then sends them. Each chunk scores its
+`score_submission` claims the submission (status running), then records one chunk per slice of the tokens
+not scored yet (server.services.chunks) and sends them. Each chunk scores its
 tokens under every metric version and seed, beating while it does, and upserts the rows; in the same
 transaction, under the submission's row lock, it marks the run scored when every expected row is there.
 The SQL row count is the barrier a chord would be: a chord needs a result backend and, on a broker without

@@ -262,8 +262,9 @@ def mark_failed(
 def stalled_runs(session: Session, claimed_before: datetime) -> list[int]:
     """Return the ids of running submissions claimed before `claimed_before` that have no live chunk.
 
-    Planning writes a run's chunks in its claim's transaction, and the last chunk aggregates in its own:
-    a run left running with nothing queued or running was interrupted in a way nothing else repairs.
+    A worker plans a run's chunks right after claiming it, and the last chunk aggregates in its own
+    transaction: a run left running with nothing queued or running was interrupted between claim and plan
+    (or in a way nothing else repairs).
     """
     live = select(ScoringChunk.id).where(
         ScoringChunk.submission_id == Submission.id,
