@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import ClassVar
 
@@ -26,6 +26,23 @@ from server.services.workers import HEARTBEAT_SECONDS, forget_worker, record_hea
 from server.settings import get_settings
 
 log = logging.getLogger(__name__)
+
+
+def _write_beat(sessions: sessionmaker[Session], write: Callable[[Session], None], what: str) -> None:
+    """Write one beat in its own transaction; a failed one (the database is away) is logged, not fatal."""
+    try:
+        with transaction(sessions) as session:
+            write(session)
+    except Exception:
+        log.warning("%s not written", what, exc_info=True)
+
+
+def _beat_until(
+    stop: threading.Event, sessions: sessionmaker[Session], write: Callable[[Session], None], what: str
+) -> None:
+    """Write a beat every HEARTBEAT_SECONDS until `stop` is set."""
+    while not stop.wait(HEARTBEAT_SECONDS):
+        _write_beat(sessions, write, what)
 
 
 class DatabaseHeartbeat(bootsteps.StartStopStep):
@@ -51,15 +68,14 @@ class DatabaseHeartbeat(bootsteps.StartStopStep):
         engine = make_engine(get_settings().database_url)
         sessions = make_session_factory(engine)
         started_at = utc_now()
+
+        def record(session: Session) -> None:
+            record_heartbeat(session, self._name, started_at)
+
+        what = f"heartbeat of {self._name}"
         try:
-            while True:
-                try:
-                    with transaction(sessions) as session:
-                        record_heartbeat(session, self._name, started_at)
-                except Exception:
-                    log.warning("heartbeat of %s not written", self._name, exc_info=True)
-                if self._stop.wait(HEARTBEAT_SECONDS):
-                    break
+            _write_beat(sessions, record, what)
+            _beat_until(self._stop, sessions, record, what)
             with transaction(sessions) as session:
                 forget_worker(session, self._name)
         except Exception:
@@ -81,15 +97,15 @@ def beating(sessions: sessionmaker[Session], chunk_id: int, worker: str) -> Iter
     """Beat for chunk `chunk_id`, held by `worker`, every HEARTBEAT_SECONDS while the block runs."""
     stop = threading.Event()
 
-    def run() -> None:
-        while not stop.wait(HEARTBEAT_SECONDS):
-            try:
-                with transaction(sessions) as session:
-                    beat_chunk(session, chunk_id, worker)
-            except Exception:
-                log.warning("beat of chunk %s not written", chunk_id, exc_info=True)
+    def beat(session: Session) -> None:
+        beat_chunk(session, chunk_id, worker)
 
-    thread = threading.Thread(target=run, name=f"chunk-{chunk_id}-beat", daemon=True)
+    thread = threading.Thread(
+        target=_beat_until,
+        args=(stop, sessions, beat, f"beat of chunk {chunk_id}"),
+        name=f"chunk-{chunk_id}-beat",
+        daemon=True,
+    )
     thread.start()
     try:
         yield
