@@ -22,10 +22,15 @@ def _embedded_broker_database(broker_url: str) -> str | None:
     return rest if scheme in ("sqla", "sqlalchemy") and rest else None
 
 
+def is_embedded_broker(settings: Settings) -> bool:
+    """Whether the broker is the embedded one: kombu's SQL transport on a database file."""
+    return _embedded_broker_database(settings.broker_url) is not None
+
+
 def broker_transport_options(settings: Settings) -> dict[str, Any]:
     """Return the kombu transport options for the configured broker."""
     scheme = settings.broker_url.split("://", 1)[0]
-    if _embedded_broker_database(settings.broker_url):
+    if is_embedded_broker(settings):
         # Every option reaches create_engine. No pool: a pooled SQLite connection must not cross a fork
         # into the worker's pool processes. The timeout lets writers queue instead of failing at once.
         return {"poolclass": NullPool, "connect_args": {"timeout": SQLITE_BROKER_TIMEOUT_S}}

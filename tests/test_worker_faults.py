@@ -129,6 +129,8 @@ def test_a_worker_process_killed_mid_chunk_costs_under_two_minutes(
         if victim == "pool process":
             assert {c.deaths for c in _chunks(service, submission_id) if c.id == chunk.id} == {1}
             assert service.worker.poll() is None  # the worker replaced its pool process and went on
+            # billiard's own report of the death is a log line like any other, with the run's fields
+            assert "Logging error" not in service.worker_log()
 
 
 # On PostgreSQL + Redis, where Celery also hands the killed chunk back at once: a duplicate that must drop.

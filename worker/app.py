@@ -1,8 +1,9 @@
 """The workers' Celery app, configured from `server.settings` with the broker and queue the API sends to.
 
-Delivery is at least once: a task is acknowledged after it ran (`acks_late`) and handed back when its
-process dies (`task_reject_on_worker_lost`), each process reserves one task at a time, and the broker's
-visibility timeout outlasts the hard time limit (server.queue). Every task is therefore idempotent.
+Delivery is at least once: a task is acknowledged after it ran (`acks_late`), each process reserves one
+task at a time, and the broker's visibility timeout outlasts the hard time limit (server.queue). The
+reaper (worker.tasks) sends again what a dead process held; Celery hands it back too where that is safe
+(below). Every task is therefore idempotent.
 No result backend: results live in SQL (worker.tasks explains why no chord is needed).
 """
 
@@ -19,7 +20,7 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 from celery import Celery, bootsteps
 from celery.signals import worker_process_init
 
-from server.queue import celery_config
+from server.queue import celery_config, is_embedded_broker
 from server.settings import Settings, get_settings
 from worker.heartbeat import DatabaseHeartbeat
 from worker.logs import LOG_FORMAT, TASK_LOG_FORMAT
@@ -61,7 +62,10 @@ def create_celery(settings: Settings) -> Celery:
     app.conf.update(
         celery_config(settings),
         task_acks_late=True,
-        task_reject_on_worker_lost=True,
+        # Handing back the task of a dead process puts its message back from the pool's supervisor thread.
+        # kombu's SQL transport shares one session between threads, so on the embedded broker that races
+        # the consumer's poll and stops the whole worker; there the reaper alone sends the chunk again.
+        task_reject_on_worker_lost=not is_embedded_broker(settings),
         worker_prefetch_multiplier=1,
         task_time_limit=settings.task_time_limit,
         task_soft_time_limit=settings.task_time_limit - SOFT_LIMIT_MARGIN_S,

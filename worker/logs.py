@@ -1,8 +1,10 @@
 """Every log line of a worker names the submission and run it concerns, as fields: `submission=12 run=3`.
 
 A task's arguments start with the submission id (and, for a chunk, the run): `task_prerun` puts them in a
-context variable, a logging filter copies them onto each record, and the worker's log formats print them,
+context variable, the record factory copies them onto each record, and the worker's log formats print them,
 so `grep 'submission=12 '` finds all that happened to one submission, across processes and machines.
+The factory, not a handler's filter, because Celery gives billiard's logger a handler of its own with the
+same format: a record of it without the fields (a pool process that died) would fail to format.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import logging
 from contextvars import ContextVar
 from typing import Any
 
-from celery.signals import after_setup_logger, after_setup_task_logger, task_postrun, task_prerun
+from celery.signals import task_postrun, task_prerun
 
 UNKNOWN = "-"
 FIELDS = "submission=%(submission)s run=%(run)s"
@@ -22,12 +24,17 @@ TASK_LOG_FORMAT = (
 _scoring_run: ContextVar[tuple[Any, Any]] = ContextVar("scoring_run", default=(UNKNOWN, UNKNOWN))
 
 
-class RunFields(logging.Filter):
-    """Set `submission` and `run` on every record (UNKNOWN outside a scoring task)."""
+_plain_record = logging.getLogRecordFactory()
 
-    def filter(self, record: logging.LogRecord) -> bool:
-        record.submission, record.run = _scoring_run.get()
-        return True
+
+def _record_with_run(*args: Any, **kwargs: Any) -> logging.LogRecord:
+    """Return a log record with `submission` and `run` set (UNKNOWN outside a scoring task)."""
+    record = _plain_record(*args, **kwargs)
+    record.submission, record.run = _scoring_run.get()
+    return record
+
+
+logging.setLogRecordFactory(_record_with_run)
 
 
 @task_prerun.connect
@@ -40,10 +47,3 @@ def _enter_task(args: tuple[Any, ...] | None = None, **_: object) -> None:
 @task_postrun.connect
 def _leave_task(**_: object) -> None:
     _scoring_run.set((UNKNOWN, UNKNOWN))
-
-
-@after_setup_logger.connect
-@after_setup_task_logger.connect
-def _add_fields(logger: logging.Logger, **_: object) -> None:
-    for handler in logger.handlers:
-        handler.addFilter(RunFields())
