@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from scorer.submission import Submission
 
 
-class BaselineKind(str, Enum):
+class BaselineKind(StrEnum):
     constant_velocity = "constant-velocity"
     human = "human"
 

@@ -7,7 +7,7 @@ import signal
 import subprocess
 import sys
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 STOP_TIMEOUT_S = 20.0
@@ -43,12 +43,8 @@ def child_process(command: list[str], env: dict[str, str], log: Path) -> Iterato
     finally:
         if process.poll() is None:
             process.terminate()  # warm shutdown: Celery finishes its running tasks, uvicorn its requests
-        try:
+        with suppress(subprocess.TimeoutExpired):
             process.wait(timeout=STOP_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            pass
-        try:
+        with suppress(ProcessLookupError):
             os.killpg(process.pid, signal.SIGKILL)  # pool processes or a beat that outlived their parent
-        except ProcessLookupError:
-            pass
         process.wait()

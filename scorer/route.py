@@ -211,7 +211,7 @@ def roadblock_candidates(
     for block in candidates:
         best_distance = np.inf
         lanes = graph.interior.get(block, ())
-        for lane, poses in zip(lanes, graph.discrete_paths(lanes), strict=True):
+        for poses in graph.discrete_paths(lanes):
             distance, heading_error = _nearest_vertex(poses, x, y, heading)
             best_distance = min(best_distance, distance)
             if heading_error < CANDIDATE_HEADING_ERROR and distance < CANDIDATE_DISPLACEMENT_ERROR:

@@ -8,7 +8,7 @@ import shutil
 import subprocess
 import tempfile
 from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack, contextmanager, suppress
 from pathlib import Path
 
 import redis
@@ -129,9 +129,7 @@ def own_postgres() -> Iterator[OwnPostgres]:
         try:
             yield server
         finally:
-            try:
+            with suppress(subprocess.CalledProcessError):  # already stopped
                 server.stop()
-            except subprocess.CalledProcessError:
-                pass  # already stopped
     finally:
         shutil.rmtree(directory, ignore_errors=True)

@@ -200,7 +200,7 @@ def token_results(scores: dict[str, float | None], seed: int = 0) -> list[object
     from scorer.evaluate import TokenResult
 
     return [
-        TokenResult(token, seed, True, {name: score for name in METRIC_COLUMNS})
+        TokenResult(token, seed, True, dict.fromkeys(METRIC_COLUMNS, score))
         if score is not None
         else TokenResult(token, seed, False, {}, "poses: non-finite value")
         for token, score in scores.items()
@@ -280,4 +280,4 @@ def submit_scored(
 
 def uniform(score: float | None, tokens: list[str] | None = None) -> dict[str, float | None]:
     """Return the same PDMS for every reference token."""
-    return {token: score for token in tokens or reference_tokens()}
+    return dict.fromkeys(tokens or reference_tokens(), score)

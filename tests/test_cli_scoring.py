@@ -82,7 +82,7 @@ def test_score_explains_a_broken_submission(split: Path, tmp_path: Path) -> None
 
 def test_multi_seed_summary_has_per_seed_rows_and_mean_std_max() -> None:
     def rows(seed: int, score: float, valid: bool = True) -> list[TokenResult]:
-        metrics = {column: score for column in VERSIONS["v1.1"].result_columns}
+        metrics = dict.fromkeys(VERSIONS["v1.1"].result_columns, score)
         return [
             TokenResult("a", seed, True, metrics),
             TokenResult("b", seed, valid, metrics if valid else {}, None if valid else "broken"),

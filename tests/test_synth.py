@@ -248,7 +248,7 @@ def test_every_scene_has_a_drivable_route(scenes: list[Scene], notes: dict[str, 
             variants.add("with_previous" if route.index(start) > 0 else "normal")
         else:
             variants.add("starts_ahead")
-            reachable = {c for c in blocks[start].outgoing} | {
+            reachable = set(blocks[start].outgoing) | {
                 n for c in blocks[start].outgoing if c in blocks for n in blocks[c].outgoing
             }
             assert route[0] in reachable, scene.token

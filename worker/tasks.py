@@ -256,7 +256,7 @@ def _failed_rows(job: ScoringJob, tokens: Sequence[str]) -> dict[str, list[Token
         for seed in range(job.seed_count)
         for token in tokens
     ]
-    return {version: rows for version in job.versions}
+    return dict.fromkeys(job.versions, rows)
 
 
 @app.task(name=CHUNK_TASK, bind=True, **RETRY)
@@ -346,10 +346,10 @@ def reap_lost_work() -> dict[str, list[int]]:
     if not waiting_tasks(settings):
         sent_before = now - timedelta(seconds=settings.reaper_interval)
         with transaction(sessions) as session:
-            for chunk in forgotten_chunks(session, sent_before):
-                chunks.append(
-                    (chunk.submission_id, chunk.run, resend_chunk(session, chunk, died=False, now=now))
-                )
+            chunks.extend(
+                (chunk.submission_id, chunk.run, resend_chunk(session, chunk, died=False, now=now))
+                for chunk in forgotten_chunks(session, sent_before)
+            )
             for submission_id in stalled_runs(session, sent_before):
                 submission = session.get(Submission, submission_id)
                 assert submission is not None

@@ -158,7 +158,7 @@ class _RoadblockGraph:
     @staticmethod
     def reachable(starts: Iterable[str], steps: int, neighbours: Callable[[str], list[str]]) -> set[str]:
         """Return the blocks within `steps` edges of any start (starts included)."""
-        depth = {block: 0 for block in starts}
+        depth = dict.fromkeys(starts, 0)
         queue = deque(depth)
         while queue:
             block = queue.popleft()

@@ -244,8 +244,10 @@ def _roadside(dice: Dice, corridor: Corridor, ego_lane: int | None, ego_vertex: 
         for offset in rng.uniform(-30.0, 80.0, size=int(rng.integers(1, 3))):
             pose = reference.poses(ahead + offset, right - corridor.shoulder / 2)
             tracks.append(parked(rng, "vehicle", "car", pose))
-    for _ in range(int(rng.integers(0, 4))):
-        tracks.append(stroller(rng, corridor.walkways[int(rng.integers(len(corridor.walkways)))]))
+    strollers = int(rng.integers(0, 4))
+    tracks.extend(
+        stroller(rng, corridor.walkways[int(rng.integers(len(corridor.walkways)))]) for _ in range(strollers)
+    )
     if dice.pick("construction", {True: 0.4, False: 0.6}):
         start = ahead + dice.uniform(5.0, 70.0)
         # A closed lane (never the ego's), or a row along one of the road's edges.

@@ -393,10 +393,7 @@ def _route(
         + [junction.movements[(0, movement)].id]
         + [b.id for b in exit_road.blocks]
     )
-    if ego_s < edge_s:
-        first = approach.block_index(round(ego_s))
-    else:
-        first = len(approach.blocks)
+    first = approach.block_index(round(ego_s)) if ego_s < edge_s else len(approach.blocks)
     variant = dice.pick("route_variant", ROUTE_VARIANTS)
     if variant == "with_previous" and first >= 2:
         return variant, ids[first - 2 :]
