@@ -1,19 +1,67 @@
-"""Entry point of `navsim-lb`: each room registers its own subcommands."""
+"""Entry point of `navsim-lb`: each room registers its own subcommands.
+
+`pip install navsim-leaderboard` gives the engine and a team's commands (score, plot, regress, submit, ...);
+the server's and the worker's need the `[server]` extra. Without it they stay listed, and running one says
+what to install rather than "no such command".
+"""
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from importlib.util import find_spec
 
 import typer
 
 from navsim_lb import client, demo, engine_cli, openscene_cli
+from navsim_lb.terminal import fail
 from server import cli as server_cli
 from worker import cli as worker_cli
+
+SERVER_EXTRA = "pip install 'navsim-leaderboard[server]'"
+# What server.cli, worker.cli and demo register (tests/test_packaging.py checks it).
+SERVER_COMMANDS = ("serve", "worker", "demo", "db", "admin")
+# The extra installs all or nothing: these modules, which its commands start with, stand for it.
+SERVER_MODULES = ("fastapi", "uvicorn", "sqlalchemy", "alembic", "celery", "pydantic_settings")
+
+
+def _missing_server_module() -> str | None:
+    """Return a module of the `[server]` extra that is not installed, None when it is (the commands import
+    their libraries lazily, so importing them proves nothing; finding a module does not import it)."""
+    return next((name for name in SERVER_MODULES if find_spec(name) is None), None)
+
+
+def _install_hint(name: str, missing_module: str) -> Callable[[], None]:
+    """Return a command standing for the server command `name`: it says which extra it needs."""
+
+    def needs_server() -> None:
+        raise fail(
+            f"`navsim-lb {name}` needs the server's dependencies, not installed here "
+            f"(no module {missing_module!r}): {SERVER_EXTRA}"
+        )
+
+    return needs_server
+
+
+def _register_install_hints(app: typer.Typer, missing_module: str) -> None:
+    """Register each server command as one that says which extra it needs, whatever its arguments."""
+    for name in SERVER_COMMANDS:
+        app.command(
+            name,
+            help=f"(needs the server: {SERVER_EXTRA})",
+            context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+        )(_install_hint(name, missing_module))
+
 
 app = typer.Typer(
     help="NAVSIM Leaderboard: PDM Score engine, evaluation server and data tools.", no_args_is_help=True
 )
 engine_cli.register(app)
 openscene_cli.register(app)
-server_cli.register(app)
-worker_cli.register(app)
 client.register(app)
-demo.register(app)
+MISSING_SERVER_MODULE = _missing_server_module()
+if MISSING_SERVER_MODULE is None:
+    server_cli.register(app)
+    worker_cli.register(app)
+    demo.register(app)
+else:
+    _register_install_hints(app, MISSING_SERVER_MODULE)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from functools import partial
-from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -32,7 +31,6 @@ from server.ttl_cache import TTLCache
 
 log = logging.getLogger(__name__)
 API_PREFIX = "/api/v1"
-WEB_DIR = Path(__file__).resolve().parent.parent / "web"
 
 
 def _service_error(_request: Request, error: Exception) -> JSONResponse:
@@ -110,7 +108,7 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(web.router)
     app.include_router(metrics.router)
-    app.mount("/static", StaticFiles(directory=WEB_DIR / "static"), name="static")
+    app.mount("/static", StaticFiles(directory=web.WEB_DIR / "static"), name="static")
     register_configured_splits(app)
     return app
 

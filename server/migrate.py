@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 
 from alembic import command
@@ -10,7 +11,8 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import Engine
 
-MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+# Package data of `server.migrations`: the same lookup in a checkout and an installed wheel.
+MIGRATIONS_DIR = Path(str(files("server.migrations")))
 
 
 class NotMigratedError(RuntimeError):

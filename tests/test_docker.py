@@ -117,11 +117,17 @@ def test_compose_commands_exist() -> None:
         assert executable == "navsim-lb" and subcommand in commands | groups, name
 
 
-def test_image_is_pinned_slim_non_root_and_installs_the_constraints() -> None:
+def test_image_is_pinned_slim_non_root_and_installs_the_wheel_with_the_constraints() -> None:
     dockerfile = (DOCKER_DIR / "Dockerfile").read_text()
-    base = re.search(r"^FROM (\S+)", dockerfile, re.MULTILINE)
-    assert base is not None and re.fullmatch(
-        r"python:\d+\.\d+\.\d+-slim-\w+(@sha256:[0-9a-f]{64})?", base.group(1)
-    )
-    assert re.search(r"^USER (?!root)\w+", dockerfile, re.MULTILINE)
-    assert "-c constraints.txt" in dockerfile
+    stages = re.split(r"^(?=FROM )", dockerfile, flags=re.MULTILINE)[1:]
+    for stage in stages:
+        base = re.match(r"FROM (\S+)", stage)
+        assert base is not None and re.fullmatch(
+            r"python:\d+\.\d+\.\d+-slim-\w+(@sha256:[0-9a-f]{64})?", base.group(1)
+        )
+    final = stages[-1]
+    assert re.search(r"^USER (?!root)\w+", final, re.MULTILINE)
+    # The image runs the wheel (tests/test_packaging.py checks what it holds), never the sources.
+    assert re.search(r"pip install -c constraints\.txt \"\$\{wheel\}\[server\]\"", final)
+    assert "-e ." not in dockerfile
+    assert not re.search(r"^COPY (scorer|server|worker|navsim_lb|web|migrations) ", final, re.MULTILINE)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
@@ -18,7 +19,9 @@ from server.routes.params import RowId
 from server.routes.public import cached_board
 from server.services.errors import ServiceError
 
-TEMPLATES = Jinja2Templates(directory=Path(__file__).resolve().parent.parent.parent / "web" / "templates")
+# Templates and static assets are package data of `server.web`: the same lookup in a checkout and a wheel.
+WEB_DIR = Path(str(files("server.web")))
+TEMPLATES = Jinja2Templates(directory=WEB_DIR / "templates")
 router = APIRouter(include_in_schema=False)
 
 
