@@ -72,8 +72,8 @@ def _set_up(
 
     from server.db import transaction
     from server.models import Approval, Phase, Scope, Split, Team
-    from server.services.splits import create_phase, register_split
-    from server.services.submissions import add_baselines
+    from server.services.admin import add_split
+    from server.services.splits import create_phase
     from server.services.teams import create_team
     from server.services.tokens import create_token
 
@@ -81,8 +81,9 @@ def _set_up(
         split = session.scalar(select(Split).where(Split.name == SPLIT))
         queued = []
         if split is None:
-            split = register_split(session, SPLIT, split_dir, scenes_public=True)  # synthetic scenes
-            queued = [submission.id for submission in add_baselines(session, split, storage_dir)]
+            # Synthetic scenes: teams may see them in the drill-down pictures.
+            split, baselines = add_split(session, None, SPLIT, split_dir, None, True, storage_dir)
+            queued = [submission.id for submission in baselines]
         if session.scalar(select(Phase.id).where(Phase.name == PHASE)) is None:
             create_phase(session, PHASE, split)
         team = session.scalar(select(Team).where(Team.name == TEAM)) or create_team(

@@ -105,11 +105,6 @@ def relative_to_global(origin: FloatArray, poses: FloatArray) -> FloatArray:
     return _poses_of(_pose_matrices(origin)[..., None, :, :] @ _pose_matrices(poses))
 
 
-def global_to_relative(origin: FloatArray, poses: FloatArray) -> FloatArray:
-    """Return global poses (..., n, 3) in the frame of `origin` (..., 3): nuPlan's `absolute_to_relative_poses`."""
-    return _poses_of(np.linalg.inv(_pose_matrices(origin))[..., None, :, :] @ _pose_matrices(poses))
-
-
 def _pose_matrices(poses: FloatArray) -> FloatArray:
     cos_h, sin_h = np.cos(poses[..., 2]), np.sin(poses[..., 2])
     matrices = np.zeros((*poses.shape[:-1], 3, 3), dtype=np.float64)
@@ -122,20 +117,6 @@ def _pose_matrices(poses: FloatArray) -> FloatArray:
 def _poses_of(matrices: FloatArray) -> FloatArray:
     headings = arctan2_avx512(matrices[..., 1, 0], matrices[..., 0, 0])
     return np.stack([matrices[..., 0, 2], matrices[..., 1, 2], headings], axis=-1)
-
-
-def agent_reference(
-    ego: EgoStatus, t0_us: int, poses: FloatArray, interval_length: float = 0.5
-) -> FloatArray:
-    """Return the 10 Hz reference states (..., 41, 11) of submitted poses (..., n, 3) in the ego frame.
-
-    See docs/engine.md, "Sampling".
-    """
-    poses = np.asarray(poses, dtype=np.float64)
-    flat = poses.reshape(-1, *poses.shape[-2:])
-    initial = np.broadcast_to(initial_state(ego), (len(flat), STATE_SIZE))
-    references = agent_references(initial, np.full(len(flat), t0_us), flat, interval_length)
-    return references.reshape(*poses.shape[:-2], *references.shape[-2:])
 
 
 def agent_references(
@@ -161,15 +142,6 @@ def agent_references(
         [t0_us[:, None], agent_knot_times_us(t0_us, absolute.shape[1], interval_length)], axis=1
     )
     return interpolate_states(knot_times, knots, scoring_times_us(t0_us))
-
-
-def pdm_reference(ego: EgoStatus, t0_us: int, pdm_poses: FloatArray) -> FloatArray:
-    """Return the 10 Hz reference states (41, 11) of the cached PDM-Closed trajectory (51, 3).
-
-    The PDM trajectory's first knot is its own path pose, not the ego: `ego` does not enter the result
-    (docs/engine.md, "Sampling").
-    """
-    return pdm_references(np.array([t0_us]), np.asarray(pdm_poses, dtype=np.float64)[None])[0]
 
 
 def pdm_references(t0_us: IntArray, pdm_poses: FloatArray) -> FloatArray:

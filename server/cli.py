@@ -94,15 +94,11 @@ def create_team_command(
 ) -> None:
     """Create a team (approved unless --pending) and print its id."""
     from server.models import Approval
-    from server.services.admin import audit
-    from server.services.teams import create_team
+    from server.services.admin import add_team
 
+    approval = Approval.pending if pending else Approval.approved
     with _session() as session:
-        team = create_team(
-            session, name, member or [], affiliation, Approval.pending if pending else Approval.approved
-        )
-        audit(session, None, "create_team", "team", team.id, name=team.name)
-        team_id = team.id
+        team_id = add_team(session, None, name, member or [], affiliation, approval).id
     print(team_id)
 
 
@@ -114,18 +110,15 @@ def create_token_command(
     expires_days: Annotated[float | None, typer.Option(help="lifetime in days (default: no expiry)")] = None,
 ) -> None:
     """Create a team or admin token and print its secret (shown once) on stdout."""
-    from server.models import Scope
-    from server.services.admin import audit
+    from server.services.admin import issue_token
     from server.services.teams import team_by_name
-    from server.services.tokens import create_token
 
     if admin == (team is not None):
         raise fail("give exactly one of --team NAME or --admin")
     expires_at = datetime.now(UTC) + timedelta(days=expires_days) if expires_days is not None else None
     with _session() as session:
         owner = team_by_name(session, team) if team is not None else None
-        token, secret = create_token(session, Scope.admin if admin else Scope.team, owner, name, expires_at)
-        audit(session, None, "create_token", "token", token.id, prefix=token.prefix, team=team)
+        _, secret = issue_token(session, None, owner, name, expires_at)
     print(secret)
 
 
@@ -144,26 +137,15 @@ def register_split_command(
 ) -> None:
     """Register a split and queue its baseline submissions."""
     from server.queue import enqueue_submission
-    from server.services.admin import audit
-    from server.services.splits import register_split
-    from server.services.submissions import add_baselines
+    from server.services.admin import add_split
     from server.settings import get_settings
 
     public = public_tokens.read_text().split() if public_tokens is not None else None
     settings = get_settings()
     with _session() as session:
-        split = register_split(session, name, directory, public, scenes_public)
-        queued = [s.id for s in add_baselines(session, split, settings.storage_dir)] if baselines else []
-        audit(
-            session,
-            None,
-            "register_split",
-            "split",
-            name,
-            directory=split.directory,
-            tokens=split.token_count,
-            scenes_public=split.scenes_public,
-        )
+        baselines_to = settings.storage_dir if baselines else None
+        split, added = add_split(session, None, name, directory, public, scenes_public, baselines_to)
+        queued = [submission.id for submission in added]
         summary = (
             f"registered split {name}: {split.token_count} tokens, content hash {split.content_hash[:12]}…"
         )
@@ -185,30 +167,11 @@ def create_phase_command(
     in_flight: Annotated[int | None, typer.Option(help="queued or running submissions per team")] = None,
 ) -> None:
     """Create a phase on a registered split."""
-    from server.services.admin import audit
-    from server.services.splits import create_phase, split_by_name
+    from server.services.admin import add_phase
 
     with _session() as session:
-        phase = create_phase(
-            session,
-            name,
-            split_by_name(session, split),
-            _timestamp(opens),
-            _timestamp(closes),
-            per_day,
-            total,
-            in_flight,
-        )
-        audit(
-            session,
-            None,
-            "create_phase",
-            "phase",
-            name,
-            split=split,
-            per_day=per_day,
-            total=total,
-            in_flight=in_flight,
+        phase = add_phase(
+            session, None, name, split, _timestamp(opens), _timestamp(closes), per_day, total, in_flight
         )
         console.print(f"phase {phase.name} on {split} opens {phase.opens_at.isoformat()}")
 

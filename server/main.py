@@ -23,9 +23,8 @@ from server.models import Split
 from server.queue import broker_status, enqueue_submission, live_workers
 from server.rate_limits import RateLimits
 from server.routes import admin, metrics, public, submissions, web
+from server.services.admin import add_split
 from server.services.errors import ServiceError
-from server.services.splits import register_split
-from server.services.submissions import add_baselines
 from server.settings import Settings, get_settings
 from server.ttl_cache import TTLCache
 
@@ -67,8 +66,10 @@ def register_configured_splits(app: FastAPI) -> None:
             with transaction(app.state.session_factory) as session:
                 if session.scalar(select(Split.id).where(Split.name == name)) is not None:
                     continue
-                split = register_split(session, name, directory)
-                queued = [submission.id for submission in add_baselines(session, split, settings.storage_dir)]
+                split, baselines = add_split(
+                    session, None, name, directory, None, False, settings.storage_dir
+                )
+                queued = [submission.id for submission in baselines]
         except IntegrityError:
             continue  # another API process registered it at the same moment
         log.info("registered split %s (%s tokens) from %s", name, split.token_count, directory)

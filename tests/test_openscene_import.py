@@ -7,7 +7,6 @@ import json
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 import typer
 from openscene_builders import (
@@ -25,6 +24,7 @@ from openscene_builders import (
 from typer.testing import CliRunner
 
 from navsim_lb.openscene_cli import register
+from scorer.baselines import human
 from scorer.openscene.excerpt import build_excerpt, excerpt_to_json
 from scorer.openscene.frames import convert_frame, ego_pose, route_roadblocks
 from scorer.openscene.gpkg import gpkg_path, load_map_tables
@@ -39,7 +39,6 @@ from scorer.openscene.importer import (
 )
 from scorer.openscene.log_pickle import load_log
 from scorer.scene import load_scene, scene_paths
-from scorer.trajectory import global_to_relative
 
 MISMATCH_FRAME = 10  # its stored command says "left" on a straight road
 NO_ROUTE_FRAME = 25
@@ -106,11 +105,8 @@ def test_imported_scenes_score(data, tmp_path: Path) -> None:
     write_road_log(tmp_path / "logs", yaw_amplitude=0.0)
     out = tmp_path / "split"
     import_logs(tmp_path / "logs", ImportSettings(data["maps"], out))
-    # The recorded future (frames 4-11) in the frame of the current ego: it keeps its lane on a clear road.
-    recorded = {}
-    for token, path in scene_paths(out).items():
-        poses = np.array([[f.ego.x, f.ego.y, f.ego.heading] for f in load_scene(path).frames])
-        recorded[token] = global_to_relative(poses[3], poses[4:12])
+    # The recorded future in the frame of the current ego (the human agent): it keeps its lane on a clear road.
+    recorded = {token: human(load_scene(path)) for token, path in scene_paths(out).items()}
     results = score_tokens(out, tmp_path / "cache", recorded, "v1.1")
     assert len(results) == 26
     assert all(result.valid for result in results), [r.error for r in results if not r.valid]

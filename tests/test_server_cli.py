@@ -78,8 +78,22 @@ def test_register_split_queues_its_baselines(cli: Cli, tmp_path: Path) -> None:
     public = tmp_path / "public.txt"
     public.write_text("\n".join(reference_tokens()[:10]))
     invoke("admin", "register-split", "ref", str(REFERENCE_DIR), "--public-tokens", str(public))
+    admin = {"Authorization": f"Bearer {invoke('admin', 'create-token', '--admin').strip()}"}
     server = create_app(get_settings(), enqueue=lambda _: None)
     with TestClient(server) as client:
         splits = client.get("/api/v1/splits").json()
-    assert splits[0]["subsets"] == {"public": 10, "private": 30, "all": 40}
+        assert splits[0]["subsets"] == {"public": 10, "private": 30, "all": 40}
+        body = {"name": "ref-api", "directory": str(REFERENCE_DIR), "public_tokens": reference_tokens()[:10]}
+        assert client.post("/api/v1/admin/splits", json=body, headers=admin).status_code == 201
+        audit = client.get("/api/v1/admin/audit", headers=admin).json()
     server.state.engine.dispose()
+    # The command line and the API register a split through one service: the audit log says the same.
+    by_api, by_cli = (entry for entry in audit if entry["action"] == "register_split")
+    assert (by_cli["actor"], by_api["actor"].startswith("admin token")) == ("command line", True)
+    assert (
+        len(by_cli["details"]["baseline_submissions"]) == len(by_api["details"]["baseline_submissions"]) == 2
+    )
+    for entry in (by_cli, by_api):
+        del entry["details"]["baseline_submissions"]
+    assert by_cli["details"] == by_api["details"]
+    assert by_cli["details"]["content_hash"] and by_cli["details"]["public_tokens"] == 10

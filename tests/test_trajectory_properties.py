@@ -8,12 +8,12 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from test_trajectory import global_to_relative
 
 from scorer.geometry import normalize_angle, rear_axle_round_trip
 from scorer.simulation import simulate
 from scorer.trajectory import (
     StateIndex,
-    global_to_relative,
     interpolate_states,
     relative_to_global,
     scoring_times_us,

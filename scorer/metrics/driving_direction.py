@@ -29,9 +29,6 @@ def off_route_steps(points: FloatArray, areas: npt.NDArray[np.bool_]) -> FloatAr
     return steps
 
 
-PAIRWISE_BLOCK = 8  # numpy sums 8 or more contiguous values with 8 partial sums (pairwise summation)
-
-
 def _time_windows(steps: FloatArray, horizon: int) -> FloatArray:
     """Return the trailing sums over time k - horizon .. k (..., T), each as numpy's `sum` of that slice.
 

@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session
 
 from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import AdminDep, SessionDep
-from server.models import Approval, Scope, Status, Submission, Team
+from server.models import Approval, Status, Submission, Team
 from server.routes.params import PNG_RESPONSE, Offset, OptionalRowId, RowId, SceneToken, SeedIndex
 from server.routes.public import leaderboard_view
 from server.routes.views import phase_view, submission_views, token_result_views
@@ -41,10 +41,9 @@ from server.schemas import (
 )
 from server.services import admin as actions
 from server.services.pictures import scene_picture
-from server.services.splits import create_phase, register_split, resolve_phase, split_by_name
-from server.services.submissions import add_baselines, get_submission, list_submissions
-from server.services.teams import create_team, get_team, set_approval, set_team_quota
-from server.services.tokens import create_token, revoke_token
+from server.services.splits import resolve_phase
+from server.services.submissions import get_submission, list_submissions
+from server.services.teams import get_team
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/admin", tags=["admin"])
@@ -68,8 +67,9 @@ def teams(session: SessionDep, _admin: AdminDep) -> list[Team]:
 @router.post("/teams", response_model=TeamOut, status_code=201)
 def add_team(session: SessionDep, admin: AdminDep, team_in: TeamIn) -> Team:
     """Create an approved team."""
-    team = create_team(session, team_in.name, team_in.members, team_in.affiliation, Approval.approved)
-    actions.audit(session, admin, "create_team", "team", team.id, name=team.name)
+    team = actions.add_team(
+        session, admin, team_in.name, team_in.members, team_in.affiliation, Approval.approved
+    )
     session.commit()
     return team
 
@@ -77,8 +77,7 @@ def add_team(session: SessionDep, admin: AdminDep, team_in: TeamIn) -> Team:
 @router.post("/teams/{team_id}/approve", response_model=TeamOut)
 def approve(session: SessionDep, admin: AdminDep, team_id: RowId) -> Team:
     """Approve a team: its tokens may now submit."""
-    team = set_approval(session, team_id, Approval.approved)
-    actions.audit(session, admin, "approve_team", "team", team_id, name=team.name)
+    team = actions.decide_team(session, admin, team_id, Approval.approved)
     session.commit()
     return team
 
@@ -86,8 +85,7 @@ def approve(session: SessionDep, admin: AdminDep, team_id: RowId) -> Team:
 @router.post("/teams/{team_id}/reject", response_model=TeamOut)
 def reject(session: SessionDep, admin: AdminDep, team_id: RowId) -> Team:
     """Reject a team: its tokens may no longer submit."""
-    team = set_approval(session, team_id, Approval.rejected)
-    actions.audit(session, admin, "reject_team", "team", team_id, name=team.name)
+    team = actions.decide_team(session, admin, team_id, Approval.rejected)
     session.commit()
     return team
 
@@ -101,10 +99,8 @@ def team_tokens(session: SessionDep, _admin: AdminDep, team_id: RowId) -> list[A
 @router.post("/teams/{team_id}/tokens", response_model=TokenCreated, status_code=201)
 def new_team_token(session: SessionDep, admin: AdminDep, team_id: RowId, token_in: TokenIn) -> dict[str, Any]:
     """Issue a team token; the secret is in this answer only."""
-    token, secret = create_token(
-        session, Scope.team, get_team(session, team_id), token_in.name, token_in.expires_at
-    )
-    actions.audit(session, admin, "create_token", "team", team_id, token_id=token.id, prefix=token.prefix)
+    team = get_team(session, team_id)
+    token, secret = actions.issue_token(session, admin, team, token_in.name, token_in.expires_at)
     session.commit()
     return {**TokenOut.model_validate(token).model_dump(), "token": secret}
 
@@ -112,8 +108,7 @@ def new_team_token(session: SessionDep, admin: AdminDep, team_id: RowId, token_i
 @router.post("/tokens", response_model=TokenCreated, status_code=201)
 def new_admin_token(session: SessionDep, admin: AdminDep, token_in: TokenIn) -> dict[str, Any]:
     """Issue another admin token."""
-    token, secret = create_token(session, Scope.admin, None, token_in.name, token_in.expires_at)
-    actions.audit(session, admin, "create_admin_token", "token", token.id, prefix=token.prefix)
+    token, secret = actions.issue_token(session, admin, None, token_in.name, token_in.expires_at)
     session.commit()
     return {**TokenOut.model_validate(token).model_dump(), "token": secret}
 
@@ -121,8 +116,7 @@ def new_admin_token(session: SessionDep, admin: AdminDep, token_in: TokenIn) -> 
 @router.delete("/tokens/{token_id}", response_model=TokenOut)
 def revoke(session: SessionDep, admin: AdminDep, token_id: RowId) -> Any:
     """Revoke a token (team or admin)."""
-    token = revoke_token(session, token_id)
-    actions.audit(session, admin, "revoke_token", "token", token_id, prefix=token.prefix)
+    token = actions.withdraw_token(session, admin, token_id)
     session.commit()
     return token
 
@@ -131,8 +125,9 @@ def revoke(session: SessionDep, admin: AdminDep, token_id: RowId) -> Any:
 def quotas(session: SessionDep, admin: AdminDep, team_id: RowId, quota_in: QuotaIn) -> dict[str, Any]:
     """Override a team's quotas in a phase (null keeps the phase default)."""
     phase = resolve_phase(session, quota_in.phase)
-    set_team_quota(session, team_id, phase, quota_in.per_day, quota_in.total, quota_in.in_flight)
-    actions.audit(session, admin, "set_quota", "team", team_id, **quota_in.model_dump())
+    actions.override_quotas(
+        session, admin, team_id, phase, quota_in.per_day, quota_in.total, quota_in.in_flight
+    )
     session.commit()
     return quota_in.model_dump()
 
@@ -140,22 +135,15 @@ def quotas(session: SessionDep, admin: AdminDep, team_id: RowId, quota_in: Quota
 @router.post("/splits", status_code=201)
 def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: SplitIn) -> dict[str, Any]:
     """Register a split directory (on the server's disk) and queue its two baselines."""
-    split = register_split(
-        session, split_in.name, Path(split_in.directory), split_in.public_tokens, split_in.scenes_public
-    )
-    baselines = (
-        add_baselines(session, split, request.app.state.settings.storage_dir) if split_in.baselines else []
-    )
-    actions.audit(
+    storage_dir = request.app.state.settings.storage_dir
+    split, baselines = actions.add_split(
         session,
         admin,
-        "register_split",
-        "split",
-        split.name,
-        directory=split.directory,
-        content_hash=split.content_hash,
-        tokens=split.token_count,
-        scenes_public=split.scenes_public,
+        split_in.name,
+        Path(split_in.directory),
+        split_in.public_tokens,
+        split_in.scenes_public,
+        storage_dir if split_in.baselines else None,
     )
     session.commit()
     _enqueue(request, [submission.id for submission in baselines])
@@ -170,17 +158,17 @@ def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: 
 @router.post("/phases", response_model=PhaseOut, status_code=201)
 def add_phase(session: SessionDep, admin: AdminDep, phase_in: PhaseIn) -> dict[str, Any]:
     """Create a phase on a registered split."""
-    phase = create_phase(
+    phase = actions.add_phase(
         session,
+        admin,
         phase_in.name,
-        split_by_name(session, phase_in.split),
+        phase_in.split,
         phase_in.opens_at,
         phase_in.closes_at,
         phase_in.per_day,
         phase_in.total,
         phase_in.in_flight,
     )
-    actions.audit(session, admin, "create_phase", "phase", phase.name, **phase_in.model_dump(mode="json"))
     session.commit()
     return phase_view(phase)
 

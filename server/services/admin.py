@@ -1,20 +1,41 @@
-"""Admin actions, each written to the audit log: moderation, re-runs, rescore-all with its rank report, export."""
+"""Admin actions, each written to the audit log: teams, tokens, quotas, splits and phases, moderation, re-runs,
+rescore-all with its rank report, export. The API's admin routes and `navsim-lb admin` call these, so an action
+is recorded the same way whoever took it (`actor` None: the command line on the server machine).
+"""
 
 from __future__ import annotations
 
 import csv
 import io
 from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
-from server.models import ApiToken, AuditEntry, Phase, Rescore, Status, Submission, Summary, Team
+from server.models import (
+    ApiToken,
+    Approval,
+    AuditEntry,
+    Phase,
+    Rescore,
+    Scope,
+    Split,
+    Status,
+    Submission,
+    Summary,
+    Team,
+    TeamQuota,
+)
 from server.services.errors import Conflict, NotFound
 from server.services.leaderboard import leaderboard, phase_summaries, rank_change_report, subscore_columns
 from server.services.scoring import cancel, reset_for_rerun
-from server.services.submissions import get_submission
+from server.services.splits import create_phase, register_split, split_by_name
+from server.services.submissions import add_baselines, get_submission
+from server.services.teams import create_team, set_approval, set_team_quota
+from server.services.tokens import create_token, revoke_token
 
 
 def actor_name(token: ApiToken | None) -> str:
@@ -46,6 +67,139 @@ def audit_log(session: Session, limit: int = 200, offset: int = 0) -> Sequence[A
     return session.scalars(
         select(AuditEntry).order_by(AuditEntry.id.desc()).limit(limit).offset(offset)
     ).all()
+
+
+def add_team(
+    session: Session,
+    actor: ApiToken | None,
+    name: str,
+    members: list[str],
+    affiliation: str,
+    approval: Approval,
+) -> Team:
+    """Create a team (an organiser's: approved unless asked otherwise)."""
+    team = create_team(session, name, members, affiliation, approval)
+    audit(session, actor, "create_team", "team", team.id, name=team.name, approval=approval.value)
+    return team
+
+
+def decide_team(session: Session, actor: ApiToken | None, team_id: int, approval: Approval) -> Team:
+    """Approve a team (its tokens may submit) or reject it (they may not)."""
+    team = set_approval(session, team_id, approval)
+    action = "approve_team" if approval == Approval.approved else "reject_team"
+    audit(session, actor, action, "team", team_id, name=team.name)
+    return team
+
+
+def issue_token(
+    session: Session, actor: ApiToken | None, team: Team | None, name: str, expires_at: datetime | None
+) -> tuple[ApiToken, str]:
+    """Issue a team token (`team`) or an admin token (None); return it with its secret, shown once."""
+    scope = Scope.team if team is not None else Scope.admin
+    token, secret = create_token(session, scope, team, name, expires_at)
+    team_name = team.name if team is not None else None
+    audit(
+        session,
+        actor,
+        "create_token",
+        "token",
+        token.id,
+        scope=scope.value,
+        team=team_name,
+        prefix=token.prefix,
+    )
+    return token, secret
+
+
+def withdraw_token(session: Session, actor: ApiToken | None, token_id: int) -> ApiToken:
+    """Revoke a token (team or admin)."""
+    token = revoke_token(session, token_id)
+    audit(session, actor, "revoke_token", "token", token_id, prefix=token.prefix)
+    return token
+
+
+def override_quotas(
+    session: Session,
+    actor: ApiToken | None,
+    team_id: int,
+    phase: Phase,
+    per_day: int | None,
+    total: int | None,
+    in_flight: int | None,
+) -> TeamQuota:
+    """Override a team's quotas in a phase (None keeps the phase default for that quota)."""
+    quota = set_team_quota(session, team_id, phase, per_day, total, in_flight)
+    audit(
+        session,
+        actor,
+        "set_quota",
+        "team",
+        team_id,
+        phase=phase.name,
+        per_day=per_day,
+        total=total,
+        in_flight=in_flight,
+    )
+    return quota
+
+
+def add_split(
+    session: Session,
+    actor: ApiToken | None,
+    name: str,
+    directory: Path,
+    public_tokens: list[str] | None,
+    scenes_public: bool,
+    baselines_to: Path | None,
+) -> tuple[Split, list[Submission]]:
+    """Register a split; with `baselines_to` (the storage directory), create its two baseline submissions too.
+    The caller enqueues the baselines after the commit."""
+    split = register_split(session, name, directory, public_tokens, scenes_public)
+    baselines = add_baselines(session, split, baselines_to) if baselines_to is not None else []
+    audit(
+        session,
+        actor,
+        "register_split",
+        "split",
+        split.name,
+        directory=split.directory,
+        content_hash=split.content_hash,
+        tokens=split.token_count,
+        public_tokens=None if public_tokens is None else len(public_tokens),
+        scenes_public=split.scenes_public,
+        baseline_submissions=[submission.id for submission in baselines],
+    )
+    return split, baselines
+
+
+def add_phase(
+    session: Session,
+    actor: ApiToken | None,
+    name: str,
+    split_name: str,
+    opens_at: datetime | None,
+    closes_at: datetime | None,
+    per_day: int | None,
+    total: int | None,
+    in_flight: int | None,
+) -> Phase:
+    """Create a phase on a registered split, with its default quotas (None: unlimited)."""
+    split = split_by_name(session, split_name)
+    phase = create_phase(session, name, split, opens_at, closes_at, per_day, total, in_flight)
+    audit(
+        session,
+        actor,
+        "create_phase",
+        "phase",
+        phase.name,
+        split=split.name,
+        opens_at=phase.opens_at.isoformat(),
+        closes_at=None if phase.closes_at is None else phase.closes_at.isoformat(),
+        per_day=per_day,
+        total=total,
+        in_flight=in_flight,
+    )
+    return phase
 
 
 def rerun_submission(session: Session, actor: ApiToken | None, submission_id: int) -> Submission:
