@@ -307,6 +307,45 @@ class SplitIn(BaseModel):
     scenes_public: bool = Field(False, description="teams may see its scenes in drill-down pictures")
 
 
+class SplitAdded(BaseModel):
+    name: str
+    token_count: int
+    content_hash: str
+    baseline_submissions: list[int] = Field(description="the baselines' submissions, queued")
+
+
+class RescoreStarted(BaseModel):
+    id: int
+    queued: int = Field(description="submissions queued for a new run")
+    report: str = Field(description="URL of the rank-change report")
+
+
+class RankMove(BaseModel):
+    team: str
+    method: str
+    rank_before: int | None
+    rank_after: int | None
+    score_before: float | None
+    score_after: float | None
+
+
+class RescoreReport(BaseModel):
+    id: int
+    version: VersionName
+    subset: str
+    phase: str
+    created_at: datetime
+    submissions: int = Field(description="submissions re-run")
+    pending: int = Field(description="of them still queued or running")
+    failed: int
+    complete: bool = Field(description="every re-run has ended")
+    entries: int = Field(description="teams ranked both before and after")
+    moved: list[RankMove] = Field(description="teams whose rank changed, by rank after")
+    entered: list[str]
+    left: list[str]
+    kendall_tau: float | None = Field(description="rank correlation over the common teams (null below two)")
+
+
 class PhaseIn(BaseModel):
     name: ObjectName
     split: str

@@ -23,3 +23,23 @@ def test_no_request_gets_a_server_error(world: World) -> None:
                 case.call_and_validate(headers=headers, checks=[not_a_server_error])
 
         answers()
+
+
+# Operations whose answer is not a JSON model: the CSV-or-JSON export (pictures are found by their .png).
+NOT_JSON_MODELS = {"/api/v1/admin/export"}
+
+
+def test_every_json_operation_answers_a_declared_model(world: World) -> None:
+    """Each JSON answer is a pydantic model (or a list of them) in the schema, never a bare object."""
+    paths = world.client.get("/openapi.json").json()["paths"]
+    checked = 0
+    for path, operations in paths.items():
+        if path in NOT_JSON_MODELS or path.endswith(".png"):
+            continue
+        for method, operation in operations.items():
+            success = next(code for code in operation["responses"] if code.startswith("2"))
+            schema = operation["responses"][success]["content"]["application/json"]["schema"]
+            model = schema["items"] if schema.get("type") == "array" else schema
+            assert set(model) == {"$ref"}, (method, path, schema)
+            checked += 1
+    assert checked > 30

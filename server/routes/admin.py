@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 from urllib.parse import quote
 
 from fastapi import APIRouter, Query, Request
@@ -31,6 +31,9 @@ from server.schemas import (
     PhaseOut,
     QuotaIn,
     RescoreIn,
+    RescoreReport,
+    RescoreStarted,
+    SplitAdded,
     SplitIn,
     TeamIn,
     TeamOut,
@@ -57,83 +60,85 @@ def _enqueue(request: Request, submission_ids: Iterable[int]) -> None:
             log.exception("could not enqueue submission %s", submission_id)
 
 
-@router.get("/teams", response_model=list[TeamOut])
-def teams(session: SessionDep, _admin: AdminDep) -> list[Team]:
+@router.get("/teams")
+def teams(session: SessionDep, _admin: AdminDep) -> list[TeamOut]:
     """Every team, pending ones first."""
     rows = session.scalars(select(Team).where(Team.is_system.is_(False)).order_by(Team.id)).all()
-    return sorted(rows, key=lambda team: team.approval != Approval.pending)
+    return [
+        TeamOut.model_validate(team) for team in sorted(rows, key=lambda t: t.approval != Approval.pending)
+    ]
 
 
-@router.post("/teams", response_model=TeamOut, status_code=201)
-def add_team(session: SessionDep, admin: AdminDep, team_in: TeamIn) -> Team:
+@router.post("/teams", status_code=201)
+def add_team(session: SessionDep, admin: AdminDep, team_in: TeamIn) -> TeamOut:
     """Create an approved team."""
     team = actions.add_team(
         session, admin, team_in.name, team_in.members, team_in.affiliation, Approval.approved
     )
     session.commit()
-    return team
+    return TeamOut.model_validate(team)
 
 
-@router.post("/teams/{team_id}/approve", response_model=TeamOut)
-def approve(session: SessionDep, admin: AdminDep, team_id: RowId) -> Team:
+@router.post("/teams/{team_id}/approve")
+def approve(session: SessionDep, admin: AdminDep, team_id: RowId) -> TeamOut:
     """Approve a team: its tokens may now submit."""
     team = actions.decide_team(session, admin, team_id, Approval.approved)
     session.commit()
-    return team
+    return TeamOut.model_validate(team)
 
 
-@router.post("/teams/{team_id}/reject", response_model=TeamOut)
-def reject(session: SessionDep, admin: AdminDep, team_id: RowId) -> Team:
+@router.post("/teams/{team_id}/reject")
+def reject(session: SessionDep, admin: AdminDep, team_id: RowId) -> TeamOut:
     """Reject a team: its tokens may no longer submit."""
     team = actions.decide_team(session, admin, team_id, Approval.rejected)
     session.commit()
-    return team
+    return TeamOut.model_validate(team)
 
 
-@router.get("/teams/{team_id}/tokens", response_model=list[TokenOut])
-def team_tokens(session: SessionDep, _admin: AdminDep, team_id: RowId) -> list[Any]:
+@router.get("/teams/{team_id}/tokens")
+def team_tokens(session: SessionDep, _admin: AdminDep, team_id: RowId) -> list[TokenOut]:
     """A team's tokens (never their secrets)."""
-    return list(get_team(session, team_id).tokens)
+    return [TokenOut.model_validate(token) for token in get_team(session, team_id).tokens]
 
 
-@router.post("/teams/{team_id}/tokens", response_model=TokenCreated, status_code=201)
-def new_team_token(session: SessionDep, admin: AdminDep, team_id: RowId, token_in: TokenIn) -> dict[str, Any]:
+@router.post("/teams/{team_id}/tokens", status_code=201)
+def new_team_token(session: SessionDep, admin: AdminDep, team_id: RowId, token_in: TokenIn) -> TokenCreated:
     """Issue a team token; the secret is in this answer only."""
     team = get_team(session, team_id)
     token, secret = actions.issue_token(session, admin, team, token_in.name, token_in.expires_at)
     session.commit()
-    return {**TokenOut.model_validate(token).model_dump(), "token": secret}
+    return TokenCreated(**TokenOut.model_validate(token).model_dump(), token=secret)
 
 
-@router.post("/tokens", response_model=TokenCreated, status_code=201)
-def new_admin_token(session: SessionDep, admin: AdminDep, token_in: TokenIn) -> dict[str, Any]:
+@router.post("/tokens", status_code=201)
+def new_admin_token(session: SessionDep, admin: AdminDep, token_in: TokenIn) -> TokenCreated:
     """Issue another admin token."""
     token, secret = actions.issue_token(session, admin, None, token_in.name, token_in.expires_at)
     session.commit()
-    return {**TokenOut.model_validate(token).model_dump(), "token": secret}
+    return TokenCreated(**TokenOut.model_validate(token).model_dump(), token=secret)
 
 
-@router.delete("/tokens/{token_id}", response_model=TokenOut)
-def revoke(session: SessionDep, admin: AdminDep, token_id: RowId) -> Any:
+@router.delete("/tokens/{token_id}")
+def revoke(session: SessionDep, admin: AdminDep, token_id: RowId) -> TokenOut:
     """Revoke a token (team or admin)."""
     token = actions.withdraw_token(session, admin, token_id)
     session.commit()
-    return token
+    return TokenOut.model_validate(token)
 
 
 @router.put("/teams/{team_id}/quotas")
-def quotas(session: SessionDep, admin: AdminDep, team_id: RowId, quota_in: QuotaIn) -> dict[str, Any]:
+def quotas(session: SessionDep, admin: AdminDep, team_id: RowId, quota_in: QuotaIn) -> QuotaIn:
     """Override a team's quotas in a phase (null keeps the phase default)."""
     phase = resolve_phase(session, quota_in.phase)
     actions.override_quotas(
         session, admin, team_id, phase, quota_in.per_day, quota_in.total, quota_in.in_flight
     )
     session.commit()
-    return quota_in.model_dump()
+    return quota_in
 
 
 @router.post("/splits", status_code=201)
-def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: SplitIn) -> dict[str, Any]:
+def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: SplitIn) -> SplitAdded:
     """Register a split directory (on the server's disk) and queue its two baselines."""
     storage_dir = request.app.state.settings.storage_dir
     split, baselines = actions.add_split(
@@ -147,16 +152,16 @@ def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: 
     )
     session.commit()
     _enqueue(request, [submission.id for submission in baselines])
-    return {
-        "name": split.name,
-        "token_count": split.token_count,
-        "content_hash": split.content_hash,
-        "baseline_submissions": [submission.id for submission in baselines],
-    }
+    return SplitAdded(
+        name=split.name,
+        token_count=split.token_count,
+        content_hash=split.content_hash,
+        baseline_submissions=[submission.id for submission in baselines],
+    )
 
 
-@router.post("/phases", response_model=PhaseOut, status_code=201)
-def add_phase(session: SessionDep, admin: AdminDep, phase_in: PhaseIn) -> dict[str, Any]:
+@router.post("/phases", status_code=201)
+def add_phase(session: SessionDep, admin: AdminDep, phase_in: PhaseIn) -> PhaseOut:
     """Create a phase on a registered split."""
     phase = actions.add_phase(
         session,
@@ -173,7 +178,7 @@ def add_phase(session: SessionDep, admin: AdminDep, phase_in: PhaseIn) -> dict[s
     return phase_view(phase)
 
 
-@router.get("/submissions", response_model=list[AdminSubmissionOut])
+@router.get("/submissions")
 def submissions(
     session: SessionDep,
     _admin: AdminDep,
@@ -181,17 +186,19 @@ def submissions(
     status: Status | None = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 200,
     offset: Offset = 0,
-) -> list[dict[str, Any]]:
+) -> list[AdminSubmissionOut]:
     """Every submission, newest first, with the admin-only fields."""
-    return submission_views(session, list_submissions(session, team_id, status, limit, offset), admin=True)
+    return submission_views(
+        session, list_submissions(session, team_id, status, limit, offset), AdminSubmissionOut
+    )
 
 
-def _one(session: Session, submission: Submission) -> dict[str, Any]:
-    return submission_views(session, [submission], admin=True)[0]
+def _one(session: Session, submission: Submission) -> AdminSubmissionOut:
+    return submission_views(session, [submission], AdminSubmissionOut)[0]
 
 
-@router.post("/submissions/{submission_id}/rerun", response_model=AdminSubmissionOut)
-def rerun(request: Request, session: SessionDep, admin: AdminDep, submission_id: RowId) -> dict[str, Any]:
+@router.post("/submissions/{submission_id}/rerun")
+def rerun(request: Request, session: SessionDep, admin: AdminDep, submission_id: RowId) -> AdminSubmissionOut:
     """Score a submission again (a new run); its current results stay shown until the new run is scored."""
     submission = actions.rerun_submission(session, admin, submission_id)
     session.commit()
@@ -199,26 +206,26 @@ def rerun(request: Request, session: SessionDep, admin: AdminDep, submission_id:
     return _one(session, submission)
 
 
-@router.post("/submissions/{submission_id}/cancel", response_model=AdminSubmissionOut)
-def cancel(session: SessionDep, admin: AdminDep, submission_id: RowId) -> dict[str, Any]:
+@router.post("/submissions/{submission_id}/cancel")
+def cancel(session: SessionDep, admin: AdminDep, submission_id: RowId) -> AdminSubmissionOut:
     """Cancel a queued or running submission (refunded)."""
     submission = actions.cancel_submission(session, admin, submission_id)
     session.commit()
     return _one(session, submission)
 
 
-@router.post("/submissions/{submission_id}/hide", response_model=AdminSubmissionOut)
-def hide(session: SessionDep, admin: AdminDep, submission_id: RowId, hide_in: HideIn) -> dict[str, Any]:
+@router.post("/submissions/{submission_id}/hide")
+def hide(session: SessionDep, admin: AdminDep, submission_id: RowId, hide_in: HideIn) -> AdminSubmissionOut:
     """Hide a submission from the leaderboard, or show it again."""
     submission = actions.hide_submission(session, admin, submission_id, hide_in.hidden)
     session.commit()
     return _one(session, submission)
 
 
-@router.post("/submissions/{submission_id}/disqualify", response_model=AdminSubmissionOut)
+@router.post("/submissions/{submission_id}/disqualify")
 def disqualify(
     session: SessionDep, admin: AdminDep, submission_id: RowId, body: DisqualifyIn
-) -> dict[str, Any]:
+) -> AdminSubmissionOut:
     """Disqualify a submission with a reason, or lift the disqualification."""
     submission = actions.disqualify_submission(session, admin, submission_id, body.disqualified, body.reason)
     session.commit()
@@ -226,7 +233,7 @@ def disqualify(
 
 
 @router.post("/rescore", status_code=202)
-def rescore(request: Request, session: SessionDep, admin: AdminDep, body: RescoreIn) -> dict[str, Any]:
+def rescore(request: Request, session: SessionDep, admin: AdminDep, body: RescoreIn) -> RescoreStarted:
     """Re-run every scored entry of a phase; the report compares the rankings under `version` before and after."""
     view = leaderboard_view(session, body.version, body.subset, "score", body.phase, admin=True)
     rescore_run, queued = actions.start_rescore(
@@ -235,13 +242,13 @@ def rescore(request: Request, session: SessionDep, admin: AdminDep, body: Rescor
     session.commit()
     _enqueue(request, [submission.id for submission in queued])
     report = str(request.url_for("rescore_report_route", rescore_id=rescore_run.id))
-    return {"id": rescore_run.id, "queued": len(queued), "report": report}
+    return RescoreStarted(id=rescore_run.id, queued=len(queued), report=report)
 
 
 @router.get("/rescores/{rescore_id}", name="rescore_report_route")
-def rescore_report(session: SessionDep, _admin: AdminDep, rescore_id: RowId) -> dict[str, Any]:
+def rescore_report(session: SessionDep, _admin: AdminDep, rescore_id: RowId) -> RescoreReport:
     """Rank-change report of a rescore: moved entries and Kendall's tau; `complete` once every run finished."""
-    return actions.rescore_report(session, rescore_id)
+    return RescoreReport.model_validate(actions.rescore_report(session, rescore_id))
 
 
 @router.get("/export", response_model=None)
@@ -271,19 +278,19 @@ def _attachment(filename: str) -> dict[str, str]:
     return {"Content-Disposition": f"attachment; filename=\"{fallback}\"; filename*=UTF-8''{quote(filename)}"}
 
 
-@router.get("/audit", response_model=list[AuditOut])
+@router.get("/audit")
 def audit(
     session: SessionDep,
     _admin: AdminDep,
     limit: Annotated[int, Query(ge=1, le=1000)] = 200,
     offset: Offset = 0,
-) -> list[Any]:
+) -> list[AuditOut]:
     """The audit log, newest first."""
-    return list(actions.audit_log(session, limit, offset))
+    return [AuditOut.model_validate(entry) for entry in actions.audit_log(session, limit, offset)]
 
 
-@router.get("/submissions/{submission_id}", response_model=AdminSubmissionOut)
-def submission(session: SessionDep, _admin: AdminDep, submission_id: RowId) -> dict[str, Any]:
+@router.get("/submissions/{submission_id}")
+def submission(session: SessionDep, _admin: AdminDep, submission_id: RowId) -> AdminSubmissionOut:
     """One submission with the admin-only fields."""
     return _one(session, get_submission(session, submission_id))
 
@@ -309,14 +316,14 @@ def scene_picture_route(
     )
 
 
-@router.get("/submissions/{submission_id}/tokens", response_model=list[TokenRow])
+@router.get("/submissions/{submission_id}/tokens")
 def token_rows(
     session: SessionDep,
     _admin: AdminDep,
     submission_id: RowId,
     version: VersionName = DEFAULT_VERSION,
     only_failed: bool = False,
-) -> list[dict[str, Any]]:
+) -> list[TokenRow]:
     """Per-token results of a submission's current run on every token."""
     return token_result_views(
         session, get_submission(session, submission_id), version, only_failed, admin=True

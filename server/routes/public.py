@@ -22,9 +22,11 @@ from server.schemas import (
     LeaderboardOut,
     MeOut,
     PhaseOut,
+    QuotaOut,
     SplitOut,
     SubmissionOut,
     TeamIn,
+    TeamOut,
     TeamRegistered,
     TokenRow,
 )
@@ -114,26 +116,26 @@ async def get_leaderboard(
     return Response(board.body, media_type="application/json")
 
 
-@router.get("/splits", response_model=list[SplitOut], tags=["splits"])
-def splits(session: SessionDep) -> list[dict[str, Any]]:
+@router.get("/splits", tags=["splits"])
+def splits(session: SessionDep) -> list[SplitOut]:
     """Registered splits with their token counts, content hashes, subsets and phases."""
     phases = session.scalars(select(Phase).order_by(Phase.opens_at)).all()
     return [
-        {
-            "name": split.name,
-            "token_count": split.token_count,
-            "content_hash": split.content_hash,
-            "scenes_public": split.scenes_public,
-            "subsets": {subset.name: len(subset.tokens) for subset in split.subsets}
+        SplitOut(
+            name=split.name,
+            token_count=split.token_count,
+            content_hash=split.content_hash,
+            scenes_public=split.scenes_public,
+            subsets={subset.name: len(subset.tokens) for subset in split.subsets}
             | {ALL_SUBSET: split.token_count},
-            "phases": [phase_view(phase) for phase in phases if phase.split_id == split.id],
-        }
+            phases=[phase_view(phase) for phase in phases if phase.split_id == split.id],
+        )
         for split in session.scalars(select(Split).order_by(Split.name)).all()
     ]
 
 
-@router.get("/phases", response_model=list[PhaseOut], tags=["splits"])
-def phases(session: SessionDep) -> list[dict[str, Any]]:
+@router.get("/phases", tags=["splits"])
+def phases(session: SessionDep) -> list[PhaseOut]:
     """Every phase with its window and default quotas."""
     return [phase_view(phase) for phase in session.scalars(select(Phase).order_by(Phase.opens_at)).all()]
 
@@ -160,17 +162,17 @@ def health(request: Request, session: SessionDep) -> JSONResponse:
     return JSONResponse(HealthOut(**body).model_dump(mode="json"), status_code=200 if database["ok"] else 503)
 
 
-@router.post("/teams", response_model=TeamRegistered, status_code=201, tags=["teams"])
-def register_team(session: SessionDep, team_in: TeamIn) -> dict[str, Any]:
+@router.post("/teams", status_code=201, tags=["teams"])
+def register_team(session: SessionDep, team_in: TeamIn) -> TeamRegistered:
     """Register a team (pending until an admin approves it); answers its first token, shown once."""
     team = create_team(session, team_in.name, team_in.members, team_in.affiliation, Approval.pending)
     _, secret = create_token(session, Scope.team, team, name="registration")
     session.commit()
-    return {"team": team, "token": secret}
+    return TeamRegistered(team=TeamOut.model_validate(team), token=secret)
 
 
-@router.get("/me", response_model=MeOut, tags=["teams"])
-def me(session: SessionDep, token: TokenDep) -> dict[str, Any]:
+@router.get("/me", tags=["teams"])
+def me(session: SessionDep, token: TokenDep) -> MeOut:
     """The caller's token, team and quota usage in every open phase."""
     team = token.team
     quotas = []
@@ -178,35 +180,31 @@ def me(session: SessionDep, token: TokenDep) -> dict[str, Any]:
         for phase in session.scalars(select(Phase).order_by(Phase.opens_at)).all():
             if is_open(phase):
                 quotas += [
-                    {
-                        "phase": phase.name,
-                        "quota": u.name,
-                        "limit": u.limit,
-                        "used": u.used,
-                        "resets_at": u.resets_at,
-                    }
+                    QuotaOut(
+                        phase=phase.name, quota=u.name, limit=u.limit, used=u.used, resets_at=u.resets_at
+                    )
                     for u in quota_usage(session, team.id, phase)
                 ]
-    return {
-        "scope": token.scope,
-        "team": team.name if team else None,
-        "approval": team.approval if team else None,
-        "token_prefix": token.prefix,
-        "expires_at": token.expires_at,
-        "quotas": quotas,
-    }
+    return MeOut(
+        scope=token.scope,
+        team=team.name if team else None,
+        approval=team.approval if team else None,
+        token_prefix=token.prefix,
+        expires_at=token.expires_at,
+        quotas=quotas,
+    )
 
 
-@router.get("/published/{submission_id}", response_model=SubmissionOut, tags=["published"])
-def published(session: SessionDep, submission_id: RowId) -> dict[str, Any]:
+@router.get("/published/{submission_id}", tags=["published"])
+def published(session: SessionDep, submission_id: RowId) -> SubmissionOut:
     """A leaderboard entry whose phase has closed, as its team sees it: open to everyone."""
-    return submission_views(session, [published_submission(session, submission_id)], admin=False)[0]
+    return submission_views(session, [published_submission(session, submission_id)], SubmissionOut)[0]
 
 
-@router.get("/published/{submission_id}/tokens", response_model=list[TokenRow], tags=["published"])
+@router.get("/published/{submission_id}/tokens", tags=["published"])
 def published_token_rows(
     session: SessionDep, submission_id: RowId, version: VersionName = DEFAULT_VERSION
-) -> list[dict[str, Any]]:
+) -> list[TokenRow]:
     """Per-token results of a published entry."""
     submission = published_submission(session, submission_id)
     return token_result_views(session, submission, version, only_failed=False, admin=False)

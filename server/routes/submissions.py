@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
@@ -123,26 +123,26 @@ def validate(
     )
 
 
-@router.get("/submissions", response_model=list[SubmissionOut])
+@router.get("/submissions")
 def my_submissions(
     session: SessionDep,
     team: TeamDep,
     status: Status | None = None,
     limit: Annotated[int, Query(ge=1, le=500)] = 100,
     offset: Offset = 0,
-) -> list[dict[str, Any]]:
+) -> list[SubmissionOut]:
     """List the team's own submissions, newest first."""
-    return submission_views(session, list_submissions(session, team.id, status, limit, offset), admin=False)
+    return submission_views(session, list_submissions(session, team.id, status, limit, offset), SubmissionOut)
 
 
-@router.get("/submissions/{submission_id}", response_model=SubmissionOut, name="get_submission_route")
-def submission_status(session: SessionDep, team: TeamDep, submission_id: RowId) -> dict[str, Any]:
+@router.get("/submissions/{submission_id}", name="get_submission_route")
+def submission_status(session: SessionDep, team: TeamDep, submission_id: RowId) -> SubmissionOut:
     """Status, progress, per-version results and error summary of one of the team's submissions."""
-    return submission_views(session, [get_submission(session, submission_id, team.id)], admin=False)[0]
+    return submission_views(session, [get_submission(session, submission_id, team.id)], SubmissionOut)[0]
 
 
-@router.patch("/submissions/{submission_id}", response_model=SubmissionOut)
-def edit(session: SessionDep, team: TeamDep, submission_id: RowId, patch: SubmissionPatch) -> dict[str, Any]:
+@router.patch("/submissions/{submission_id}")
+def edit(session: SessionDep, team: TeamDep, submission_id: RowId, patch: SubmissionPatch) -> SubmissionOut:
     """Edit metadata, hide or show, or select as the team's final entry."""
     submission = get_submission(session, submission_id, team.id)
     changes = {
@@ -151,17 +151,17 @@ def edit(session: SessionDep, team: TeamDep, submission_id: RowId, patch: Submis
     }
     edit_submission(session, submission, changes)
     session.commit()
-    return submission_views(session, [submission], admin=False)[0]
+    return submission_views(session, [submission], SubmissionOut)[0]
 
 
-@router.get("/submissions/{submission_id}/tokens", response_model=list[TokenRow])
+@router.get("/submissions/{submission_id}/tokens")
 def token_rows(
     session: SessionDep,
     team: TeamDep,
     submission_id: RowId,
     version: VersionName = DEFAULT_VERSION,
     only_failed: bool = False,
-) -> list[dict[str, Any]]:
+) -> list[TokenRow]:
     """Per-token results of the current run on the tokens the team may see (failed tokens carry their error)."""
     submission = get_submission(session, submission_id, team.id)
     return token_result_views(session, submission, version, only_failed, admin=False)

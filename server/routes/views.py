@@ -1,53 +1,62 @@
-"""Shape stored rows into response bodies (shared by the team and admin routes)."""
+"""Shape stored rows into the response models (shared by the team, public and admin routes)."""
 
 from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from scorer.versions import METRIC_COLUMNS, VERSIONS
 from server.models import Phase, Result, Submission, Summary, TokenResultRow
+from server.schemas import (
+    AdminSubmissionOut,
+    PhaseOut,
+    SeedResult,
+    Seeds,
+    SubmissionOut,
+    SubsetResult,
+    TokenRow,
+)
 from server.services.leaderboard import subscore_columns
 from server.services.splits import is_open, subset_tokens, visible_subsets
 
 
-def _subset_result(summary: Summary, results: list[Result]) -> dict[str, Any]:
-    return {
-        "score": summary.score,
+def _subset_result(summary: Summary, results: list[Result]) -> SubsetResult:
+    return SubsetResult(
+        score=summary.score,
         **{column: getattr(summary, column) for column in subscore_columns(summary.metric_version)},
-        "seeds": {
-            "count": summary.seeds,
-            "mean": summary.score,
-            "std": summary.score_std,
-            "max": summary.score_max,
-        },
-        "ci95": [summary.ci_low, summary.ci_high],
-        "tokens": summary.tokens,
-        "failed_tokens": summary.failed,
-        "per_seed": [
-            {
-                "seed": result.seed,
-                "score": result.score,
-                "tokens": result.tokens,
-                "failed_tokens": result.failed,
-                "engine_version": result.engine_version,
-                "split_hash": result.split_hash,
-                "workers": result.workers,
-                "duration_s": result.duration_s,
-            }
+        seeds=Seeds(count=summary.seeds, mean=summary.score, std=summary.score_std, max=summary.score_max),
+        ci95=[summary.ci_low, summary.ci_high],
+        tokens=summary.tokens,
+        failed_tokens=summary.failed,
+        per_seed=[
+            SeedResult(
+                seed=result.seed,
+                score=result.score,
+                tokens=result.tokens,
+                failed_tokens=result.failed,
+                engine_version=result.engine_version,
+                split_hash=result.split_hash,
+                workers=result.workers,
+                duration_s=result.duration_s,
+            )
             for result in sorted(results, key=lambda r: r.seed)
         ],
-    }
+    )
+
+
+SubmissionView = TypeVar("SubmissionView", SubmissionOut, AdminSubmissionOut)
 
 
 def submission_views(
-    session: Session, submissions: Sequence[Submission], admin: bool
-) -> list[dict[str, Any]]:
-    """Return the response bodies of submissions with their per-version results on the subsets the caller may see."""
+    session: Session, submissions: Sequence[Submission], view: type[SubmissionView]
+) -> list[SubmissionView]:
+    """Return submissions as `view` (the team's or the admin's) with their per-version results on the subsets
+    that view may see."""
+    admin = view is AdminSubmissionOut
     ids = [submission.id for submission in submissions]
     summaries = session.scalars(select(Summary).where(Summary.submission_id.in_(ids))).all() if ids else []
     results: dict[tuple[int, str, str], list[Result]] = defaultdict(list)
@@ -59,19 +68,20 @@ def submission_views(
     views = []
     for submission in submissions:
         visible = set(visible_subsets(submission.split, submission.phase, admin))
-        nested: dict[str, dict[str, Any]] = {version: {} for version in VERSIONS}
+        nested: dict[str, dict[str, SubsetResult]] = {version: {} for version in VERSIONS}
         for summary in by_submission[submission.id]:
             if summary.subset in visible:
                 key = (submission.id, summary.metric_version, summary.subset)
                 nested.setdefault(summary.metric_version, {})[summary.subset] = _subset_result(
                     summary, results[key]
                 )
-        views.append(_submission_view(submission, {v: r for v, r in nested.items() if r}, admin))
+        fields = _submission_fields(submission, admin)
+        views.append(view(**fields, results={v: r for v, r in nested.items() if r}))
     return views
 
 
-def _submission_view(submission: Submission, results: dict[str, Any], admin: bool) -> dict[str, Any]:
-    view = {
+def _submission_fields(submission: Submission, admin: bool) -> dict[str, Any]:
+    fields = {
         "id": submission.id,
         "team": submission.team.name,
         "phase": submission.phase.name if submission.phase else None,
@@ -97,10 +107,9 @@ def _submission_view(submission: Submission, results: dict[str, Any], admin: boo
         "submitted_at": submission.created_at,
         "started_at": submission.started_at,
         "finished_at": submission.finished_at,
-        "results": results,
     }
     if admin:
-        view.update(
+        fields.update(
             team_id=submission.team_id,
             run=submission.run,
             attempts=submission.attempts,
@@ -111,26 +120,26 @@ def _submission_view(submission: Submission, results: dict[str, Any], admin: boo
             admin_hidden=submission.admin_hidden,
             disqualified_reason=submission.disqualified_reason,
         )
-    return view
+    return fields
 
 
-def phase_view(phase: Phase) -> dict[str, Any]:
-    """Return the response body of a phase."""
-    return {
-        "name": phase.name,
-        "split": phase.split.name,
-        "opens_at": phase.opens_at,
-        "closes_at": phase.closes_at,
-        "open": is_open(phase),
-        "per_day": phase.per_day,
-        "total": phase.total,
-        "in_flight": phase.in_flight,
-    }
+def phase_view(phase: Phase) -> PhaseOut:
+    """Return a phase with whether it is open now."""
+    return PhaseOut(
+        name=phase.name,
+        split=phase.split.name,
+        opens_at=phase.opens_at,
+        closes_at=phase.closes_at,
+        open=is_open(phase),
+        per_day=phase.per_day,
+        total=phase.total,
+        in_flight=phase.in_flight,
+    )
 
 
 def token_result_views(
     session: Session, submission: Submission, version: str, only_failed: bool, admin: bool
-) -> list[dict[str, Any]]:
+) -> list[TokenRow]:
     """Return the per-token rows of a submission's current run on the tokens the caller may see."""
     subsets = subset_tokens(submission.split)
     allowed = {
@@ -147,14 +156,14 @@ def token_result_views(
         query = query.where(TokenResultRow.valid.is_(False))
     rows = session.scalars(query.order_by(TokenResultRow.seed, TokenResultRow.token)).all()
     return [
-        {
-            "token": row.token,
-            "metric_version": row.metric_version,
-            "seed": row.seed,
-            "valid": row.valid,
-            "error": row.error,
-            "metrics": {column: getattr(row, column) for column in METRIC_COLUMNS},
-        }
+        TokenRow(
+            token=row.token,
+            metric_version=row.metric_version,
+            seed=row.seed,
+            valid=row.valid,
+            error=row.error,
+            metrics={column: getattr(row, column) for column in METRIC_COLUMNS},
+        )
         for row in rows
         if row.token in allowed
     ]
