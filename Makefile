@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 PORT ?= 8000
 
-.PHONY: demo test install services browser
+.PHONY: demo test install services browser lowest
 
 $(BIN)/navsim-lb: pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -33,3 +33,7 @@ services:
 ## Debian's chromium for the browser tests (tests/test_web_browser.py); installed when missing.
 browser:
 	./.ci/browser
+
+## make lowest: the suite on the lowest versions pyproject.toml allows (slow; run when a lower bound changes).
+lowest: services browser
+	./.ci/lowest

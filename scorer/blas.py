@@ -49,7 +49,13 @@ def select_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> None:
 
 @lru_cache(maxsize=1)
 def blas_kernels() -> tuple[str, ...]:
-    """Return the kernel sets the loaded OpenBLAS libraries run (numpy's and SciPy's, both loaded here)."""
+    """Return the kernel sets the loaded OpenBLAS libraries run (numpy's and SciPy's, both loaded here).
+
+    Ask first in a process's main thread, before it starts threads or forks (the server and the worker do):
+    threadpoolctl walks the loaded libraries under the dynamic loader's lock and calls back into Python, so a
+    thread loading an extension module meanwhile (a first psycopg import) deadlocks with it. The answer is
+    cached, and forked processes inherit it.
+    """
     import numpy  # noqa: F401 - load both libraries the engine calls before asking
     import scipy.linalg  # noqa: F401
     from threadpoolctl import threadpool_info

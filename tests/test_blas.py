@@ -114,3 +114,23 @@ def test_a_cache_built_under_other_kernels_is_rebuilt(
     other = "SkylakeX" if "Haswell" in scorer_cache.engine_provenance() else "Haswell"
     monkeypatch.setattr(scorer_cache, "engine_provenance", lambda: f"{ENGINE_VERSION} OpenBLAS {other}")
     assert load_cache(tmp_path, "v1.1", scene.token, scene_file_hash(path)) is None
+
+
+PROCESS_STARTS = {
+    "worker": "import worker.app",
+    "server": "from server.migrate import upgrade; from server.settings import get_settings; "
+    "upgrade(get_settings().database_url); from server.main import create_app; create_app()",
+}
+
+
+@pytest.mark.parametrize("process", PROCESS_STARTS)
+def test_the_server_and_the_worker_ask_for_the_kernels_before_they_start_threads(
+    process: str, tmp_path: Path
+) -> None:
+    """threadpoolctl's scan deadlocks with a thread loading an extension module: both processes ask at start,
+    in the main thread, so no request, heartbeat or forked pool process ever scans."""
+    probe = f"{PROCESS_STARTS[process]}\nfrom scorer.blas import blas_kernels\nprint(blas_kernels.cache_info().currsize)"
+    env = {**os.environ, "DATA_DIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[-1] == "1"

@@ -15,23 +15,17 @@ from server.schemas import (
     AdminSubmissionOut,
     PhaseOut,
     SeedResult,
-    Seeds,
     SubmissionOut,
     SubsetResult,
     TokenRow,
 )
-from server.services.leaderboard import subscore_columns
+from server.services.leaderboard import subscore_columns, summary_figures
 from server.services.splits import is_open, subset_tokens, visible_subsets
 
 
 def _subset_result(summary: Summary, results: list[Result]) -> SubsetResult:
     return SubsetResult(
-        score=summary.score,
-        **{column: getattr(summary, column) for column in subscore_columns(summary.metric_version)},
-        seeds=Seeds(count=summary.seeds, mean=summary.score, std=summary.score_std, max=summary.score_max),
-        ci95=[summary.ci_low, summary.ci_high],
-        tokens=summary.tokens,
-        failed_tokens=summary.failed,
+        **summary_figures(summary, subscore_columns(summary.metric_version)),
         per_seed=[
             SeedResult(
                 seed=result.seed,

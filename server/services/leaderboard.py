@@ -144,6 +144,24 @@ def _summary(
     )
 
 
+def summary_figures(summary: Any, columns: tuple[str, ...]) -> dict[str, Any]:
+    """Return the figures of a summary as the API shows them: PDMS, the version's subscore `columns`, the seeds,
+    the 95% interval and the token counts. `summary` is a Summary, or a row selecting its columns by name."""
+    return {
+        "score": summary.score,
+        **{column: getattr(summary, column) for column in columns},
+        "seeds": {
+            "count": summary.seeds,
+            "mean": summary.score,
+            "std": summary.score_std,
+            "max": summary.score_max,
+        },
+        "ci95": [summary.ci_low, summary.ci_high],
+        "tokens": summary.tokens,
+        "failed_tokens": summary.failed,
+    }
+
+
 def _row(entry: Any, columns: tuple[str, ...]) -> dict[str, Any]:
     return {
         "rank": None,
@@ -151,15 +169,10 @@ def _row(entry: Any, columns: tuple[str, ...]) -> dict[str, Any]:
         "method": entry.method,
         "tech_report_url": entry.tech_report_url,
         "code_url": entry.code_url,
-        "score": entry.score,
-        **{column: getattr(entry, column) for column in columns},
-        "seeds": {"count": entry.seeds, "mean": entry.score, "std": entry.score_std, "max": entry.score_max},
+        **summary_figures(entry, columns),
         "baseline": entry.is_baseline,
-        "ci95": [entry.ci_low, entry.ci_high],
         "submitted_at": entry.created_at.isoformat(),
         "submission_id": entry.submission_id,
-        "tokens": entry.tokens,
-        "failed_tokens": entry.failed,
     }
 
 
