@@ -263,6 +263,12 @@ def test_a_team_signs_in_sees_every_problem_then_watches_its_upload_scored(
     narrow.goto(f"{demo.url}/submissions/{_latest_id(demo)}")
     narrow.wait_for_selector("#histograms figure")
     assert narrow.evaluate("document.documentElement.scrollWidth") <= 390
+    # The breakdown's numbers, the submission's and the baselines', are on screen without scrolling sideways.
+    values = narrow.locator("#breakdown tbody tr").first.locator("td").all()
+    assert len(values) >= 2
+    for value in values:
+        box = value.bounding_box()
+        assert box is not None and box["x"] + box["width"] <= 390, box
     _screenshot(narrow, "submission-390")
 
 
