@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from celery import Celery
+from kombu.exceptions import ChannelError
 from sqlalchemy import create_engine, inspect, text
 from sqlalchemy.pool import NullPool
 
@@ -66,19 +67,25 @@ def enqueue_submission(submission_id: int, settings: Settings | None = None) -> 
     celery_client(settings or get_settings()).send_task(SCORE_TASK, args=[submission_id])
 
 
-def waiting_tasks(settings: Settings) -> int:
-    """Declare the queue with its binding again and return how many tasks wait in it (taken by no worker).
+def waiting_tasks(settings: Settings, declare: bool = False) -> int:
+    """Return how many tasks wait in the queue (taken by no worker); with `declare`, declare the queue and its
+    binding again first.
 
     A broker that lost its state (Redis flushed) keeps the connections, so nobody declares again what
     each connection declared once, and kombu's Redis transport drops a message sent to an exchange with
-    no binding: the reaper calls this at every pass, which makes such a broker route again.
+    no binding: the reaper declares at every pass, which makes such a broker route again. Without
+    `declare` (a metrics scrape) nothing changes on the broker: a queue it does not know holds 0 tasks.
     """
     client = celery_client(settings)
     queue = client.amqp.queues[settings.queue_name]
     with client.connection_for_write() as connection:
         bound = queue.bind(connection.default_channel)
-        bound.declare()
-        _, count, _ = bound.queue_declare()
+        if declare:
+            bound.declare()
+        try:
+            _, count, _ = bound.queue_declare(passive=not declare)
+        except ChannelError:  # passive: the broker has no such queue (Redis drops an empty one's key)
+            return 0
     return int(count)
 
 

@@ -1,12 +1,17 @@
-"""The broker side of server.queue: the embedded broker's file keeps only messages not yet delivered."""
+"""The broker side of server.queue: the embedded broker's file keeps only messages not yet delivered; counting
+the waiting tasks changes nothing on the broker unless the reaper asks it to declare the queue again."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
+import pytest
+import redis
 from kombu import Connection
 
-from server.queue import celery_client, prune_embedded_broker
+from navsim_lb.scratch import scratch_redis_queue
+from server.queue import SCORE_TASK, celery_client, prune_embedded_broker, waiting_tasks
 from server.settings import Settings
 
 
@@ -31,3 +36,19 @@ def test_pruning_deletes_delivered_messages_and_keeps_waiting_ones(tmp_path: Pat
 def test_pruning_leaves_other_brokers_alone(tmp_path: Path) -> None:
     settings = Settings(DATA_DIR=tmp_path, BROKER_URL="redis://127.0.0.1:1/0")  # never contacted
     assert prune_embedded_broker(settings) == 0
+
+
+@pytest.mark.services
+def test_counting_waiting_tasks_declares_nothing_unless_asked(tmp_path: Path) -> None:
+    url = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
+    broker = redis.Redis.from_url(url)
+    with scratch_redis_queue(url, "navsim-lb-count") as queue:
+        settings = Settings(data_dir=tmp_path, broker_url=url, queue_name=queue)
+        binding = f"_kombu.binding.{queue}"
+        assert waiting_tasks(settings) == 0  # an unknown queue holds nothing
+        assert not broker.exists(binding)  # and a scrape did not create it
+        assert waiting_tasks(settings, declare=True) == 0
+        assert broker.exists(binding)  # the reaper's pass declares the queue and its binding
+        celery_client(settings).send_task(SCORE_TASK, args=[1], queue=queue)
+        assert waiting_tasks(settings) == 1
+    broker.close()

@@ -343,7 +343,7 @@ def reap_lost_work() -> dict[str, list[int]]:
                 )
     # What waits in SQL but not in an idle queue was lost by the broker, or is held by a worker that took
     # it a moment ago: after one reaper interval it is sent again (a duplicate drops).
-    if not waiting_tasks(settings):
+    if not waiting_tasks(settings, declare=True):
         sent_before = now - timedelta(seconds=settings.reaper_interval)
         with transaction(sessions) as session:
             chunks.extend(
