@@ -7,9 +7,8 @@ import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Annotated, Any, cast
+from typing import IO, TYPE_CHECKING, Annotated, Any, cast
 
-import httpx
 import typer
 from rich.markup import escape
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TransferSpeedColumn
@@ -17,11 +16,14 @@ from rich.table import Table
 
 from navsim_lb.terminal import console, fail
 
+if TYPE_CHECKING:  # httpx takes a third of `navsim-lb --help`: `submit` imports it when it runs
+    import httpx
+
 API_PREFIX = "/api/v1"
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 FINAL_STATUSES = ("scored", "failed", "cancelled")
 MAX_LISTED_PROBLEMS = 30
-TIMEOUT = httpx.Timeout(60.0, connect=10.0)
+TIMEOUT_S, CONNECT_TIMEOUT_S = 60.0, 10.0
 
 
 class ReadProgress:
@@ -165,11 +167,14 @@ def submit(
     if not file.is_file():
         raise fail(f"{file}: no such file")
     fields = {name: value for name, value in (("phase", phase), ("method", method)) if value}
+    import httpx
+
     headers = {"Authorization": f"Bearer {token}"}
     # Retries cover failed connections only; the POST carries an idempotency key anyway.
     transport = httpx.HTTPTransport(retries=2)
+    timeout = httpx.Timeout(TIMEOUT_S, connect=CONNECT_TIMEOUT_S)
     try:
-        with httpx.Client(base_url=server, headers=headers, timeout=TIMEOUT, transport=transport) as client:
+        with httpx.Client(base_url=server, headers=headers, timeout=timeout, transport=transport) as client:
             columns = (TextColumn("{task.description}"), BarColumn(), DownloadColumn(), TransferSpeedColumn())
             with Progress(*columns, console=console) as progress:
                 accepted = upload(client, file, fields, progress)
