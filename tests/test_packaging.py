@@ -18,7 +18,7 @@ from pathlib import Path
 import httpx
 import pytest
 import typer
-from worker_testing import free_port, wait_for
+from worker_testing import api_answers, free_port, wait_for
 
 from navsim_lb import demo
 from navsim_lb.cli import SERVER_COMMANDS, SERVER_EXTRA
@@ -173,14 +173,7 @@ def test_the_server_extra_migrates_and_serves_the_pages_from_the_wheel(install: 
     command = [str(install.venv / "bin" / "navsim-lb"), "serve", "--host", "127.0.0.1", "--port", str(port)]
     base = f"http://127.0.0.1:{port}"
     with child_process(command, install.env, install.home / "serve.log"):
-
-        def healthy() -> bool:
-            try:
-                return httpx.get(f"{base}/api/v1/health", timeout=2).status_code == 200
-            except httpx.TransportError:
-                return False
-
-        wait_for(healthy, "the installed server to answer")
+        wait_for(lambda: api_answers(base), "the installed server to answer")
         for path in ("/team", "/admin"):
             page = httpx.get(f"{base}{path}", timeout=10)
             assert page.status_code == 200, path

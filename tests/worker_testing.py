@@ -191,7 +191,8 @@ def _variables(root: Path, split: SplitFixture, overrides: dict[str, str]) -> di
     }
 
 
-def _answers(url: str) -> bool:
+def api_answers(url: str) -> bool:
+    """Whether the API at `url` answers its health check with 200."""
     try:
         return httpx.get(f"{url}/api/v1/health", timeout=2).status_code == 200
     except httpx.HTTPError:
@@ -255,7 +256,7 @@ def running_service(
             )
             api = stack.enter_context(child_process(api_command("127.0.0.1", port), env, logs / "api.log"))
             url = f"http://127.0.0.1:{port}"
-            wait_for(lambda: _answers(url), "the API to answer")
+            wait_for(lambda: api_answers(url), "the API to answer")
             yield Service(settings, env, factory, url, team_token, logs, worker, api)
     finally:
         engine.dispose()
