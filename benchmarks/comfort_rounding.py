@@ -30,13 +30,13 @@ EPS = float(np.finfo(np.float64).eps)
 
 
 def _random_groups(rng: np.random.Generator, groups: int, size: int) -> np.ndarray:
-    """Return comfort series (groups, size, 41, 3): smooth accelerations with jitter, drifting headings."""
+    """Return comfort series (groups, size, 41, 4): smooth accelerations with jitter, drifting headings."""
     shape = (groups, size, NUM_STEPS)
     time_s = np.arange(NUM_STEPS) * SCORING_INTERVAL_S
     lon = rng.normal(0, 1.5, (*shape[:2], 1)) + np.cumsum(rng.normal(0, 0.3, shape), axis=-1)
     lat = rng.normal(0, 1.0, (*shape[:2], 1)) * np.sin(time_s * rng.uniform(0.2, 2.0, (*shape[:2], 1)))
     heading = rng.uniform(-np.pi, np.pi, (*shape[:2], 1)) + np.cumsum(rng.normal(0, 0.02, shape), axis=-1)
-    return np.stack([lon, lat, heading], axis=-1)
+    return np.stack([lon, lat, heading, np.hypot(lon, lat)], axis=-1)
 
 
 def _scipy_rounded(group: np.ndarray, window: int, poly_order: int, deriv: int, delta: float) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
@@ -37,14 +38,18 @@ def results_table(results: Sequence[TokenResult], version: MetricVersion) -> pd.
     frame = pd.DataFrame(
         rows, columns=["token", *(["seed"] if multi_seed else []), "valid", *version.result_columns, "error"]
     )
-    average: dict[str, object] = {"token": "average", "valid": bool(frame["valid"].all()), "error": ""}
+    average: dict[str, object] = {
+        "token": version.average_row,
+        "valid": bool(frame["valid"].all()),
+        "error": "",
+    }
     average.update({column: frame[column].mean() for column in version.result_columns})
     return pd.concat([frame, pd.DataFrame([average])], ignore_index=True)
 
 
 def percent(value: float) -> str:
-    """Return a score in [0, 1] as the leaderboard shows it: percent with one decimal."""
-    return f"{value * 100:.1f}"
+    """Return a score in [0, 1] as the leaderboard shows it: percent with one decimal ("-" if undefined)."""
+    return "-" if math.isnan(value) else f"{value * 100:.1f}"
 
 
 def summary_rows(results: Sequence[TokenResult], version: MetricVersion) -> list[list[str]]:
@@ -53,9 +58,10 @@ def summary_rows(results: Sequence[TokenResult], version: MetricVersion) -> list
     Headers are the short metric names (NC, DAC, ..., PDMS) and scores are percent, as on the leaderboard.
     """
     seeds = sorted({result.seed for result in results}, key=lambda seed: -1 if seed is None else seed)
-    per_seed = {seed: summarize([r for r in results if r.seed == seed]) for seed in seeds}
     columns = list(version.result_columns)
-    rows = [["seed", *(METRIC_LABELS[column] for column in columns), "tokens", "unscored"]]
+    per_seed = {seed: summarize([r for r in results if r.seed == seed], columns) for seed in seeds}
+    labels = [version.score_label if column == "score" else METRIC_LABELS[column] for column in columns]
+    rows = [["seed", *labels, "tokens", "unscored"]]
     for seed, summary in per_seed.items():
         rows.append(
             [
@@ -76,10 +82,16 @@ def summary_table(results: Sequence[TokenResult], version: MetricVersion, title:
     """Return the summary as a table that fits an 80-column terminal (no vertical rules, numbers right)."""
     header, *rows = summary_rows(results, version)
     table = Table(
-        title=f"{title} (PDMS {version.name})",
-        caption=f"scores in %; unscored tokens count 0; DDC: {version.ddc_role}",
+        title=f"{title} ({version.score_label} {version.name})",
+        caption=f"scores in %; unscored tokens count 0; DDC: {version.ddc_role}"
+        + (
+            "; EC only between adjacent frames of a log (- where none)"
+            if "two_frame_extended_comfort" in version.result_columns
+            else ""
+        ),
         box=box.SIMPLE_HEAD,
         pad_edge=False,
+        padding=(0, 1) if len(header) < 12 else 0,  # v2.2 has ten columns: the box's own space separates them
     )
     for index, column in enumerate(header):
         table.add_column(column, justify="left" if index == 0 else "right", no_wrap=True)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,12 +23,15 @@ from scorer.blas import engine_provenance
 from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.files import write_atomically
 from scorer.geometry import FloatArray
-from scorer.observation import Observation, observe_scene
-from scorer.pdm_closed import plan_references_batch
-from scorer.pdm_scorer import ProposalMeasures, measure_batch
+from scorer.human import FILTERED_COLUMNS, human_future_poses, is_synthetic
+from scorer.metrics.history_comfort import past_states
+from scorer.observation import Observation, drop_tracks_on_ego, observe_scene
+from scorer.pdm_closed import ego_polygons, plan_references_batch
+from scorer.pdm_scorer import ProposalMeasures, measure_batch, score_measures
+from scorer.red_lights import RedLights, observe_red_lights
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
-from scorer.trajectory import initial_state, pdm_references
+from scorer.trajectory import agent_references, initial_state, pdm_references
 from scorer.versions import MetricVersion
 
 _MEASURES_PREFIX = "reference_"
@@ -49,6 +52,7 @@ class MetricCache:
 
     token: str
     key: CacheKey
+    log_name: str
     t0_us: int
     ego: EgoStatus
     trajectory: FloatArray  # (51, 3) PDM-Closed rear-axle poses at t0 + k * 0.1 s
@@ -60,6 +64,11 @@ class MetricCache:
     observation: Observation
     # The PDM-Closed proposal simulated and measured (1, 1) once: every submission is scored against it.
     reference_measures: ProposalMeasures
+    # v2: tracks dropped for touching the ego at t = 0, and the logged human's result for the penalty filter
+    # (its columns and first infraction indices; None where the version or the scene has no filter).
+    dropped_tracks: tuple[str, ...] = ()
+    human: dict[str, float] | None = None
+    past_states: FloatArray | None = None  # v2's history comfort: the logged past (n, 11)
 
 
 def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, MetricCache]:
@@ -76,32 +85,43 @@ def build_cache_batch(
     per-call cost is most of a scene's), nothing else: every scene is planned and measured on its own.
     """
     drivable_maps = [build_drivable_map(scene) for scene in scenes]
-    observations = [observe_scene(scene) for scene in scenes]
     frames = [scene.current_frame for scene in scenes]
     # One PDM-Closed unroll serves every version; only the proposal selection differs.
     plans = plan_references_batch(scenes, drivable_maps, [version.planner for version in versions])
     # Every (version, scene) reference trajectory in one simulation, version-major.
-    t0_us = np.tile([frame.timestamp_us for frame in frames], len(versions))
+    t0_us = np.array([frame.timestamp_us for frame in frames])
     trajectories = np.stack([plan[column].trajectory for column in range(len(versions)) for plan in plans])
-    initial = np.tile([initial_state(frame.ego) for frame in frames], (len(versions), 1))
-    states = simulate(pdm_references(t0_us, trajectories), initial).reshape(
-        len(versions), len(scenes), 1, -1, initial.shape[-1]
-    )
+    initial = np.stack([initial_state(frame.ego) for frame in frames])
+    states = simulate(
+        pdm_references(np.tile(t0_us, len(versions)), trajectories), np.tile(initial, (len(versions), 1))
+    ).reshape(len(versions), len(scenes), 1, -1, initial.shape[-1])
+    observed: dict[tuple[int, bool, bool], list[tuple[Observation, tuple[str, ...]]]] = {}
     caches: list[dict[str, MetricCache]] = [{} for _ in scenes]
     for column, version in enumerate(versions):
         version_plans = [plan[column] for plan in plans]
-        measures = measure_batch(
-            states[column],
+        reads_lights = "traffic_light_compliance" in version.evaluation.multiplier_rows
+        key = (version.observation_frames, reads_lights, version.drops_tracks_on_ego)
+        if key not in observed:  # versions that observe alike share the observation
+            observed[key] = [evaluation_observation(scene, *key) for scene in scenes]
+        observations = [observation for observation, _ in observed[key]]
+        inputs = (
             observations,
             drivable_maps,
             [plan.centerline[:, :2] for plan in version_plans],
             [plan.route_lane_ids for plan in version_plans],
-            version.evaluation,
         )
+        measures = measure_batch(states[column], *inputs, version.evaluation)
+        pasts = None
+        if "history_comfort" in version.evaluation.weights:
+            pasts = [past_states(scene) for scene in scenes]
+        humans: list[dict[str, float] | None] = [None] * len(scenes)
+        if version.human_penalty_filter:
+            humans = score_humans(scenes, initial, t0_us, *inputs, version)
         for index, (scene, plan) in enumerate(zip(scenes, version_plans, strict=True)):
             caches[index][version.name] = MetricCache(
                 token=scene.token,
                 key=CacheKey(scene.content_hash, engine_provenance(), version.name),
+                log_name=scene.log_name,
                 t0_us=frames[index].timestamp_us,
                 ego=frames[index].ego,
                 trajectory=plan.trajectory,
@@ -112,8 +132,71 @@ def build_cache_batch(
                 drivable_map=drivable_maps[index],
                 observation=observations[index],
                 reference_measures=measures.token(index),
+                dropped_tracks=observed[key][index][1],
+                human=humans[index],
+                past_states=None if pasts is None else pasts[index],
             )
     return caches
+
+
+def evaluation_observation(
+    scene: Scene, future_frames: int, reads_lights: bool, drops_tracks_on_ego: bool
+) -> tuple[Observation, tuple[str, ...]]:
+    """Return a version's evaluation observation of `scene` and the tracks it dropped for touching the ego."""
+    observation = observe_scene(scene, future_frames)
+    if reads_lights:
+        observation = replace(observation, red_lights=observe_red_lights(scene, future_frames))
+    if not drops_tracks_on_ego:
+        return observation, ()
+    ego = scene.current_frame.ego
+    return drop_tracks_on_ego(observation, ego_polygons(np.array([[ego.x, ego.y, ego.heading]]))[0])
+
+
+def score_humans(
+    scenes: Sequence[Scene],
+    initial: FloatArray,
+    t0_us: np.ndarray,
+    observations: Sequence[Observation],
+    drivable_maps: Sequence[DrivableMap],
+    centerlines: Sequence[FloatArray],
+    route_lane_ids: Sequence[Sequence[str]],
+    version: MetricVersion,
+) -> list[dict[str, float] | None]:
+    """Return the logged human's result per scene, as the filter reads it (None on synthetic scenes).
+
+    Each human is simulated and scored alone, a batch of one in the devkit, without past states.
+    """
+    original = [index for index, scene in enumerate(scenes) if not is_synthetic(scene.token)]
+    humans: list[dict[str, float] | None] = [None] * len(scenes)
+    if not original:
+        return humans
+    poses = np.stack([human_future_poses(scenes[index]) for index in original])
+    states = simulate(agent_references(initial[original], t0_us[original], poses), initial[original])
+    scores = score_measures(
+        measure_batch(
+            states[:, None],
+            [observations[index] for index in original],
+            [drivable_maps[index] for index in original],
+            [centerlines[index] for index in original],
+            [route_lane_ids[index] for index in original],
+            version.evaluation,
+        ),
+        version.evaluation,
+    )
+    for row, index in enumerate(original):
+        human = {column: float(getattr(scores, column)[row, 0]) for column in FILTERED_COLUMNS}
+        human |= {
+            name: float(getattr(scores, name)[row, 0])
+            for name in (
+                "progress_raw",
+                "collision_index",
+                "ttc_index",
+                "red_light_index",
+                "lane_keeping_index",
+            )
+        }
+        humans[index] = human
+    return humans
 
 
 def cache_path(cache_dir: Path, version: str, token: str) -> Path:
@@ -141,9 +224,11 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
     """Write `cache` atomically (temporary file, then rename) and return its path."""
     observation, drivable_map = cache.observation, cache.drivable_map
     map_coords, map_counts = _pack_polygons(drivable_map.polygons)
+    red_lights = observation.red_lights
     meta = {
         "token": cache.token,
         "key": asdict(cache.key),
+        "log_name": cache.log_name,
         "t0_us": cache.t0_us,
         "ego": asdict(cache.ego),
         "route_lane_ids": list(cache.route_lane_ids),
@@ -152,6 +237,9 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
         "map_types": list(drivable_map.types),
         "object_tokens": list(observation.tokens),
         "object_types": list(observation.object_types),
+        "red_light_lanes": None if red_lights is None else list(red_lights.lane_ids),
+        "dropped_tracks": list(cache.dropped_tracks),
+        "human": cache.human,
     }
     arrays = {
         "trajectory": cache.trajectory,
@@ -163,6 +251,8 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
         "object_is_agent": observation.is_agent,
         "object_first_speed": observation.first_speed,
         "object_corners": observation.corners[observation.present],
+        **_red_light_arrays(red_lights),
+        **({} if cache.past_states is None else {"past_states": cache.past_states}),
         **{
             _MEASURES_PREFIX + f.name: getattr(cache.reference_measures, f.name)
             for f in fields(ProposalMeasures)
@@ -171,6 +261,13 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
     path = cache_path(cache_dir, cache.key.metric_version, cache.token)
     write_atomically(path, _pack(meta, arrays), durable=False)  # a lost cache file is rebuilt
     return path
+
+
+def _red_light_arrays(red_lights: RedLights | None) -> dict[str, np.ndarray]:
+    if red_lights is None:
+        return {}
+    coords, counts = _pack_polygons(red_lights.polygons)
+    return {"red_light_coords": coords, "red_light_counts": counts, "red_light_present": red_lights.present}
 
 
 def _pack(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> bytes:
@@ -213,9 +310,17 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
     present = arrays["object_present"]
     corners = np.full((*present.shape, 4, 2), np.nan)
     corners[present] = arrays["object_corners"]
+    red_lights = None
+    if meta["red_light_lanes"] is not None:
+        red_lights = RedLights(
+            lane_ids=tuple(meta["red_light_lanes"]),
+            polygons=_unpack_polygons(arrays["red_light_coords"], arrays["red_light_counts"]),
+            present=arrays["red_light_present"],
+        )
     return MetricCache(
         token=meta["token"],
         key=key,
+        log_name=meta["log_name"],
         t0_us=meta["t0_us"],
         ego=EgoStatus(**meta["ego"]),
         trajectory=arrays["trajectory"],
@@ -235,8 +340,12 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
             first_speed=arrays["object_first_speed"],
             present=present,
             corners=corners,
+            red_lights=red_lights,
         ),
         reference_measures=ProposalMeasures(
             **{f.name: arrays[_MEASURES_PREFIX + f.name] for f in fields(ProposalMeasures)}
         ),
+        dropped_tracks=tuple(meta["dropped_tracks"]),
+        human=meta["human"],
+        past_states=arrays.get("past_states"),
     )

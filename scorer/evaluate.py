@@ -8,16 +8,22 @@ text. Summaries count such a token as 0 (the devkit's average row skips it) and 
 from __future__ import annotations
 
 import hashlib
+import itertools
 import logging
+import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from scorer.cache import MetricCache, build_cache_batch, load_cache, save_cache
 from scorer.geometry import FloatArray
+from scorer.human import filtered, is_synthetic
+from scorer.metrics.aggregation import aggregate
+from scorer.metrics.two_frame_comfort import FEATURES, overlap_steps, two_frame_extended_comfort
 from scorer.pdm_scorer import ProposalScores, join_measures, measure_batch, score_measures
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
@@ -38,8 +44,19 @@ class TokenResult:
     token: str
     seed: int | None
     valid: bool
-    metrics: dict[str, float] = field(default_factory=dict)
+    metrics: dict[str, float] = field(default_factory=dict)  # NaN where a column is undefined (v2.2's EC)
     error: str | None = None
+    detail: dict[str, Any] = field(default_factory=dict)  # what a team may read of how the row came about
+
+
+@dataclass(frozen=True, eq=False)
+class ScoredToken:
+    """A valid row before the split-level step (v2.2's EC), with what that step reads."""
+
+    result: TokenResult
+    log_name: str
+    t0_us: int
+    states: FloatArray  # (41, 11) the agent's simulated states
 
 
 class TokenError(Exception):
@@ -93,15 +110,28 @@ def build_missing_caches(
                     )
                 )
             except Exception:  # noqa: BLE001 - a scene broke the batch: build each alone to find it
-                results = []
-                for item in batch:
-                    try:
-                        results.append((item, _build_and_save([item[1]], cache_dir, missing)[0]))
-                    except Exception as error:
-                        log.exception("metric cache of %s could not be built", item[0])
-                        errors[item[0]] = error
-            built |= {name: caches for (name, _), caches in results}
+                results = [(item, _build_alone(item, cache_dir, missing, errors)) for item in batch]
+            built |= {name: caches for (name, _), caches in results if caches}
     return built, errors
+
+
+def _build_alone(
+    item: tuple[str, Scene], cache_dir: Path, versions: Sequence[str], errors: dict[str, Exception]
+) -> dict[str, MetricCache]:
+    """Build one scene's caches, a version at a time if need be, so that a scene one version cannot take
+    (v2.2 needs 3 past frames) is still scored under the others; record the scene's error."""
+    name, scene = item
+    try:
+        return _build_and_save([scene], cache_dir, versions)[0]
+    except Exception:  # noqa: BLE001 - find which versions fail
+        caches: dict[str, MetricCache] = {}
+        for version in versions:
+            try:
+                caches |= _build_and_save([scene], cache_dir, [version])[0]
+            except Exception as error:
+                log.exception("metric cache of %s under %s could not be built", name, version)
+                errors[name] = error
+        return caches
 
 
 def _build_split_part(task: tuple[tuple[Path, ...], Path, tuple[str, ...]]) -> tuple[int, dict[str, str]]:
@@ -160,9 +190,64 @@ def _checked_poses(poses: object) -> FloatArray:
     return array
 
 
-def _row(token: str, seed: int | None, scores: object, index: tuple[int, int]) -> TokenResult:
-    metrics = {column: float(getattr(scores, column)[index]) for column in METRIC_COLUMNS}
-    return TokenResult(token=token, seed=seed, valid=True, metrics=metrics)
+def _row(
+    cache: MetricCache, seed: int | None, scores: ProposalScores, index: int, version: MetricVersion
+) -> TokenResult:
+    agent = {
+        column: float(getattr(scores, column)[index, 1])
+        for column in version.result_columns
+        if column in ROW_COLUMNS
+    }
+    if version.two_frame_extended_comfort_weight is None:
+        return TokenResult(token=cache.token, seed=seed, valid=True, metrics=agent)
+    detail: dict[str, Any] = {}
+    if version.human_penalty_filter and cache.human is not None:
+        metrics, overridden = filtered(agent, cache.human)
+        detail["human_filter"] = {"overridden": overridden, "agent_before": agent, "human": cache.human}
+    else:
+        metrics = agent
+        reason = (
+            "synthetic scene (17-character token)" if is_synthetic(cache.token) else "off in this version"
+        )
+        detail["human_filter"] = {"overridden": [], "not_applied": reason}
+    metrics["two_frame_extended_comfort"] = float("nan")
+    metrics["score"] = extended_score(metrics, version)
+    return TokenResult(token=cache.token, seed=seed, valid=True, metrics=metrics, detail=detail)
+
+
+# Result columns that come straight from the scorer's rows (v2.2 adds EC and recomputes the score per split).
+ROW_COLUMNS = tuple(
+    dict.fromkeys(
+        column
+        for version in VERSIONS.values()
+        for column in version.result_columns
+        if column != "two_frame_extended_comfort"
+    )
+)
+_MULTIPLIER_COLUMNS = {
+    "no_collision": "no_at_fault_collisions",
+    "drivable_area": "drivable_area_compliance",
+    "traffic_light_compliance": "traffic_light_compliance",
+    "driving_direction": "driving_direction_compliance",
+}
+_WEIGHTED_COLUMNS = {
+    "progress": "ego_progress",
+    "ttc": "time_to_collision_within_bound",
+    "lane_keeping": "lane_keeping",
+    "history_comfort": "history_comfort",
+}
+
+
+def extended_score(metrics: Mapping[str, float], version: MetricVersion) -> float:
+    """Return v2's final score of one row (`compute_final_scores`): the multipliers' product times the weighted
+    mean of EP, TTC, LK, HC and EC, where an undefined EC (NaN) drops out with its weight (/16 or /14)."""
+    config = version.evaluation
+    two_frame = metrics["two_frame_extended_comfort"]
+    defined = not math.isnan(two_frame)
+    multipliers = np.array([[metrics[_MULTIPLIER_COLUMNS[row]]] for row in config.multiplier_rows])
+    weighted = [metrics[_WEIGHTED_COLUMNS[row]] for row in config.weights] + [two_frame if defined else 0.0]
+    weights = [*config.weights.values(), version.two_frame_extended_comfort_weight if defined else 0.0]
+    return float(aggregate(multipliers, np.array(weighted)[:, None], np.array(weights))[0])
 
 
 def score_against_references(
@@ -183,7 +268,8 @@ def score_against_references(
         version.evaluation,
     )
     reference = join_measures([cache.reference_measures for cache in caches], axis=0)
-    return states, score_measures(join_measures([reference, agent]), version.evaluation)
+    pasts = [cache.past_states for cache in caches]
+    return states, score_measures(join_measures([reference, agent]), version.evaluation, pasts)
 
 
 def score_caches(
@@ -192,26 +278,39 @@ def score_caches(
     version: MetricVersion,
     seed: int | None = None,
 ) -> list[TokenResult]:
-    """Score one agent trajectory per cache, all tokens in one batch, against the cached PDM-Closed measures."""
+    """Score one agent trajectory per cache, all tokens in one batch, against the cached PDM-Closed measures.
+
+    Each token is scored alone: v2.2's EC, which pairs tokens, is left undefined (`join_two_frame_comfort`).
+    """
+    return [
+        item.result if isinstance(item, ScoredToken) else item
+        for item in _scored(caches, poses, version, seed)
+    ]
+
+
+def _scored(
+    caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion, seed: int | None
+) -> list[ScoredToken | TokenResult]:
     if not caches:
         return []
     try:
-        _, scores = score_against_references(caches, poses, version)
+        states, scores = score_against_references(caches, poses, version)
     except ValueError:
         if len(caches) == 1:
             raise
         # One diverging trajectory must not fail its neighbours: score them one by one.
-        return [
-            result for c, p in zip(caches, poses, strict=True) for result in _score_one(c, p, version, seed)
-        ]
-    return [_row(cache.token, seed, scores, (index, 1)) for index, cache in enumerate(caches)]
+        return [item for c, p in zip(caches, poses, strict=True) for item in _score_one(c, p, version, seed)]
+    return [
+        ScoredToken(_row(cache, seed, scores, index, version), cache.log_name, cache.t0_us, states[index])
+        for index, cache in enumerate(caches)
+    ]
 
 
 def _score_one(
     cache: MetricCache, poses: FloatArray, version: MetricVersion, seed: int | None
-) -> list[TokenResult]:
+) -> list[ScoredToken | TokenResult]:
     try:
-        return score_caches([cache], [poses], version, seed)
+        return _scored([cache], [poses], version, seed)
     except ValueError as error:
         return [TokenResult(cache.token, seed, False, error=f"scoring failed: {error}")]
 
@@ -229,7 +328,7 @@ def score_tokens(
     metric_version = get_version(version)
     paths = scene_paths(split_dir)
     tokens = list(paths) if tokens is None else list(tokens)
-    results: list[TokenResult] = []
+    results: list[TokenResult | ScoredToken] = []
     for start in range(0, len(tokens), CHUNK_SIZE):
         chunk = tokens[start : start + CHUNK_SIZE]
         ready: list[tuple[MetricCache, FloatArray]] = []
@@ -255,23 +354,101 @@ def score_tokens(
         )
         for token, poses in unbuilt:
             name = paths[token].name
-            if name in built:
+            if version in built.get(name, {}):
                 ready.append((built[name][version], poses))
             else:
                 results.append(TokenResult(token, seed, False, error=_build_error_text(token, errors[name])))
-        results.extend(score_caches([c for c, _ in ready], [p for _, p in ready], metric_version, seed))
+        results.extend(_scored([c for c, _ in ready], [p for _, p in ready], metric_version, seed))
         if progress is not None:
             progress(len(chunk))
+    scored = [item for item in results if isinstance(item, ScoredToken)]
+    rows = [item for item in results if isinstance(item, TokenResult)]
+    rows += join_two_frame_comfort(scored, metric_version) if scored else []
     order = {token: index for index, token in enumerate(tokens)}
-    return sorted(results, key=lambda result: order[result.token])
+    return sorted(rows, key=lambda result: order[result.token])
 
 
-def summarize(results: Sequence[TokenResult]) -> dict[str, float]:
-    """Return the mean of every column over tokens, an unscored token counting 0, and the failed count."""
-    summary = {
-        column: float(np.mean([r.metrics.get(column, 0.0) for r in results])) if results else float("nan")
-        for column in METRIC_COLUMNS
-    }
+def summarize(results: Sequence[TokenResult], columns: Sequence[str] = METRIC_COLUMNS) -> dict[str, float]:
+    """Return the mean of every column over tokens, an unscored token counting 0, and the failed count.
+
+    An undefined value (v2.2's EC without an adjacent frame) is left out of its column's mean, as the
+    devkit's average row skips NaN; a column undefined everywhere is NaN.
+    """
+
+    def mean(values: list[float]) -> float:
+        defined = [value for value in values if not math.isnan(value)]
+        return float(np.mean(defined)) if defined else float("nan")
+
+    summary = {column: mean([r.metrics.get(column, 0.0) for r in results]) for column in columns}
     summary["tokens"] = float(len(results))
     summary["failed"] = float(sum(not r.valid for r in results))
     return summary
+
+
+ADJACENT_GAP_S = 0.55  # `infer_start_adjacent_mapping`'s time_gap_threshold
+
+
+def adjacent_pairs(scored: Sequence[ScoredToken]) -> dict[int, int]:
+    """Return, for each row that pairs with the row before it in its log, that row:
+    `infer_start_adjacent_mapping` over valid original rows, grouped by log and sorted by start time (seconds
+    as the devkit's float `timestamp_us * 1e-6`; ties by token, where pandas' sort is not stable)."""
+    start_s = [item.t0_us * 1e-6 for item in scored]
+    by_log: dict[str, list[int]] = {}
+    for index, item in enumerate(scored):
+        if not is_synthetic(item.result.token):
+            by_log.setdefault(item.log_name, []).append(index)
+    for members in by_log.values():
+        members.sort(key=lambda index: (start_s[index], scored[index].result.token))
+    return {
+        current: previous
+        for members in by_log.values()
+        for previous, current in itertools.pairwise(members)
+        if abs(start_s[current] - start_s[previous]) <= ADJACENT_GAP_S
+    }
+
+
+def join_two_frame_comfort(scored: Sequence[ScoredToken], version: MetricVersion) -> list[TokenResult]:
+    """Return the rows with v2.2's two-frame extended comfort (EC) and the final score: EC between each row and
+    the adjacent earlier frame of its log scored in the same run and seed, NaN (weight dropped) elsewhere.
+
+    Where the devkit pairs two frames and then fails on them (start times equal, 0.55 s apart to the float, or
+    under 0.05 s apart), EC is undefined and the row's detail says why.
+    """
+    if version.two_frame_extended_comfort_weight is None:
+        return [item.result for item in scored]
+    pairs = adjacent_pairs(scored)
+    details: dict[int, dict[str, Any]] = {
+        index: {"previous_token": scored[previous].result.token} for index, previous in pairs.items()
+    }
+    computed: list[tuple[int, int, int]] = []  # (row, previous row, steps)
+    for index, previous in pairs.items():
+        try:
+            computed.append((index, previous, overlap_steps(scored[index].t0_us, scored[previous].t0_us)))
+        except ValueError as error:
+            details[index]["undefined"] = f"the official code pairs this frame and then fails: {error}"
+    values: dict[int, tuple[float, dict[str, float]]] = {}
+    if computed:
+        rows, previous_rows, steps = (list(column) for column in zip(*computed, strict=True))
+        comfort = two_frame_extended_comfort(
+            np.stack([scored[row].states for row in rows]),
+            np.stack([scored[row].states for row in previous_rows]),
+            steps,
+        )
+        for position, row in enumerate(rows):
+            values[row] = (
+                float(comfort.value[position]),
+                dict(zip(FEATURES, comfort.rms[position].tolist(), strict=True)),
+            )
+    results = []
+    for index, item in enumerate(scored):
+        if index not in details:
+            results.append(item.result)
+            continue
+        metrics, detail = dict(item.result.metrics), dict(item.result.detail)
+        if index in values:
+            metrics["two_frame_extended_comfort"], rms = values[index]
+            details[index]["rms"] = rms
+            metrics["score"] = extended_score(metrics, version)
+        detail["two_frame_extended_comfort"] = details[index]
+        results.append(replace(item.result, metrics=metrics, detail=detail))
+    return results

@@ -55,8 +55,8 @@ def _cache(scene: Path, cache_dir: Path, token: str, version: VersionName) -> Me
     if cache is not None:
         return cache
     built, errors = build_missing_caches([scene], Path(cache_dir), list(VERSIONS))
-    if errors:
-        raise TokenError(f"the metric cache of {token} could not be built: {next(iter(errors.values()))}")
+    if version not in built.get(scene.name, {}):
+        raise TokenError(f"the metric cache of {token} could not be built: {errors[scene.name]}")
     return built[scene.name][version]
 
 

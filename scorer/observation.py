@@ -24,14 +24,14 @@ import numpy.typing as npt
 import shapely
 
 from scorer.geometry import BoolArray, FloatArray, box_corners, normalize_angle
-from scorer.scene import AGENT_CATEGORIES, Scene
+from scorer.red_lights import RED_LIGHT_TOKEN, STEPS_PER_FRAME, RedLights
+from scorer.scene import AGENT_CATEGORIES, FUTURE_FRAMES, Scene
 
 IntArray = npt.NDArray[np.intp]
 
-OBSERVATION_STEPS = 51  # occupancy maps at k * 0.1 s, k = 0..50
+OBSERVATION_STEPS = FUTURE_FRAMES * STEPS_PER_FRAME + 1  # v1: occupancy maps at k * 0.1 s, k = 0..50
 STEP_S = 0.1
 FRAME_INTERVAL_S = 0.5  # the devkit samples the recorded boxes at 2 Hz
-RED_LIGHT_TOKEN = "red_light"
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,6 +48,7 @@ class Observation:
     first_speed: FloatArray  # (n,) |velocity| at first appearance (0 for static objects)
     present: BoolArray  # (T, n) the object is in occupancy map k
     corners: FloatArray  # (T, n, 4, 2) box corners FL, RL, RR, FR (the devkit's ring order); NaN where absent
+    red_lights: RedLights | None = None  # v2's red-light polygons (None: the version reads none)
 
     @cached_property
     def polygons(self) -> npt.NDArray[np.object_]:
@@ -129,12 +130,13 @@ def _track_indices(tracks: npt.NDArray[np.str_]) -> tuple[IntArray, IntArray]:
     return rank[inverse], first_rows[by_appearance]
 
 
-def observe_scene(scene: Scene) -> Observation:
-    """Return the 10 Hz evaluation observation of the scene's current frame and 10 future frames.
+def observe_scene(scene: Scene, future_frames: int = FUTURE_FRAMES) -> Observation:
+    """Return the 10 Hz evaluation observation of the scene's current frame and `future_frames` frames after
+    it (v1: 10, 51 steps; v2: 8, 41 steps).
 
     See docs/engine.md, "Observation and forecasts: the recorded future".
     """
-    frames = scene.future_frames
+    frames = scene.frames[scene.current_index : scene.current_index + future_frames + 1]
     frame_of = np.concatenate([np.full(len(frame.tracks), index) for index, frame in enumerate(frames)])
     tracks = np.array([track for frame in frames for track in frame.tracks], dtype=str)
     categories = np.array([category for frame in frames for category in frame.categories], dtype=str)
@@ -147,7 +149,7 @@ def observe_scene(scene: Scene) -> Observation:
     samples = _track_samples(track_index, frame_of, boxes, velocities, len(first_rows), len(frames))
 
     is_agent = np.isin(categories[first_rows], AGENT_CATEGORIES)
-    present, states = _interpolate_tracks(*samples)
+    present, states = _interpolate_tracks(*samples, future_frames * STEPS_PER_FRAME + 1)
     # A track seen once is the unchanged first sighting at every step (no interpolation, no wrap).
     single = samples[2] == 1
     present[:, single] = True
@@ -193,10 +195,10 @@ def _track_samples(
 
 
 def _interpolate_tracks(
-    times: FloatArray, states: FloatArray, counts: IntArray
+    times: FloatArray, states: FloatArray, counts: IntArray, num_steps: int
 ) -> tuple[BoolArray, FloatArray]:
     """Return presence (T, n) and x, y, heading (T, n, 3) at k * 0.1 s, as scipy's `interp1d` per track."""
-    query = np.arange(OBSERVATION_STEPS, dtype=np.float64) * STEP_S
+    query = np.arange(num_steps, dtype=np.float64) * STEP_S
     first = times[:, 0]
     last = np.take_along_axis(times, np.maximum(counts - 1, 0)[:, None], axis=1)[:, 0]
     present = (first[None, :] <= query[:, None]) & (query[:, None] <= last[None, :])
@@ -213,3 +215,31 @@ def _interpolate_tracks(
     result = interpolated[..., :3]
     result[..., 2] = normalize_angle(result[..., 2])
     return present, result
+
+
+def drop_tracks_on_ego(
+    observation: Observation, ego_footprint: shapely.Polygon
+) -> tuple[Observation, tuple[str, ...]]:
+    """Return the observation without the tracks whose box touches the ego's at step 0, and their tokens.
+
+    v2's non-reactive traffic (`LogReplayTrafficAgents.simulate_environment`) tests every object of the
+    first occupancy map, static objects too, with `intersects` against the initial ego footprint, and
+    drops those tracks from every step before any metric. Red lights are not tracks.
+    """
+    touching = np.zeros(len(observation.tokens), dtype=bool)
+    first = np.flatnonzero(observation.present[0])
+    touching[first] = shapely.intersects(observation.polygons[0, first], ego_footprint)
+    kept = np.flatnonzero(~touching)
+    dropped = tuple(observation.tokens[index] for index in np.flatnonzero(touching))
+    return (
+        Observation(
+            tokens=tuple(observation.tokens[index] for index in kept),
+            object_types=tuple(observation.object_types[index] for index in kept),
+            is_agent=observation.is_agent[kept],
+            first_speed=observation.first_speed[kept],
+            present=observation.present[:, kept],
+            corners=observation.corners[:, kept],
+            red_lights=observation.red_lights,
+        ),
+        dropped,
+    )

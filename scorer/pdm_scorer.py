@@ -3,8 +3,10 @@
 
 In evaluation proposal 0 is the re-simulated PDM-Closed reference and proposal 1 the submission;
 PDM-Closed scores its 15 proposals against its own forecast observation with the planner config. A
-metric version is data (`ScorerConfig`): DDC is a multiplier or a weighted row (`ddc_role`) and its
-window runs over time or over proposals (`ddc_window_axis`).
+metric version is data (`ScorerConfig`): its multiplier and weighted rows, by the devkit's names, decide
+which metrics count and how (DDC a multiplier in v1.0 and v2, a row of weight 0 in v1.1; TLC and LK only
+in v2), and a few fields hold the structural choices that changed between releases. Result columns a
+version does not score are 1.
 """
 
 from __future__ import annotations
@@ -23,10 +25,13 @@ from scorer.metrics.collisions import no_at_fault_collisions
 from scorer.metrics.comfort import comfort_series, is_comfortable
 from scorer.metrics.drivable_area import drivable_area_compliance
 from scorer.metrics.driving_direction import driving_direction_compliance, off_route_steps
-from scorer.metrics.ego_areas import ego_areas
-from scorer.metrics.ego_box import ego_box_points
+from scorer.metrics.ego_areas import ego_areas, in_intersection
+from scorer.metrics.ego_box import BoxPoint, ego_box_points, ego_corners
+from scorer.metrics.history_comfort import history_comfort
+from scorer.metrics.lane_keeping import lane_keeping
 from scorer.metrics.progress import centerline_strings, normalized_progress, raw_progress
 from scorer.metrics.time_to_collision import time_to_collision
+from scorer.metrics.traffic_light import traffic_light_compliance
 from scorer.observation import Observation, ObservationBatch
 from scorer.trajectory import SCORING_INTERVAL_S, SCORING_POSES, STATE_SIZE
 from scorer.versions import ScorerConfig
@@ -44,13 +49,20 @@ class ProposalScores:
     driving_direction_compliance: FloatArray
     ego_progress: FloatArray  # normalised
     time_to_collision_within_bound: FloatArray
-    comfort: FloatArray  # 1.0 or 0.0
+    comfort: FloatArray  # 1.0 or 0.0 (v1)
+    traffic_light_compliance: FloatArray  # v2
+    lane_keeping: FloatArray  # v2
+    history_comfort: FloatArray  # v2
     score: FloatArray
     progress_raw: FloatArray  # m, before multipliers
     collision_index: IntArray  # first at-fault collision, time index (time = index * 0.1 s); -1 if none
     collision_object: IntArray  # the object of that collision, its index in the token's observation; -1
     ttc_index: IntArray  # first TTC infraction, likewise
     ttc_object: IntArray
+    red_light_index: IntArray  # first red-light contact, likewise
+    red_light: IntArray  # that light, its index in the token's red lights; -1
+    lane_keeping_index: IntArray  # the time index at which the run beyond the limit reached the window
+    lane_keeping_run: IntArray  # the longest run of time indices beyond the limit
     ego_areas: npt.NDArray[np.bool_]  # (..., 41, 3) MULTIPLE_LANES, NON_DRIVABLE_AREA, ONCOMING_TRAFFIC
     multiplier_rows: dict[str, FloatArray]  # the devkit's multi-metric rows, by its names, in order
     weighted_rows: dict[str, FloatArray]  # its weighted-metric rows, by its names, in order
@@ -89,10 +101,16 @@ class ProposalMeasures:
     time_to_collision_within_bound: FloatArray
     ttc_index: IntArray
     ttc_object: IntArray
-    comfort_series: FloatArray  # (B, P, 41, 3): comfort is scored on a token's proposals together
+    comfort_series: FloatArray  # (B, P, n, c): comfort is scored on a token's proposals together
     progress_raw: FloatArray
     off_route_steps: FloatArray  # (B, P, 41) centre displacement per step while off route
     ego_areas: npt.NDArray[np.bool_]  # (B, P, 41, 3)
+    traffic_light_compliance: FloatArray  # 1 where the version has no TLC
+    red_light_index: IntArray
+    red_light: IntArray
+    lane_keeping: FloatArray  # 1 where the version has no LK
+    lane_keeping_index: IntArray
+    lane_keeping_run: IntArray
 
     def token(self, index: int) -> ProposalMeasures:
         """Return the measures of token `index` as a batch of one (1, P)."""
@@ -185,7 +203,38 @@ def measure_batch(
         maps,
         config.stopped_speed_threshold,
         SCORING_INTERVAL_S,
+        config.ttc_evaluated_steps,
     )
+    centers = points[..., BoxPoint.CENTER, :]
+    num_steps = rows.shape[1]
+    uses = set(config.multiplier_rows) | set(config.weights)
+    centre_in_intersection = None
+    if config.ddc_excludes_intersections or "lane_keeping" in uses:
+        centre_in_intersection = in_intersection(
+            centers[..., 0].reshape(-1), centers[..., 1].reshape(-1), np.repeat(row_token, num_steps), maps
+        ).reshape(len(rows), num_steps)
+    no_index = np.full(len(rows), -1, dtype=np.intp)
+    traffic_light: FloatArray = np.ones(len(rows))
+    red_light_index, red_light = no_index, no_index
+    if "traffic_light_compliance" in uses:
+        traffic_light, red_light_index, red_light = traffic_light_compliance(
+            ego_corners(points), row_token, [observation.red_lights for observation in observations]
+        )
+    centerline_lines = centerline_strings(list(centerlines))
+    keeping: FloatArray = np.ones(len(rows))
+    keeping_index, keeping_run = no_index, np.zeros(len(rows), dtype=np.intp)
+    if "lane_keeping" in uses:
+        assert centre_in_intersection is not None
+        keeping, keeping_index, keeping_run = lane_keeping(
+            centers,
+            centre_in_intersection,
+            centerline_lines,
+            row_token,
+            config.lane_keeping_deviation_limit,
+            config.lane_keeping_horizon_window,
+            SCORING_INTERVAL_S,
+        )
+    excluded = centre_in_intersection if config.ddc_excludes_intersections else None
     return ProposalMeasures(
         no_at_fault_collisions=per_token(collisions),
         collision_index=per_token(collision.index),
@@ -194,37 +243,57 @@ def measure_batch(
         time_to_collision_within_bound=per_token(ttc),
         ttc_index=per_token(ttc_infraction.index),
         ttc_object=per_token(local_object(ttc_infraction.obj)),
-        comfort_series=per_token(comfort_series(rows)),
-        progress_raw=per_token(raw_progress(points, centerline_strings(list(centerlines)), row_token)),
-        off_route_steps=per_token(off_route_steps(points, areas)),
+        comfort_series=per_token(comfort_series(rows, at_centre="history_comfort" in uses)),
+        progress_raw=per_token(raw_progress(points, centerline_lines, row_token)),
+        off_route_steps=per_token(off_route_steps(points, areas, excluded)),
         ego_areas=per_token(areas),
+        traffic_light_compliance=per_token(traffic_light),
+        red_light_index=per_token(red_light_index),
+        red_light=per_token(red_light),
+        lane_keeping=per_token(keeping),
+        lane_keeping_index=per_token(keeping_index),
+        lane_keeping_run=per_token(keeping_run),
     )
 
 
-def score_measures(measures: ProposalMeasures, config: ScorerConfig) -> ProposalScores:
+def score_measures(
+    measures: ProposalMeasures, config: ScorerConfig, pasts: Sequence[FloatArray | None] | None = None
+) -> ProposalScores:
     """Return the scores (B, P) from the proposals' measures: DDC windows, EP normalisation, comfort,
-    aggregation: the steps in which the devkit's result for a proposal depends on the others."""
-    comfort = is_comfortable(measures.comfort_series, SCORING_INTERVAL_S).astype(np.float64)
+    aggregation: the steps in which the devkit's result for a proposal depends on the others.
+
+    `pasts` are each token's past ego states (`history_comfort.past_states`) for v2's history comfort;
+    without them (PDM-Closed's own ranking, the human of the filter) the devkit leaves HC at 1.
+    """
+    ones = np.ones_like(measures.progress_raw)
+    weights = config.weights
+    comfort = ones
+    if "comfortable" in weights:
+        comfort = is_comfortable(measures.comfort_series, SCORING_INTERVAL_S).astype(np.float64)
+    with_history = ones
+    if "history_comfort" in weights and pasts is not None:
+        with_history = history_comfort(measures.comfort_series, pasts)
     driving_direction = driving_direction_compliance(measures.off_route_steps, config, SCORING_INTERVAL_S)
-    # DDC is a multiplier (v1.0) or a weighted row (v1.1, weight 0): data, not a version test.
-    ddc_is_multiplier = config.ddc_role == "multiplier"
-    ddc_row = {"driving_direction": driving_direction}
-    multiplier_rows = {
+    row_values = {
         "no_collision": measures.no_at_fault_collisions,
         "drivable_area": measures.drivable_area_compliance,
-    } | (ddc_row if ddc_is_multiplier else {})
-    multipliers = np.stack(list(multiplier_rows.values()))
-    ego_progress = normalized_progress(
-        measures.progress_raw, multipliers.prod(axis=0), config.progress_distance_threshold
-    )
-    weighted_rows = {
-        "progress": ego_progress,
+        "traffic_light_compliance": measures.traffic_light_compliance,
+        "driving_direction": driving_direction,
         "ttc": measures.time_to_collision_within_bound,
         "comfortable": comfort,
-    } | ({} if ddc_is_multiplier else ddc_row)
-    weights = [config.progress_weight, config.ttc_weight, config.comfortable_weight]
-    weights += [] if ddc_is_multiplier else [config.driving_direction_weight]
-    score = aggregate(multipliers, np.stack(list(weighted_rows.values())), np.array(weights))
+        "lane_keeping": measures.lane_keeping,
+        "history_comfort": with_history,
+    }
+    multiplier_rows = {name: row_values[name] for name in config.multiplier_rows}
+    multipliers = np.stack(list(multiplier_rows.values()))
+    ego_progress = normalized_progress(
+        measures.progress_raw,
+        multipliers.prod(axis=0),
+        config.progress_distance_threshold,
+        config.progress_normalisation,
+    )
+    weighted_rows = {name: ego_progress if name == "progress" else row_values[name] for name in weights}
+    score = aggregate(multipliers, np.stack(list(weighted_rows.values())), np.array(list(weights.values())))
 
     return ProposalScores(
         no_at_fault_collisions=measures.no_at_fault_collisions,
@@ -233,12 +302,19 @@ def score_measures(measures: ProposalMeasures, config: ScorerConfig) -> Proposal
         ego_progress=ego_progress,
         time_to_collision_within_bound=measures.time_to_collision_within_bound,
         comfort=comfort,
+        traffic_light_compliance=measures.traffic_light_compliance,
+        lane_keeping=measures.lane_keeping,
+        history_comfort=with_history,
         score=score,
         progress_raw=measures.progress_raw,
         collision_index=measures.collision_index,
         collision_object=measures.collision_object,
         ttc_index=measures.ttc_index,
         ttc_object=measures.ttc_object,
+        red_light_index=measures.red_light_index,
+        red_light=measures.red_light,
+        lane_keeping_index=measures.lane_keeping_index,
+        lane_keeping_run=measures.lane_keeping_run,
         ego_areas=measures.ego_areas,
         multiplier_rows=multiplier_rows,
         weighted_rows=weighted_rows,

@@ -32,9 +32,9 @@ from scorer.geometry import (
     normalize_angle,
 )
 from scorer.observation import Observation, polygon_corners
+from scorer.red_lights import RED_LIGHT_TOKEN, RedLights, red_lanes
 from scorer.scene import AGENT_CATEGORIES, Lane, Scene
 
-RED_LIGHT_TOKEN = "red_light"  # the devkit recognises red lights by this substring of the token
 MAP_RADIUS = 100.0  # objects farther than this from the ego centre are not seen (Euclidean)
 MAX_AGENTS = {"vehicle": 50, "pedestrian": 25, "bicycle": 10}  # nearest kept per type, in this order
 MAX_STATIC_OBJECTS = 50
@@ -56,6 +56,7 @@ class PlannerObservation:
     collided: BoolArray  # (n,) overlaps the ego footprint at t0 (red lights: contain it); ignored throughout
     polygons: npt.NDArray[np.object_]  # (26, n) forecast map j = sample 2j
     trees: tuple[shapely.STRtree, ...]  # per forecast map, node capacity 10 (query order = the devkit's)
+    red_lights: RedLights  # the red lights of the maps, at every time index (v2's TLC reads them)
 
     @staticmethod
     def map_index(time_index: int) -> int:
@@ -106,16 +107,11 @@ def observe_for_planner(
         agents
     ]
 
-    lights = [
-        (f"{RED_LIGHT_TOKEN}_{connector_id}", route_lanes[connector_id].polygon)
-        for connector_id, is_red in frame.traffic_lights
-        if is_red and connector_id in route_lanes
-    ]
-    light_polygons = np.empty(len(lights), dtype=object)
-    light_polygons[:] = [polygon for _, polygon in lights]
+    red_lights = RedLights.constant(red_lanes(frame.traffic_lights, route_lanes), SCORING_STEPS)
+    light_polygons = red_lights.polygons
 
     static_polygons = shapely.polygons(rings[static])
-    maps = np.empty((len(FORECAST_SAMPLES), len(static) + len(agents) + len(lights)), dtype=object)
+    maps = np.empty((len(FORECAST_SAMPLES), len(static) + len(agents) + len(light_polygons)), dtype=object)
     for index, sample in enumerate(FORECAST_SAMPLES):
         delta_t = float(sample) * SAMPLE_INTERVAL_S
         agent_polygons = shapely.polygons(rings[agents] + delta_t * agent_velocity[:, None])
@@ -123,33 +119,37 @@ def observe_for_planner(
     trees = tuple(shapely.STRtree(polygons, node_capacity=10) for polygons in maps)
 
     tokens = tuple(frame.tracks[i] for i in static) + tuple(frame.tracks[i] for i in agents)
-    tokens += tuple(token for token, _ in lights)
+    tokens += red_lights.tokens
     is_red_light = np.array([RED_LIGHT_TOKEN in token for token in tokens], dtype=bool)
     objects = np.concatenate([static, agents]).astype(np.intp)
     touching = np.zeros(len(tokens), dtype=bool)
     touching[trees[0].query(footprint, predicate="intersects")] = True
     # A red light counts only when it contains the whole ego; an object when it touches it.
     collided = touching & (~is_red_light | shapely.within(footprint, maps[0]))
-    pad = np.zeros(len(lights))
+    pad = np.zeros(len(light_polygons))
     return PlannerObservation(
         tokens=tokens,
-        categories=tuple(frame.categories[i] for i in objects) + (RED_LIGHT_TOKEN,) * len(lights),
-        is_agent=np.concatenate([is_agent_category[objects].astype(bool), np.zeros(len(lights), dtype=bool)]),
+        categories=tuple(frame.categories[i] for i in objects) + (RED_LIGHT_TOKEN,) * len(light_polygons),
+        is_agent=np.concatenate(
+            [is_agent_category[objects].astype(bool), np.zeros(len(light_polygons), dtype=bool)]
+        ),
         is_red_light=is_red_light,
         speeds=np.concatenate([np.where(is_agent_category, speeds, 0.0)[objects], pad]),
         headings=np.concatenate([headings[objects], pad]),
         collided=collided,
         polygons=maps,
         trees=trees,
+        red_lights=red_lights,
     )
 
 
 def scoring_observation(observation: PlannerObservation) -> Observation:
     """Return the planner observation as the scorer reads it: 51 time indices, map k // 2 at index k.
 
-    Collided tokens and red lights are left out: the devkit's scorer skips both before anything else
+    Collided tokens and red lights are left out of the boxes: NC and TTC skip both before anything else
     (collided tokens seed every proposal's ignore-lists, red lights are skipped by name), so leaving
-    them out gives the same scores.
+    them out gives the same scores. The red lights go along apart, for v2's traffic-light compliance,
+    which reads no collided list.
     """
     kept = np.flatnonzero(~observation.collided & ~observation.is_red_light)
     time_to_map = np.arange(SCORING_STEPS) // 2
@@ -160,4 +160,5 @@ def scoring_observation(observation: PlannerObservation) -> Observation:
         first_speed=observation.speeds[kept],
         present=np.ones((SCORING_STEPS, len(kept)), dtype=bool),
         corners=polygon_corners(observation.polygons[time_to_map][:, kept]),
+        red_lights=observation.red_lights,
     )

@@ -105,6 +105,17 @@ def relative_to_global(origin: FloatArray, poses: FloatArray) -> FloatArray:
     return _poses_of(_pose_matrices(origin)[..., None, :, :] @ _pose_matrices(poses))
 
 
+def global_to_relative(poses: FloatArray) -> FloatArray:
+    """Return poses (..., n, 3) in the frame of the first pose of each sequence (the first becomes zeros).
+
+    As nuPlan's `absolute_to_relative_poses`: the origin's matrix inverted with `np.linalg.inv` (LAPACK, so
+    its last bits are the host's, like every BLAS call the devkit makes: docs/engine.md, "BLAS"), numpy's
+    matmul, heading read back with atan2.
+    """
+    matrices = _pose_matrices(poses)
+    return _poses_of(np.linalg.inv(matrices[..., :1, :, :]) @ matrices)
+
+
 def _pose_matrices(poses: FloatArray) -> FloatArray:
     cos_h, sin_h = np.cos(poses[..., 2]), np.sin(poses[..., 2])
     matrices = np.zeros((*poses.shape[:-1], 3, 3), dtype=np.float64)

@@ -11,8 +11,8 @@ from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import Literal
 
-DdcRole = Literal["multiplier", "weighted"]
 DdcWindowAxis = Literal["proposal", "time"]
+ProgressNormalisation = Literal["masked", "clipped"]
 
 
 class VersionName(StrEnum):
@@ -21,6 +21,7 @@ class VersionName(StrEnum):
 
     V1_0 = "v1.0"
     V1_1 = "v1.1"
+    V2_2 = "v2.2"
 
 
 DEFAULT_VERSION = VersionName.V1_1  # NAVSIM's current release: what a leaderboard shows unless asked
@@ -28,42 +29,83 @@ DEFAULT_VERSION = VersionName.V1_1  # NAVSIM's current release: what a leaderboa
 
 @dataclass(frozen=True)
 class ScorerConfig:
-    """The devkit's `PDMScorerConfig` plus the two structural DDC choices that changed between releases."""
+    """The devkit's `PDMScorerConfig` of a release, with the rows it scores and the structural choices that
+    changed between releases.
 
-    progress_weight: float = 5.0
-    ttc_weight: float = 5.0
-    comfortable_weight: float = 2.0
-    driving_direction_weight: float = 0.0
+    Rows carry the devkit's own names (`MultiMetricIndex`, `WeightedMetricIndex`) in its order; which rows a
+    version has decides which metrics are computed (`scorer.pdm_scorer`).
+    """
+
+    multiplier_rows: tuple[str, ...]
+    weighted_rows: tuple[tuple[str, float], ...]  # (row, weight)
     driving_direction_horizon: float = 1.0
     driving_direction_compliance_threshold: float = 2.0
     driving_direction_violation_threshold: float = 6.0
     stopped_speed_threshold: float = 5e-3
     progress_distance_threshold: float = 5.0
-    # v1.0 multiplies by DDC and sums its window over the proposal axis (a devkit bug reproduced on purpose).
-    ddc_role: DdcRole = "weighted"
+    lane_keeping_deviation_limit: float = 0.5  # m
+    lane_keeping_horizon_window: float = 2.0  # s
+    # v1.0 sums the DDC window over the proposal axis (a devkit bug reproduced on purpose).
     ddc_window_axis: DdcWindowAxis = "time"
+    # v2 leaves out the steps whose centre is inside an intersection from DDC's window.
+    ddc_excludes_intersections: bool = False
+    # v1 zeroes EP where a multiplier fails; v2 clips raw / normaliser to [0, 1] and never zeroes it.
+    progress_normalisation: ProgressNormalisation = "masked"
+    # TTC's time indices: v2 stops at 40 - 9 so that the 0.9 s projection stays inside its 4 s observation.
+    ttc_evaluated_steps: int = 41
+
+    @property
+    def weights(self) -> dict[str, float]:
+        """Return the weight of each weighted row, by name."""
+        return dict(self.weighted_rows)
 
 
 @dataclass(frozen=True)
 class MetricVersion:
-    """A NAVSIM metric release: the evaluation scorer, PDM-Closed's internal scorer and the result columns."""
+    """A NAVSIM metric release: the evaluation scorer, PDM-Closed's internal scorer, what the metric cache
+    observes and the result columns."""
 
     name: VersionName
-    evaluation: ScorerConfig  # default_scoring_parameters.yaml
+    evaluation: ScorerConfig  # the scoring yaml
     planner: ScorerConfig  # PDMScorerConfig() dataclass defaults, used inside PDM-Closed
-    result_columns: tuple[str, ...]  # PDMResults field order
+    result_columns: tuple[str, ...]  # the result CSV's columns, in its order
+    official_code: str  # the devkit release whose results the version reproduces
+    score_label: str = "PDMS"  # the score's name in the papers
+    average_row: str = "average"  # the token column of the result CSV's mean row
+    observation_frames: int = 10  # 2 Hz frames after the current one in the observation (x 5 steps at 10 Hz)
+    # v2's non-reactive traffic drops every track whose box touches the ego's at t = 0, from every step.
+    drops_tracks_on_ego: bool = False
+    # v2: where the logged human also scores 0 in a column, the agent gets 1 there (original scenes only).
+    human_penalty_filter: bool = False
+    # v2's two-frame extended comfort between adjacent tokens of a log; None where the version has none.
+    two_frame_extended_comfort_weight: float | None = None
 
     @property
     def ddc_role(self) -> str:
         """How driving direction compliance enters the score, in words for tables."""
-        if self.evaluation.ddc_role == "multiplier":
+        if "driving_direction" in self.evaluation.multiplier_rows:
             return "multiplier"
-        weight = self.evaluation.driving_direction_weight
+        weight = self.evaluation.weights["driving_direction"]
         return "logged, not weighted" if weight == 0 else f"weight {weight:g}"
 
 
-_V1_0_SCORER = ScorerConfig(ddc_role="multiplier", ddc_window_axis="proposal")
-_V1_1_SCORER = ScorerConfig(ddc_role="weighted", ddc_window_axis="time")
+_V1_0_SCORER = ScorerConfig(
+    multiplier_rows=("no_collision", "drivable_area", "driving_direction"),
+    weighted_rows=(("progress", 5.0), ("ttc", 5.0), ("comfortable", 2.0)),
+    ddc_window_axis="proposal",
+)
+_V1_1_SCORER = ScorerConfig(
+    multiplier_rows=("no_collision", "drivable_area"),
+    weighted_rows=(("progress", 5.0), ("ttc", 5.0), ("comfortable", 2.0), ("driving_direction", 0.0)),
+)
+# pdm_scorer.yaml of v2.2; its two-frame extended comfort (weight 2) is joined per split, not per token.
+_V2_2_SCORER = ScorerConfig(
+    multiplier_rows=("no_collision", "drivable_area", "traffic_light_compliance", "driving_direction"),
+    weighted_rows=(("progress", 5.0), ("ttc", 5.0), ("lane_keeping", 2.0), ("history_comfort", 2.0)),
+    ddc_excludes_intersections=True,
+    progress_normalisation="clipped",
+    ttc_evaluated_steps=32,
+)
 
 # The devkit v1.0 result CSV column order; v1.1 moves DDC after comfort.
 METRIC_COLUMNS = (
@@ -75,15 +117,32 @@ METRIC_COLUMNS = (
     "comfort",
     "score",
 )
+# The official one-stage CSV of v2.2.
+EPDMS_COLUMNS = (
+    "no_at_fault_collisions",
+    "drivable_area_compliance",
+    "driving_direction_compliance",
+    "traffic_light_compliance",
+    "ego_progress",
+    "time_to_collision_within_bound",
+    "lane_keeping",
+    "history_comfort",
+    "two_frame_extended_comfort",
+    "score",
+)
 
-# Short names as in the NAVSIM paper, for tables a person reads; the devkit's names stay in data and APIs.
+# Short names as in the NAVSIM papers, for tables a person reads; the devkit's names stay in data and APIs.
 METRIC_LABELS = {
     "no_at_fault_collisions": "NC",
     "drivable_area_compliance": "DAC",
     "driving_direction_compliance": "DDC",
+    "traffic_light_compliance": "TLC",
     "ego_progress": "EP",
     "time_to_collision_within_bound": "TTC",
     "comfort": "C",
+    "lane_keeping": "LK",
+    "history_comfort": "HC",
+    "two_frame_extended_comfort": "EC",
     "score": "PDMS",
 }
 
@@ -93,6 +152,7 @@ VERSIONS: dict[VersionName, MetricVersion] = {
         evaluation=_V1_0_SCORER,
         planner=replace(_V1_0_SCORER, progress_distance_threshold=0.1),
         result_columns=METRIC_COLUMNS,
+        official_code="NAVSIM v1.0 (tag v1.0), nuplan-devkit v1.2",
     ),
     VersionName.V1_1: MetricVersion(
         name=VersionName.V1_1,
@@ -107,6 +167,20 @@ VERSIONS: dict[VersionName, MetricVersion] = {
             "driving_direction_compliance",
             "score",
         ),
+        official_code="NAVSIM v1.1 (tag v1.1), nuplan-devkit v1.2",
+    ),
+    VersionName.V2_2: MetricVersion(
+        name=VersionName.V2_2,
+        evaluation=_V2_2_SCORER,
+        planner=_V2_2_SCORER,
+        result_columns=EPDMS_COLUMNS,
+        official_code="NAVSIM v2.2 (tag v2.2, commit 359c7f7, one-stage, non-reactive, human filter on)",
+        score_label="EPDMS",
+        average_row="average_all_frames",
+        observation_frames=8,
+        drops_tracks_on_ego=True,
+        human_penalty_filter=True,
+        two_frame_extended_comfort_weight=2.0,
     ),
 }
 

@@ -110,7 +110,38 @@ def test_summary_table_reads_in_80_columns(version: str) -> None:
     lines = text.splitlines()
     assert max(len(line) for line in lines) <= 80 and "…" not in text
     header = next(line.split() for line in lines if line.split()[:1] == ["seed"])
-    labels = [METRIC_LABELS[column] for column in VERSIONS[version].result_columns]
-    assert header == ["seed", *labels, "tokens", "unscored"]
-    assert next(line.split() for line in lines if line.split()[:1] == ["mean"])[1:] == ["98.8"] * 7
+    columns = VERSIONS[version].result_columns
+    labels = [METRIC_LABELS[column] for column in columns[:-1]]
+    assert header == ["seed", *labels, VERSIONS[version].score_label, "tokens", "unscored"]
+    assert next(line.split() for line in lines if line.split()[:1] == ["mean"])[1:] == ["98.8"] * len(columns)
     assert f"DDC: {VERSIONS[version].ddc_role}" in " ".join(text.split())
+
+
+def test_score_under_v2_2_writes_the_official_one_stage_layout(tmp_path: Path) -> None:
+    """`navsim-lb score --version v2.2`: token, valid, the nine columns and the score, EC empty where no
+    adjacent frame was scored, and the `average_all_frames` row skipping it (the official average)."""
+    split = Path(__file__).parent / "fixtures" / "epdms" / "probes"
+    out = tmp_path / "v2.2.csv"
+    result = CliRunner().invoke(
+        app,
+        [
+            "score",
+            str(split),
+            str(split / "submissions" / "cv_straight.json"),
+            "--version",
+            "v2.2",
+            "--out",
+            str(out),
+            "--cache-dir",
+            str(tmp_path / "cache"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    table = pd.read_csv(out, index_col=0)
+    assert list(table.columns) == ["token", "valid", *VERSIONS["v2.2"].result_columns, "error"]
+    assert table["token"].iloc[-1] == "average_all_frames"
+    rows = table.iloc[:-1]
+    undefined = rows["two_frame_extended_comfort"].isna()
+    assert 0 < undefined.sum() < len(rows)
+    assert table["two_frame_extended_comfort"].iloc[-1] == rows["two_frame_extended_comfort"].mean()
+    assert "EPDMS v2.2" in result.output

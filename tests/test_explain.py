@@ -7,14 +7,14 @@ import json
 from pathlib import Path
 
 import pytest
-from devkit_kernels import UNDER_DEVKIT_KERNELS, devkit_tolerance
+from devkit_kernels import UNDER_DEVKIT_KERNELS, V1_VERSIONS, devkit_tolerance
 from typer.testing import CliRunner
 
 from navsim_lb.cli import app
 from scorer.explain import explain_token
 from scorer.scene import scene_paths
 from scorer.submission import load_submission
-from scorer.versions import METRIC_COLUMNS, VERSIONS
+from scorer.versions import METRIC_COLUMNS
 from server.scene_plot import render
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -64,7 +64,7 @@ def test_the_knife_edge_token_is_explained_as_the_devkit_scored_it_under_the_sam
     token = "8bedfe2fc5629e39"
     # The devkit's own result on this token follows the OpenBLAS kernels: a collision under SkylakeX's.
     results = "expected" if UNDER_DEVKIT_KERNELS else "expected-haswell-kernels"
-    for version in VERSIONS:
+    for version in V1_VERSIONS:
         explanation = explain_token(
             scene_paths(KNIFE_EDGE)[token],
             cache_dir,

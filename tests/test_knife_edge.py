@@ -15,11 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from devkit_kernels import V1_VERSIONS
 from engine_process import run_python, score_in_process
 
 from scorer.blas import DEVKIT_KERNELS, KEEP_VARIABLE, cpu_runs_devkit_kernels
 from scorer.metrics.contacts import BEHIND_ANGLE, relative_angle
-from scorer.versions import METRIC_COLUMNS, VERSIONS
+from scorer.versions import METRIC_COLUMNS
 
 KNIFE_EDGE = Path(__file__).parent / "fixtures" / "knife-edge"
 FAMILIES = ("cv_accel", "cv_decel", "stop")
@@ -59,7 +60,7 @@ def _ran_with(output: dict, kernels: str) -> dict:
 def _expected(directory: str) -> dict[tuple[str, str, str], dict]:
     expected = {}
     for family in FAMILIES:
-        for version in VERSIONS:
+        for version in V1_VERSIONS:
             with gzip.open(KNIFE_EDGE / directory / f"{family}.{version}.jsonl.gz", "rt") as handle:
                 expected |= {(family, version, row["token"]): row for row in map(json.loads, handle)}
     return expected

@@ -83,8 +83,8 @@ def test_an_output_on_a_rounding_midpoint_rounds_as_the_devkits_call_on_the_pair
     devkit = savgol_filter(lon, window_length=41, polyorder=2, axis=-1)
     scaled = devkit[1, 3] * 1e8
     assert abs(scaled - np.floor(scaled) - 0.5) < 1e-6  # the fixture sits on a midpoint
-    series = np.zeros((1, 2, 41, 3))
-    series[0, :, :, 0] = lon
-    outputs, regrouped = filtered_series(series, 0.1)
+    states = np.zeros((1, 2, 41, 11))
+    states[0, :, :, StateIndex.ACCELERATION_X] = lon
+    outputs, regrouped = filtered_series(comfort_series(states), 0.1)
     assert regrouped.tolist() == [True]
     np.testing.assert_array_equal(outputs[0][0], np.round(devkit, 8))

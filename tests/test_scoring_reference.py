@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from devkit_kernels import devkit_tolerance
+from devkit_kernels import V1_VERSIONS, devkit_tolerance
 
 from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.metrics.ego_areas import EgoArea
@@ -38,7 +38,7 @@ from scorer.versions import METRIC_COLUMNS, get_version
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 FAMILIES = sorted(path.stem for path in (REFERENCE / "submissions").glob("*.json"))
-VERSIONS = ("v1.0", "v1.1")
+VERSIONS = V1_VERSIONS
 DISCRETE_COLUMNS = tuple(column for column in METRIC_COLUMNS if column not in ("ego_progress", "score"))
 CONTINUOUS_TOLERANCE = devkit_tolerance(1e-9)
 

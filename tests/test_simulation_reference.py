@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from devkit_kernels import devkit_tolerance
+from devkit_kernels import V1_VERSIONS, devkit_tolerance
 
 from scorer.geometry import normalize_angle
 from scorer.scene import load_scene
@@ -25,7 +25,7 @@ from scorer.trajectory import agent_references, initial_state, pdm_references
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 FAMILIES = sorted(path.stem for path in (REFERENCE / "submissions").glob("*.json"))
-VERSIONS = ("v1.0", "v1.1")
+VERSIONS = V1_VERSIONS
 POSITION_TOLERANCE_M = devkit_tolerance(1e-9)
 HEADING_TOLERANCE_RAD = devkit_tolerance(1e-10)
 

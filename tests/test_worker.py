@@ -29,12 +29,12 @@ from worker_testing import (
 
 from navsim_lb.scratch import scratch_redis_queue
 from scorer.blas import engine_provenance
-from scorer.versions import VERSIONS
 from server.db import transaction
 from server.models import FailureKind, Result, Status, Submission, utc_now
 from server.queue import celery_client, enqueue_submission
 from server.services.chunks import plan_chunks
 from server.services.leaderboard import subscore_columns
+from server.services.scoring import BOARD_VERSIONS as VERSIONS
 from server.services.scoring import claim_submission
 from server.services.splits import create_phase, register_split
 from worker.app import CHUNK_TASK

@@ -33,9 +33,9 @@ from worker_testing import (
 from navsim_lb.processes import child_process
 from navsim_lb.scratch import scratch_redis_queue
 from scorer.submission import Submission as Predictions
-from scorer.versions import VERSIONS
 from server.main import DATABASE_DOWN
 from server.models import ChunkState, FailureKind, ScoringChunk, Status, Summary, TokenResultRow
+from server.services.scoring import BOARD_VERSIONS as VERSIONS
 from worker.tasks import POISONED_TOKEN
 
 REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")

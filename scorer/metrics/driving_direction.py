@@ -20,12 +20,17 @@ from scorer.versions import ScorerConfig
 PAIRWISE_BLOCK = 8  # numpy sums 8 or more contiguous values with 8 partial sums (pairwise summation)
 
 
-def off_route_steps(points: FloatArray, areas: npt.NDArray[np.bool_]) -> FloatArray:
-    """Return the centre's per-step displacement (R, T) where it is off route (0 at index 0 and elsewhere)."""
+def off_route_steps(
+    points: FloatArray, areas: npt.NDArray[np.bool_], excluded: npt.NDArray[np.bool_] | None = None
+) -> FloatArray:
+    """Return the centre's per-step displacement (R, T) where it is off route (0 at index 0 and elsewhere),
+    and 0 at the `excluded` steps (v2: centre inside an intersection)."""
     center = points[..., BoxPoint.CENTER, :]
     steps = np.zeros(center.shape[:2])
     steps[:, 1:] = np.linalg.norm(center[:, 1:] - center[:, :-1], axis=-1)
     steps[~areas[..., EgoArea.ONCOMING_TRAFFIC]] = 0.0
+    if excluded is not None:
+        steps[excluded] = 0.0
     return steps
 
 

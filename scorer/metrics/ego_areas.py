@@ -76,3 +76,14 @@ def ego_areas(points: FloatArray, row_token: IntArray, maps: MapBatch) -> BoolAr
     areas[..., EgoArea.NON_DRIVABLE_AREA] = ~on_drivable.all(axis=-1)
     areas[..., EgoArea.ONCOMING_TRAFFIC] = ~on_route
     return areas
+
+
+def in_intersection(x: FloatArray, y: FloatArray, token: IntArray, maps: MapBatch) -> BoolArray:
+    """Return whether each point lies strictly inside an intersection of its token's map (`is_in_layer`:
+    an STRtree query with predicate `within`, so a point on the boundary is outside)."""
+    points, polygons = same_token_pairs(token, maps.start, maps.count)
+    layer = maps.is_intersection[polygons]
+    points, polygons = points[layer], polygons[layer]
+    inside = np.zeros(len(token), dtype=bool)
+    inside[points[points_inside(x[points], y[points], polygons, maps)]] = True
+    return inside

@@ -8,6 +8,7 @@ import shapely
 
 from scorer.geometry import FloatArray
 from scorer.metrics.ego_box import BoxPoint
+from scorer.versions import ProgressNormalisation
 
 IntArray = npt.NDArray[np.intp]
 
@@ -27,14 +28,19 @@ def raw_progress(points: FloatArray, centerlines: npt.NDArray[np.object_], row_t
     return np.clip(located[:, 1] - located[:, 0], 0.0, None)
 
 
-def normalized_progress(raw: FloatArray, multiplier: FloatArray, threshold: float) -> FloatArray:
-    """Return EP (B, P): progress scaled by the multipliers, relative to the best proposal of each token.
+def normalized_progress(
+    raw: FloatArray, multiplier: FloatArray, threshold: float, normalisation: ProgressNormalisation
+) -> FloatArray:
+    """Return EP (B, P) relative to the best multiplier-scaled progress of each token's proposals.
 
-    When no proposal's scaled progress exceeds `threshold`, every proposal with a non-zero multiplier
-    gets 1 and the others 0.
+    "masked" (v1): scaled progress / best; when no scaled progress exceeds `threshold`, 1 where the
+    multiplier is non-zero, else 0. "clipped" (v2): raw progress / best clipped to [0, 1]; all ones when
+    no scaled progress exceeds `threshold`. v2 never zeroes EP for a failed multiplier.
     """
     scaled = raw * multiplier
     best = np.max(scaled, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
+        if normalisation == "clipped":
+            return np.where(best > threshold, np.clip(raw / best, 0.0, 1.0), 1.0)
         relative = scaled / best
     return np.where(best > threshold, relative, np.where(multiplier == 0.0, 0.0, 1.0))

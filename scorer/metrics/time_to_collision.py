@@ -26,25 +26,14 @@ from scorer.metrics.contacts import (
     no_contacts,
     relative_angle,
 )
-from scorer.metrics.ego_areas import EgoArea
+from scorer.metrics.ego_areas import EgoArea, in_intersection
 from scorer.metrics.ego_box import ego_corners
-from scorer.metrics.pairs import points_inside, same_token_pairs
 from scorer.observation import ObservationBatch
 from scorer.trajectory import StateIndex
 
 IntArray = npt.NDArray[np.intp]
 
 PROJECTION_STEPS = np.arange(0, 10, 3)  # time indices ahead: 0, 3, 6, 9
-
-
-def _in_intersection(x: FloatArray, y: FloatArray, token: IntArray, maps: MapBatch) -> npt.NDArray[np.bool_]:
-    """Return whether each point lies strictly inside an intersection of its token's map (`is_in_layer`)."""
-    points, polygons = same_token_pairs(token, maps.start, maps.count)
-    layer = maps.is_intersection[polygons]
-    points, polygons = points[layer], polygons[layer]
-    inside = np.zeros(len(token), dtype=bool)
-    inside[points[points_inside(x[points], y[points], polygons, maps)]] = True
-    return inside
 
 
 def time_to_collision(
@@ -56,16 +45,22 @@ def time_to_collision(
     maps: MapBatch,
     stopped_speed_threshold: float,
     step_s: float,
+    evaluated_steps: int,
 ) -> tuple[FloatArray, FirstInfraction]:
-    """Return TTC (R,) and each row's first infraction: time index and object (-1 if none)."""
-    num_rows, num_steps = states.shape[:2]
+    """Return TTC (R,) and each row's first infraction: time index and object (-1 if none), checking the
+    first `evaluated_steps` time indices."""
+    num_rows = states.shape[0]
+    num_steps = min(evaluated_steps, states.shape[1])
     num_projections = len(PROJECTION_STEPS)
     heading = states[..., StateIndex.HEADING]
     speed = np.hypot(states[..., StateIndex.VELOCITY_X], states[..., StateIndex.VELOCITY_Y])
     # Along the heading with |v|: a reversing ego is projected forward, as in the devkit.
-    velocity = np.stack([np.cos(heading) * speed, np.sin(heading) * speed], axis=-1)
+    velocity = np.stack([np.cos(heading) * speed, np.sin(heading) * speed], axis=-1)[:, :num_steps]
     delta_t = PROJECTION_STEPS.astype(np.float64) * step_s
-    corners = ego_corners(points)[:, :, None] + velocity[:, :, None, None, :] * delta_t[:, None, None]
+    corners = (
+        ego_corners(points[:, :num_steps])[:, :, None]
+        + velocity[:, :, None, None, :] * delta_t[:, None, None]
+    )
     # Box s = k * 4 + projection: the devkit's visiting order, tested against map k + 0, 3, 6 or 9.
     map_index = (np.arange(num_steps)[:, None] + PROJECTION_STEPS).reshape(-1)
     contacts = find_contacts(corners.reshape(num_rows, -1, 4, 2), map_index, row_token, observations)
@@ -77,9 +72,15 @@ def time_to_collision(
     state = states[row, step]
 
     angle = relative_angle(state[:, : StateIndex.HEADING + 1], centroids(contacts.polygons[moving]))
-    in_intersection = _in_intersection(state[:, StateIndex.X], state[:, StateIndex.Y], row_token[row], maps)
+    rear_axle_in_intersection = in_intersection(
+        state[:, StateIndex.X], state[:, StateIndex.Y], row_token[row], maps
+    )
     ego_area = areas[row, step]
-    exposed = ego_area[:, EgoArea.MULTIPLE_LANES] | ego_area[:, EgoArea.NON_DRIVABLE_AREA] | in_intersection
+    exposed = (
+        ego_area[:, EgoArea.MULTIPLE_LANES]
+        | ego_area[:, EgoArea.NON_DRIVABLE_AREA]
+        | rear_axle_in_intersection
+    )
     at_fault = (angle < AHEAD_ANGLE) | (exposed & ~(angle > BEHIND_ANGLE))
 
     counted = counted_contacts(row, obj, order, at_fault)

@@ -7,6 +7,7 @@ trajectory family under every registered version, and compared with the versione
 from __future__ import annotations
 
 import json
+import math
 import tempfile
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -15,7 +16,7 @@ from pathlib import Path
 from scorer.evaluate import score_tokens
 from scorer.regression.families import FAMILIES
 from scorer.scene import iter_scenes
-from scorer.versions import METRIC_COLUMNS, VERSIONS
+from scorer.versions import VERSIONS, get_version
 
 GOLDEN_DIR = Path(__file__).parent / "golden"
 SPLIT_SCENES = 24
@@ -69,10 +70,10 @@ def compare(
         if old is None:
             changes.append((version, *key, "(row)", None, "new"))
             continue
-        for metric in ("valid", *METRIC_COLUMNS):
+        for metric in ("valid", *get_version(version).result_columns):
             before, after = old.get(metric), row.get(metric)
             if isinstance(before, float) and isinstance(after, float):
-                if not abs(before - after) <= TOLERANCE:
+                if not (abs(before - after) <= TOLERANCE or math.isnan(before) and math.isnan(after)):
                     changes.append((version, *key, metric, before, after))
             elif before != after:
                 changes.append((version, *key, metric, before, after))

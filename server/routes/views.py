@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from scorer.versions import METRIC_COLUMNS, VERSIONS
+from scorer.versions import METRIC_COLUMNS
 from server.models import Phase, Result, Submission, Summary, TokenResultRow
 from server.schemas import (
     AdminSubmissionOut,
@@ -20,6 +20,7 @@ from server.schemas import (
     TokenRow,
 )
 from server.services.leaderboard import subscore_columns, summary_figures
+from server.services.scoring import BOARD_VERSIONS
 from server.services.splits import is_open, subset_tokens, visible_subsets
 
 
@@ -62,7 +63,7 @@ def submission_views(
     views = []
     for submission in submissions:
         visible = set(visible_subsets(submission.split, submission.phase, admin))
-        nested: dict[str, dict[str, SubsetResult]] = {version: {} for version in VERSIONS}
+        nested: dict[str, dict[str, SubsetResult]] = {version: {} for version in BOARD_VERSIONS}
         for summary in by_submission[submission.id]:
             if summary.subset in visible:
                 key = (submission.id, summary.metric_version, summary.subset)

@@ -18,6 +18,7 @@ from server.models import Phase
 from server.routes.params import RowId
 from server.routes.public import cached_board
 from server.services.errors import ServiceError
+from server.services.scoring import BOARD_VERSIONS
 
 # Templates and static assets are package data of `server.web`: the same lookup in a checkout and a wheel.
 WEB_DIR = Path(str(files("server.web")))
@@ -41,7 +42,7 @@ def leaderboard_page(
         return "?" + urlencode({k: v for k, v in (query | changes).items() if v is not None})
 
     context: dict[str, Any] = {
-        "versions": list(VERSIONS),
+        "versions": list(BOARD_VERSIONS),
         "phases": [p.name for p in session.scalars(select(Phase).order_by(Phase.opens_at.desc())).all()],
         "labels": METRIC_LABELS,
         "query": query,
@@ -62,7 +63,7 @@ def leaderboard_page(
 @router.get("/admin", response_class=HTMLResponse)
 def admin_page(request: Request) -> HTMLResponse:
     """The admin dashboard; it holds no data itself and asks the admin API with the token typed in."""
-    context = {"versions": list(VERSIONS), "default_version": DEFAULT_VERSION}
+    context = {"versions": list(BOARD_VERSIONS), "default_version": DEFAULT_VERSION}
     return TEMPLATES.TemplateResponse(request, "admin.html", context)
 
 
@@ -83,10 +84,10 @@ def submission_page(request: Request, submission_id: RowId) -> HTMLResponse:
     """One submission for its team: breakdown beside the baselines, histograms, worst tokens, a diff."""
     page = {
         "submission_id": submission_id,
-        "versions": list(VERSIONS),
+        "versions": list(BOARD_VERSIONS),
         "default_version": DEFAULT_VERSION,
         "labels": METRIC_LABELS,
-        "ddc_roles": {name: version.ddc_role for name, version in VERSIONS.items()},
+        "ddc_roles": {name: VERSIONS[name].ddc_role for name in BOARD_VERSIONS},
     }
     return TEMPLATES.TemplateResponse(
         request, "submission.html", {"submission_id": submission_id, "page": page}
