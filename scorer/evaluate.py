@@ -24,7 +24,13 @@ from scorer.geometry import FloatArray
 from scorer.human import filtered, is_synthetic
 from scorer.metrics.aggregation import aggregate
 from scorer.metrics.two_frame_comfort import FEATURES, overlap_steps, two_frame_extended_comfort
-from scorer.pdm_scorer import ProposalScores, join_measures, measure_batch, score_measures
+from scorer.pdm_scorer import (
+    RESULT_COLUMN_OF_ROW,
+    ProposalScores,
+    join_measures,
+    measure_batch,
+    score_measures,
+)
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state
@@ -224,18 +230,6 @@ ROW_COLUMNS = tuple(
         if column != "two_frame_extended_comfort"
     )
 )
-_MULTIPLIER_COLUMNS = {
-    "no_collision": "no_at_fault_collisions",
-    "drivable_area": "drivable_area_compliance",
-    "traffic_light_compliance": "traffic_light_compliance",
-    "driving_direction": "driving_direction_compliance",
-}
-_WEIGHTED_COLUMNS = {
-    "progress": "ego_progress",
-    "ttc": "time_to_collision_within_bound",
-    "lane_keeping": "lane_keeping",
-    "history_comfort": "history_comfort",
-}
 
 
 def extended_score(metrics: Mapping[str, float], version: MetricVersion) -> float:
@@ -244,8 +238,10 @@ def extended_score(metrics: Mapping[str, float], version: MetricVersion) -> floa
     config = version.evaluation
     two_frame = metrics["two_frame_extended_comfort"]
     defined = not math.isnan(two_frame)
-    multipliers = np.array([[metrics[_MULTIPLIER_COLUMNS[row]]] for row in config.multiplier_rows])
-    weighted = [metrics[_WEIGHTED_COLUMNS[row]] for row in config.weights] + [two_frame if defined else 0.0]
+    multipliers = np.array([[metrics[RESULT_COLUMN_OF_ROW[row]]] for row in config.multiplier_rows])
+    weighted = [metrics[RESULT_COLUMN_OF_ROW[row]] for row in config.weights] + [
+        two_frame if defined else 0.0
+    ]
     weights = [*config.weights.values(), version.two_frame_extended_comfort_weight if defined else 0.0]
     return float(aggregate(multipliers, np.array(weighted)[:, None], np.array(weights))[0])
 

@@ -228,7 +228,8 @@ def drop_tracks_on_ego(
     """
     touching = np.zeros(len(observation.tokens), dtype=bool)
     first = np.flatnonzero(observation.present[0])
-    touching[first] = shapely.intersects(observation.polygons[0, first], ego_footprint)
+    # Only step 0's boxes: `polygons` would build all the steps' (the scorer's exact box tests need none).
+    touching[first] = shapely.intersects(shapely.polygons(observation.corners[0, first]), ego_footprint)
     kept = np.flatnonzero(~touching)
     dropped = tuple(observation.tokens[index] for index in np.flatnonzero(touching))
     return (

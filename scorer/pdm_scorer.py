@@ -38,6 +38,19 @@ from scorer.versions import ScorerConfig
 
 IntArray = npt.NDArray[np.intp]
 
+# The devkit's metric rows (`MultiMetricIndex`, `WeightedMetricIndex` names) and the result column of each.
+RESULT_COLUMN_OF_ROW = {
+    "no_collision": "no_at_fault_collisions",
+    "drivable_area": "drivable_area_compliance",
+    "traffic_light_compliance": "traffic_light_compliance",
+    "driving_direction": "driving_direction_compliance",
+    "progress": "ego_progress",
+    "ttc": "time_to_collision_within_bound",
+    "comfortable": "comfort",
+    "lane_keeping": "lane_keeping",
+    "history_comfort": "history_comfort",
+}
+
 
 @dataclass(frozen=True, eq=False)
 class ProposalScores:
@@ -274,37 +287,29 @@ def score_measures(
     if "history_comfort" in weights and pasts is not None:
         with_history = history_comfort(measures.comfort_series, pasts)
     driving_direction = driving_direction_compliance(measures.off_route_steps, config, SCORING_INTERVAL_S)
-    row_values = {
-        "no_collision": measures.no_at_fault_collisions,
-        "drivable_area": measures.drivable_area_compliance,
+    columns = {
+        "no_at_fault_collisions": measures.no_at_fault_collisions,
+        "drivable_area_compliance": measures.drivable_area_compliance,
         "traffic_light_compliance": measures.traffic_light_compliance,
-        "driving_direction": driving_direction,
-        "ttc": measures.time_to_collision_within_bound,
-        "comfortable": comfort,
+        "driving_direction_compliance": driving_direction,
+        "time_to_collision_within_bound": measures.time_to_collision_within_bound,
+        "comfort": comfort,
         "lane_keeping": measures.lane_keeping,
         "history_comfort": with_history,
     }
-    multiplier_rows = {name: row_values[name] for name in config.multiplier_rows}
+    multiplier_rows = {row: columns[RESULT_COLUMN_OF_ROW[row]] for row in config.multiplier_rows}
     multipliers = np.stack(list(multiplier_rows.values()))
-    ego_progress = normalized_progress(
+    columns["ego_progress"] = normalized_progress(
         measures.progress_raw,
         multipliers.prod(axis=0),
         config.progress_distance_threshold,
         config.progress_normalisation,
     )
-    weighted_rows = {name: ego_progress if name == "progress" else row_values[name] for name in weights}
+    weighted_rows = {row: columns[RESULT_COLUMN_OF_ROW[row]] for row in weights}
     score = aggregate(multipliers, np.stack(list(weighted_rows.values())), np.array(list(weights.values())))
 
     return ProposalScores(
-        no_at_fault_collisions=measures.no_at_fault_collisions,
-        drivable_area_compliance=measures.drivable_area_compliance,
-        driving_direction_compliance=driving_direction,
-        ego_progress=ego_progress,
-        time_to_collision_within_bound=measures.time_to_collision_within_bound,
-        comfort=comfort,
-        traffic_light_compliance=measures.traffic_light_compliance,
-        lane_keeping=measures.lane_keeping,
-        history_comfort=with_history,
+        **columns,
         score=score,
         progress_raw=measures.progress_raw,
         collision_index=measures.collision_index,

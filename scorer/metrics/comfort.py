@@ -188,7 +188,7 @@ def comfort_checks(series: FloatArray, step_s: float, windows: Windows = V1_WIND
     )
 
 
-def is_comfortable(series: FloatArray, step_s: float, windows: Windows = V1_WINDOWS) -> BoolArray:
-    """Return whether each proposal passes all six comfort checks (B, P), from each token's proposals'
+def is_comfortable(series: FloatArray, step_s: float) -> BoolArray:
+    """Return whether each proposal passes all six comfort checks of v1.x (B, P), from each token's proposals'
     `comfort_series` (B, P, n, 4)."""
-    return cast(BoolArray, comfort_checks(series, step_s, windows).all(axis=-1))
+    return cast(BoolArray, comfort_checks(series, step_s).all(axis=-1))

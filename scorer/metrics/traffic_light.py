@@ -51,7 +51,7 @@ def traffic_light_compliance(
     # The first contact: earliest step, then the light's place in the map (its file order).
     order = np.lexsort((item, step, row))
     row, step, item = row[order], step[order], item[order]
-    first = np.flatnonzero(np.r_[True, row[1:] != row[:-1]]) if len(row) else np.empty(0, dtype=np.intp)
-    first_index[row[first]] = step[first]
-    first_light[row[first]] = item[first] - start[row_token[row[first]]]
+    hit_rows, first = np.unique(row, return_index=True)
+    first_index[hit_rows] = step[first]
+    first_light[hit_rows] = item[first] - start[row_token[hit_rows]]
     return scores, first_index, first_light
