@@ -134,16 +134,19 @@ def wait_until_done(client: httpx.Client, submission_id: int, poll_s: float = 1.
 
 
 def results_table(state: dict[str, Any]) -> Table:
-    """Return a table of a scored submission: PDMS, 95% interval and failed tokens per version and subset."""
+    """Return a table of a scored submission: the score (PDMS or EPDMS), 95% interval and failed tokens per
+    version and subset."""
+    from scorer.versions import VERSIONS, VersionName  # plain data: no engine import
+
     table = Table(title=f"submission {state['id']}: {escape(state['method'])}")
-    for column in ("version", "subset", "PDMS", "95% CI", "seeds", "failed tokens"):
+    for column in ("version", "subset", "score", "95% CI", "seeds", "failed tokens"):
         table.add_column(column)
     for version, subsets in sorted(state["results"].items()):
         for subset, result in subsets.items():
             low, high = result["ci95"]
             score = result["score"]
             table.add_row(
-                version,
+                f"{VERSIONS[VersionName(version)].score_label} {version}",
                 subset,
                 "-" if score is None else f"{score:.4f}",
                 f"[{low:.4f}, {high:.4f}]",

@@ -168,7 +168,8 @@ def plot(
         raise fail(str(error)) from None
     out.write_bytes(render(explanation, image_format))
     score = explanation.metrics["score"]
-    console.print(f"{token}: PDMS {version} {100 * score:.1f}; wrote {out}")
+    label = VERSIONS[explanation.version].score_label
+    console.print(f"{token}: {label} {version} {100 * score:.1f}; wrote {out}")
     for infraction in explanation.infractions:
         involved = (
             f" with {infraction.object_type} {infraction.object_token}" if infraction.object_token else ""

@@ -11,7 +11,7 @@ import hashlib
 import itertools
 import logging
 import math
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -196,9 +196,10 @@ def _checked_poses(poses: object) -> FloatArray:
     return array
 
 
-def _row(
+def token_result(
     cache: MetricCache, seed: int | None, scores: ProposalScores, index: int, version: MetricVersion
 ) -> TokenResult:
+    """Return the agent's row of token `index` in `scores`, the token scored alone (v2.2: filtered, EC undefined)."""
     agent = {
         column: float(getattr(scores, column)[index, 1])
         for column in version.result_columns
@@ -297,7 +298,9 @@ def _scored(
         # One diverging trajectory must not fail its neighbours: score them one by one.
         return [item for c, p in zip(caches, poses, strict=True) for item in _score_one(c, p, version, seed)]
     return [
-        ScoredToken(_row(cache, seed, scores, index, version), cache.log_name, cache.t0_us, states[index])
+        ScoredToken(
+            token_result(cache, seed, scores, index, version), cache.log_name, cache.t0_us, states[index]
+        )
         for index, cache in enumerate(caches)
     ]
 
@@ -319,14 +322,23 @@ def score_tokens(
     tokens: Sequence[str] | None = None,
     seed: int | None = None,
     progress: Callable[[int], None] | None = None,
+    context: Sequence[str] = (),
 ) -> list[TokenResult]:
-    """Return one result per token (all tokens of the split by default), building whatever the cache lacks."""
+    """Return one result per token (all tokens of the split by default), building whatever the cache lacks.
+
+    `context` tokens are scored too, under a version with two-frame comfort, for their rows to pair with
+    `tokens` (`pairing_contexts`), and are not returned.
+    """
     metric_version = get_version(version)
     paths = scene_paths(split_dir)
     tokens = list(paths) if tokens is None else list(tokens)
+    if metric_version.two_frame_extended_comfort_weight is None:
+        context = ()
+    requested = set(tokens)
+    scored_tokens = tokens + [token for token in dict.fromkeys(context) if token not in requested]
     results: list[TokenResult | ScoredToken] = []
-    for start in range(0, len(tokens), CHUNK_SIZE):
-        chunk = tokens[start : start + CHUNK_SIZE]
+    for start in range(0, len(scored_tokens), CHUNK_SIZE):
+        chunk = scored_tokens[start : start + CHUNK_SIZE]
         ready: list[tuple[MetricCache, FloatArray]] = []
         unbuilt: list[tuple[str, FloatArray]] = []
         for token in chunk:
@@ -361,7 +373,7 @@ def score_tokens(
     rows = [item for item in results if isinstance(item, TokenResult)]
     rows += join_two_frame_comfort(scored, metric_version) if scored else []
     order = {token: index for index, token in enumerate(tokens)}
-    return sorted(rows, key=lambda result: order[result.token])
+    return sorted((row for row in rows if row.token in order), key=lambda result: order[result.token])
 
 
 def summarize(results: Sequence[TokenResult], columns: Sequence[str] = METRIC_COLUMNS) -> dict[str, float]:
@@ -401,6 +413,39 @@ def adjacent_pairs(scored: Sequence[ScoredToken]) -> dict[int, int]:
         for previous, current in itertools.pairwise(members)
         if abs(start_s[current] - start_s[previous]) <= ADJACENT_GAP_S
     }
+
+
+def pairing_contexts(
+    starts: Mapping[str, tuple[str, int]], groups: Sequence[Collection[str]]
+) -> list[list[str]]:
+    """Return, for each group of tokens scored on its own, the tokens outside it that two-frame comfort may pair
+    its tokens with: the frames of the same log that start at most ADJACENT_GAP_S before a token (ties too).
+
+    Scored beside a group (`score_tokens`' `context`), they give each token the EC it gets when the whole split
+    is scored at once: `adjacent_pairs` pairs a token with the latest valid frame before it in its log, and with
+    none when that frame is further away. `starts` is token -> (log name, t0 in us), `scene_start`'s answer.
+    """
+    by_log: dict[str, list[str]] = {}
+    for token, (log_name, _) in starts.items():
+        if not is_synthetic(token):
+            by_log.setdefault(log_name, []).append(token)
+    start_s = {token: t0_us * 1e-6 for token, (_, t0_us) in starts.items()}
+    position: dict[str, tuple[list[str], int]] = {}
+    for members in by_log.values():
+        members.sort(key=lambda token: (start_s[token], token))
+        position.update((token, (members, index)) for index, token in enumerate(members))
+    contexts = []
+    for group in groups:
+        context: dict[str, None] = {}
+        for token in group:
+            members, index = position.get(token, ([], 0))
+            earlier = index - 1
+            while earlier >= 0 and abs(start_s[token] - start_s[members[earlier]]) <= ADJACENT_GAP_S:
+                if members[earlier] not in group:
+                    context[members[earlier]] = None
+                earlier -= 1
+        contexts.append(list(context))
+    return contexts
 
 
 def join_two_frame_comfort(scored: Sequence[ScoredToken], version: MetricVersion) -> list[TokenResult]:

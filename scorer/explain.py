@@ -15,13 +15,19 @@ from pathlib import Path
 import numpy as np
 
 from scorer.cache import MetricCache, load_cache
-from scorer.evaluate import TokenError, build_missing_caches, score_against_references
+from scorer.evaluate import (
+    ROW_COLUMNS,
+    TokenError,
+    build_missing_caches,
+    score_against_references,
+    token_result,
+)
 from scorer.geometry import FloatArray
 from scorer.metrics.ego_areas import EgoArea
 from scorer.scene import load_scene, scene_file_hash
 from scorer.simulation import simulate
 from scorer.trajectory import SCORING_INTERVAL_S, initial_state, pdm_references
-from scorer.versions import METRIC_COLUMNS, VERSIONS, VersionName, get_version
+from scorer.versions import VERSIONS, VersionName, get_version
 
 AGENT = 1  # proposal 0 is the PDM-Closed reference
 
@@ -41,7 +47,7 @@ class Infraction:
 class Explanation:
     token: str
     version: VersionName
-    metrics: dict[str, float]  # the submission's result columns
+    metrics: dict[str, float]  # the submission's result columns, the token scored alone (v2.2's EC: NaN)
     reference_metrics: dict[str, float]  # PDM-Closed's, scored beside it
     reference_states: FloatArray  # (41, 11) PDM-Closed's trajectory as the simulator tracks it
     agent_states: FloatArray  # (41, 11) the submitted trajectory as the simulator tracks it
@@ -103,8 +109,12 @@ def explain_token(
     return Explanation(
         token=token,
         version=metric_version.name,
-        metrics={column: float(getattr(token_scores, column)[AGENT]) for column in METRIC_COLUMNS},
-        reference_metrics={column: float(getattr(token_scores, column)[0]) for column in METRIC_COLUMNS},
+        metrics=token_result(cache, None, scores, 0, metric_version).metrics,
+        reference_metrics={
+            column: float(getattr(token_scores, column)[0])
+            for column in metric_version.result_columns
+            if column in ROW_COLUMNS
+        },
         reference_states=reference_states,
         agent_states=agent_states[0],
         human_future=np.array([(frame.ego.x, frame.ego.y, frame.ego.heading) for frame in future]).reshape(

@@ -498,6 +498,24 @@ def load_scene(path: Path | str) -> Scene:
     return scene
 
 
+def scene_start(path: Path) -> tuple[str, int]:
+    """Return a scene file's log name and its current frame's timestamp (us), without building the scene: where
+    the scene sits in its log, which v2.2's two-frame comfort pairs by (`scorer.evaluate.pairing_contexts`)."""
+    try:
+        raw = json.loads(_decompress(path.read_bytes(), path))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise SceneFormatError(f"{path}: (file): not valid JSON ({error})") from None
+    reader = _Reader(str(path))
+    frames = reader.get(raw, "frames", "")
+    index = reader.integer(reader.get(raw, "current_index", ""), "current_index")
+    if not isinstance(frames, list) or not 0 <= index < len(frames):
+        raise reader.fail("frames", f"no frame at current_index {index}")
+    where = f"frames[{index}]"
+    return reader.string(raw, "log_name", ""), reader.integer(
+        reader.get(frames[index], "timestamp_us", where), f"{where}.timestamp_us"
+    )
+
+
 def scene_paths(split_dir: Path | str) -> dict[str, Path]:
     """Return token -> scene file of a split directory (`<split>/scenes/<token>.json[.gz]`), sorted by token."""
     scenes_dir = Path(split_dir) / "scenes"

@@ -185,6 +185,15 @@ VERSIONS: dict[VersionName, MetricVersion] = {
 }
 
 
+# Every version's result columns, in result-table order: what the board stores per token and per entry.
+ALL_RESULT_COLUMNS = tuple(
+    sorted(
+        {column for version in VERSIONS.values() for column in version.result_columns},
+        key=list(METRIC_LABELS).index,
+    )
+)
+
+
 def get_version(name: str) -> MetricVersion:
     """Return the registered metric version `name`, or raise with the list of known versions."""
     try:

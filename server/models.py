@@ -24,6 +24,7 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
     false,
+    text,
 )
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
@@ -144,6 +145,9 @@ class Split(Base):
     # Whether teams may see its scenes (maps, objects) in drill-down pictures; a hidden test split never.
     scenes_public: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
+    # token -> [log name, t0 in us] of its scenes, read once when a run is first planned on the split
+    # (server.services.splits.scene_starts); large, so loaded only when asked for.
+    scene_starts: Mapped[dict[str, list[Any]] | None] = mapped_column(JSON, deferred=True)
 
     subsets: Mapped[list[SplitSubset]] = relationship(back_populates="split", cascade="all, delete-orphan")
 
@@ -278,6 +282,9 @@ class ScoringChunk(Base):
     submission_id: Mapped[int] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"))
     run: Mapped[int] = mapped_column(Integer)
     tokens: Mapped[list[str]] = mapped_column(JSON)
+    # Earlier frames of the tokens' logs that other chunks hold: scored too, for v2.2's two-frame comfort
+    # to pair with, never written (scorer.evaluate.pairing_contexts).
+    context: Mapped[list[str]] = mapped_column(JSON, default=list, server_default=text("'[]'"))
     state: Mapped[str] = mapped_column(String(16), default=ChunkState.queued, index=True)
     # Worker processes that died while scoring these tokens (inherited by the chunks of a split).
     deaths: Mapped[int] = mapped_column(Integer, default=0)
@@ -290,14 +297,19 @@ class ScoringChunk(Base):
 
 
 class MetricColumns:
-    """The seven result columns of the devkit (scorer.versions.METRIC_COLUMNS)."""
+    """Every metric version's result columns (scorer.versions.ALL_RESULT_COLUMNS); a column a version lacks, or
+    leaves undefined (v2.2's EC without an adjacent frame), is null."""
 
     no_at_fault_collisions: Mapped[float | None] = mapped_column(Float)
     drivable_area_compliance: Mapped[float | None] = mapped_column(Float)
     driving_direction_compliance: Mapped[float | None] = mapped_column(Float)
+    traffic_light_compliance: Mapped[float | None] = mapped_column(Float)
     ego_progress: Mapped[float | None] = mapped_column(Float)
     time_to_collision_within_bound: Mapped[float | None] = mapped_column(Float)
     comfort: Mapped[float | None] = mapped_column(Float)
+    lane_keeping: Mapped[float | None] = mapped_column(Float)
+    history_comfort: Mapped[float | None] = mapped_column(Float)
+    two_frame_extended_comfort: Mapped[float | None] = mapped_column(Float)
     score: Mapped[float | None] = mapped_column(Float)
 
 
@@ -318,6 +330,8 @@ class TokenResultRow(MetricColumns, Base):
     worker: Mapped[str] = mapped_column(String(300), default="")
     duration_s: Mapped[float] = mapped_column(Float, default=0.0)  # this token's share of its chunk's time
     scored_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
+    # How the row came about, as a team may read it (v2.2: the human filter's overrides, EC's partner).
+    detail: Mapped[dict[str, Any] | None] = mapped_column(JSON)
 
 
 class Result(MetricColumns, Base):
@@ -391,6 +405,8 @@ class Rescore(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     metric_version: Mapped[str] = mapped_column(String(16))
+    # The version of the ranking before (null in rescores made before it could differ: `metric_version`).
+    before_version: Mapped[str | None] = mapped_column(String(16))
     subset: Mapped[str] = mapped_column(String(64))
     phase_id: Mapped[int] = mapped_column(ForeignKey("phases.id"))
     before: Mapped[list[dict[str, Any]]] = mapped_column(JSON)

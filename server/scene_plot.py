@@ -9,6 +9,7 @@ the first infraction of each kind, with the object involved drawn in red at that
 from __future__ import annotations
 
 import io
+import math
 from typing import Any
 
 import numpy as np
@@ -17,7 +18,7 @@ from scorer.drivable_map import CARPARK_AREA, INTERSECTION, LANE, LANE_CONNECTOR
 from scorer.explain import Explanation
 from scorer.metrics.ego_box import ego_box_points, ego_corners
 from scorer.trajectory import SCORING_INTERVAL_S, StateIndex
-from scorer.versions import METRIC_LABELS
+from scorer.versions import METRIC_LABELS, VERSIONS
 
 MARGIN_M = 25.0
 FUTURE_EVERY = 10  # draw objects' future boxes every 1 s
@@ -173,11 +174,14 @@ def render(explanation: Explanation, image_format: str = "png") -> bytes:
     axes.set_ylabel("y (m from the ego's start)")
     axes.legend(loc="upper left", fontsize=8, framealpha=0.9)
     metrics = explanation.metrics
-    subscores = "  ".join(
-        f"{METRIC_LABELS[column]} {100 * value:.1f}" for column, value in metrics.items() if column != "score"
+    subscores = "  ".join(  # an undefined value (v2.2's EC of a token drawn alone) is left out
+        f"{METRIC_LABELS[column]} {100 * value:.1f}"
+        for column, value in metrics.items()
+        if column != "score" and not math.isnan(value)
     )
+    score_label = VERSIONS[explanation.version].score_label
     axes.set_title(
-        f"{explanation.token} · PDMS {explanation.version} {100 * metrics['score']:.1f}\n{subscores}",
+        f"{explanation.token} · {score_label} {explanation.version} {100 * metrics['score']:.1f}\n{subscores}",
         fontsize=10,
     )
     buffer = io.BytesIO()

@@ -150,7 +150,11 @@ class TokenRow(BaseModel):
     seed: int
     valid: bool
     error: str | None
-    metrics: dict[str, float | None]
+    metrics: dict[str, float | None] = Field(description="the version's result columns; null where undefined")
+    detail: dict[str, Any] = Field(
+        default_factory=dict,
+        description="how the row came about (v2.2: the human filter's overrides, two-frame comfort's partner)",
+    )
 
 
 class LeaderboardRow(BaseModel):
@@ -178,6 +182,8 @@ class LeaderboardRow(BaseModel):
 
 class LeaderboardOut(BaseModel):
     version: VersionName
+    score_label: str = Field(description="the score's name in the papers: PDMS (v1.x) or EPDMS (v2.2)")
+    official_code: str = Field(description="the official code whose results this version reproduces")
     phase: str
     split: str
     subset: str
@@ -297,6 +303,11 @@ class RescoreIn(BaseModel):
     version: VersionName = DEFAULT_VERSION
     subset: str | None = None
     phase: str | None = None
+    compare_with: VersionName | None = Field(
+        None,
+        description="the version whose ranking before the rescore the report compares with: by default `version`, "
+        "or, when `version` has no entry yet (a version new on the board), the default version",
+    )
 
 
 class SplitIn(BaseModel):
@@ -332,6 +343,9 @@ class RankMove(BaseModel):
 class RescoreReport(BaseModel):
     id: int
     version: VersionName
+    before_version: VersionName = Field(description="the version of the ranking before (usually `version`)")
+    score_label: str = Field(description="PDMS or EPDMS: the score of `version`")
+    before_score_label: str
     subset: str
     phase: str
     created_at: datetime

@@ -19,7 +19,7 @@ from sqlalchemy import create_engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from navsim_lb.scratch import scratch_postgres_database
-from scorer.versions import METRIC_COLUMNS
+from scorer.versions import ALL_RESULT_COLUMNS, VERSIONS
 from server.db import make_engine, make_session_factory, transaction
 from server.main import create_app
 from server.migrate import upgrade
@@ -200,7 +200,7 @@ def token_results(scores: dict[str, float | None], seed: int = 0) -> list[object
     from scorer.evaluate import TokenResult
 
     return [
-        TokenResult(token, seed, True, dict.fromkeys(METRIC_COLUMNS, score))
+        TokenResult(token, seed, True, dict.fromkeys(ALL_RESULT_COLUMNS, score))
         if score is not None
         else TokenResult(token, seed, False, {}, "poses: non-finite value")
         for token, score in scores.items()
@@ -211,7 +211,7 @@ def score_run(
     factory: sessionmaker[Session],
     submission_id: int,
     per_seed: list[dict[str, float | None]],
-    versions: tuple[str, ...] = ("v1.0", "v1.1"),
+    versions: tuple[str, ...] = tuple(VERSIONS),
     chunk: int = 16,
 ) -> None:
     """Play a worker: claim, write every (version, seed) in chunks through the services, then mark scored."""

@@ -18,9 +18,10 @@ from server_testing import (
     uniform,
     upload_of,
 )
+from sqlalchemy import delete
 
 from server.db import transaction
-from server.models import Approval, Submission, utc_now
+from server.models import Approval, Submission, Summary, utc_now
 from server.services.submissions import create_submission
 from server.services.workers import record_heartbeat
 
@@ -109,6 +110,45 @@ def test_rescore_all_reports_rank_changes(world: World) -> None:
     ]
     assert report["kendall_tau"] == pytest.approx(1 / 3)
     assert "rescore_all" in _audit_actions(world)
+
+
+def test_rescoring_under_a_version_new_on_the_board_reports_ranks_against_the_default_version(
+    world: World,
+) -> None:
+    """Entries scored before v2.2 was on the board have no v2.2 summary: "rescore all under v2.2" compares the
+    v2.2 ranking after with the v1.1 ranking before (or with the version the organiser names)."""
+    beta, _ = add_team(world.factory, "beta")
+    a = submit_scored(world, world.team_id, b"a", [uniform(0.9)], "A")
+    b = submit_scored(world, beta, b"b", [uniform(0.8)], "B")
+    with transaction(world.factory) as session:  # as stored before v2.2 was on the board
+        session.execute(delete(Summary).where(Summary.metric_version == "v2.2"))
+    assert _board_rows(world, "v2.2") == []
+    started = world.client.post(
+        "/api/v1/admin/rescore", json={"version": "v2.2"}, headers=world.admin_headers()
+    )
+    assert started.status_code == 202 and started.json()["queued"] == 2
+    for submission_id, score in ((a, 0.7), (b, 0.75)):
+        score_run(world.factory, submission_id, [uniform(score)])
+    report = world.client.get(started.json()["report"], headers=world.admin_headers()).json()
+    assert (report["version"], report["before_version"]) == ("v2.2", "v1.1")
+    assert (report["score_label"], report["before_score_label"]) == ("EPDMS", "PDMS")
+    assert [(m["team"], m["rank_before"], m["rank_after"]) for m in report["moved"]] == [
+        ("beta", 2, 1),
+        ("alpha", 1, 2),
+    ]
+    named = world.client.post(
+        "/api/v1/admin/rescore",
+        json={"version": "v2.2", "compare_with": "v1.0"},
+        headers=world.admin_headers(),
+    )
+    again = world.client.get(named.json()["report"], headers=world.admin_headers()).json()
+    assert again["before_version"] == "v1.0" and again["complete"] is False
+
+
+def _board_rows(world: World, version: str) -> list[dict]:
+    response = world.client.get("/api/v1/leaderboard", params={"version": version})
+    assert response.status_code == 200, response.text
+    return list(response.json()["rows"])
 
 
 def test_export_lists_every_scored_submission_with_flags(world: World) -> None:

@@ -29,9 +29,9 @@ from engine_process import run_python
 
 from scorer.blas import KEEP_VARIABLE
 from scorer.cache import load_cache
-from scorer.evaluate import TokenResult, build_split_cache, score_tokens, summarize
+from scorer.evaluate import TokenResult, build_split_cache, pairing_contexts, score_tokens, summarize
 from scorer.human import FILTERED_COLUMNS
-from scorer.scene import scene_file_hash, scene_paths
+from scorer.scene import scene_file_hash, scene_paths, scene_start
 from scorer.submission import load_submission
 from scorer.versions import EPDMS_COLUMNS
 
@@ -250,3 +250,34 @@ def test_where_the_official_script_crashes_the_engine_scores(tmp_path: Path) -> 
     multipliers = np.prod([result.metrics[c] for c in EPDMS_COLUMNS[:4]])
     assert result.metrics["score"] == pytest.approx(multipliers * weighted / 14, abs=1e-12)
     shutil.rmtree(tmp_path / "cache-alone")
+
+
+def _same_row(ours: TokenResult, whole: TokenResult) -> bool:
+    metrics_equal = ours.metrics.keys() == whole.metrics.keys() and all(
+        ours.metrics[c] == whole.metrics[c] or (math.isnan(ours.metrics[c]) and math.isnan(whole.metrics[c]))
+        for c in ours.metrics
+    )
+    return metrics_equal and (ours.valid, ours.error, ours.detail) == (whole.valid, whole.error, whole.detail)
+
+
+@pytest.mark.parametrize("group_size", [1, 3, 17])
+def test_groups_scored_with_their_contexts_equal_the_whole_split(group_size: int, cache_dir: Path) -> None:
+    """The board scores a submission in chunks, each with the earlier frames other chunks hold
+    (`pairing_contexts`): every row, EC and its partner included, equals the row of the whole split at once.
+    Without the contexts, EC would differ (the check below that they matter)."""
+    split = SPLITS["probes"]
+    path = split / "submissions" / "swerve_left.json"
+    poses = load_submission(path.read_bytes(), path.name).seeds[0]
+    whole = {r.token: r for r in score_tokens(split, cache_dir, poses, VERSION)}
+    starts = {token: scene_start(scene_path) for token, scene_path in scene_paths(split).items()}
+    tokens = list(np.random.default_rng(group_size).permutation(list(starts)))
+    groups = [tokens[start : start + group_size] for start in range(0, len(tokens), group_size)]
+    without_context = []
+    for group, context in zip(groups, pairing_contexts(starts, groups), strict=True):
+        assert not set(context) & set(group)
+        rows = score_tokens(split, cache_dir, poses, VERSION, group, context=context)
+        assert [row.token for row in rows] == group
+        assert [row.token for row in rows if not _same_row(row, whole[row.token])] == []
+        alone = score_tokens(split, cache_dir, poses, VERSION, group)
+        without_context += [row.token for row in alone if not _same_row(row, whole[row.token])]
+    assert len(without_context) > 10

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -11,10 +12,11 @@ from devkit_kernels import UNDER_DEVKIT_KERNELS, V1_VERSIONS, devkit_tolerance
 from typer.testing import CliRunner
 
 from navsim_lb.cli import app
+from scorer.evaluate import score_tokens
 from scorer.explain import explain_token
 from scorer.scene import scene_paths
 from scorer.submission import load_submission
-from scorer.versions import METRIC_COLUMNS
+from scorer.versions import EPDMS_COLUMNS, METRIC_COLUMNS
 from server.scene_plot import render
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -99,3 +101,20 @@ def test_plot_command_writes_the_picture_and_names_the_infractions(cache_dir: Pa
     assert out.read_bytes().startswith(b"\x89PNG") and "collision at 3.6 s with VEHICLE" in result.output
     wrong = CliRunner().invoke(app, ["plot", *arguments, "--out", str(tmp_path / "x.gif")])
     assert wrong.exit_code == 2 and "must end in .png or .svg" in wrong.output
+
+
+def test_a_v2_2_explanation_is_the_tokens_row_scored_alone_and_its_picture_names_epdms(
+    cache_dir: Path,
+) -> None:
+    """Under v2.2 the picture shows the row the split gives a token without an adjacent frame: the human filter
+    applied, EC undefined (left out of the title), the score over /14."""
+    predictions = _predictions(REFERENCE, "swerve_offroad")
+    token = next(iter(predictions))
+    (row,) = score_tokens(REFERENCE, cache_dir, predictions, "v2.2", [token])
+    explanation = explain_token(scene_paths(REFERENCE)[token], cache_dir, token, predictions[token], "v2.2")
+    assert set(explanation.metrics) == set(EPDMS_COLUMNS)
+    assert math.isnan(explanation.metrics["two_frame_extended_comfort"])
+    assert {k: v for k, v in explanation.metrics.items() if k != "two_frame_extended_comfort"} == {
+        k: v for k, v in row.metrics.items() if k != "two_frame_extended_comfort"
+    }
+    assert render(explanation, "svg").count(b"EPDMS v2.2") == 1

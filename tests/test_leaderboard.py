@@ -3,16 +3,31 @@ per team, multi-seed spread, unscored tokens counting 0, bootstrap intervals, ba
 
 from __future__ import annotations
 
+import math
 from datetime import timedelta
 
 import numpy as np
 import pytest
-from server_testing import World, add_phase, add_team, reference_tokens, score_run, submit_scored, uniform
+from server_testing import (
+    World,
+    add_phase,
+    add_team,
+    phase_row,
+    reference_tokens,
+    score_run,
+    submit_scored,
+    team_row,
+    uniform,
+    upload_of,
+)
 
+from scorer.evaluate import TokenResult
+from scorer.versions import EPDMS_COLUMNS, VERSIONS
 from server.db import transaction
 from server.models import Submission, utc_now
 from server.services.leaderboard import bootstrap_ci, rank_change_report
-from server.services.submissions import add_baselines
+from server.services.scoring import claim_submission, mark_scored, write_chunk_results
+from server.services.submissions import add_baselines, create_submission
 
 TOKENS = reference_tokens()
 
@@ -202,6 +217,71 @@ def test_both_versions_are_served(world: World) -> None:
         "drivable_area_compliance",
         "driving_direction_compliance",
     ]
+
+
+def _scored_with_undefined_ec(world: World, undefined: set[str]) -> int:
+    """Score a submission whose v2.2 rows leave EC undefined (NaN: no frame before) on `undefined` tokens."""
+    with transaction(world.factory) as session:
+        upload = upload_of(f"ec {len(undefined)}".encode(), method="EC")
+        submission, _ = create_submission(
+            session,
+            team_row(session, world.team_id),
+            phase_row(session, "test"),
+            upload,
+            world.settings.storage_dir,
+        )
+        run = claim_submission(session, submission.id, "w")
+        assert run is not None
+        for version in VERSIONS:
+            rows = [
+                TokenResult(
+                    token,
+                    0,
+                    True,
+                    dict.fromkeys(VERSIONS[version].result_columns, 0.5)
+                    | {"two_frame_extended_comfort": math.nan if token in undefined else 1.0},
+                    detail={"two_frame_extended_comfort": {"previous_token": "x"}}
+                    if token not in undefined
+                    else {},
+                )
+                for token in TOKENS
+            ]
+            assert write_chunk_results(session, submission.id, run, version, rows, "w", 1.0)
+        assert mark_scored(session, submission.id, run, "test-engine", 100)
+        return submission.id
+
+
+def test_v2_2_board_has_its_columns_its_official_code_and_ec_over_the_tokens_that_define_it(
+    world: World,
+) -> None:
+    submission_id = _scored_with_undefined_ec(world, set(TOKENS[:30]))
+    board = _board(world, version="v2.2")
+    assert board["score_label"] == "EPDMS" and "tag v2.2, commit 359c7f7" in board["official_code"]
+    assert board["columns"] == [column for column in EPDMS_COLUMNS if column != "score"]  # the official CSV's
+    (row,) = board["rows"]
+    # EC's mean skips the 30 tokens without a pair, as the official average row does; the rest count all tokens.
+    assert row["two_frame_extended_comfort"] == 1.0 and row["lane_keeping"] == 0.5
+    assert "two_frame_extended_comfort" not in _board(world, version="v1.1")["columns"]
+    team = world.team_headers()
+    tokens = world.client.get(
+        f"/api/v1/submissions/{submission_id}/tokens", params={"version": "v2.2"}, headers=team
+    )
+    by_token = {r["token"]: r for r in tokens.json()}
+    assert by_token[TOKENS[0]]["metrics"]["two_frame_extended_comfort"] is None
+    assert by_token[TOKENS[-1]]["detail"] == {"two_frame_extended_comfort": {"previous_token": "x"}}
+    v11 = world.client.get(
+        f"/api/v1/submissions/{submission_id}/tokens", params={"version": "v1.1"}, headers=team
+    ).json()
+    assert "two_frame_extended_comfort" not in v11[0]["metrics"]
+
+    undefined_everywhere = _scored_with_undefined_ec(world, set(TOKENS))
+    seen = world.client.get(f"/api/v1/submissions/{undefined_everywhere}", headers=team).json()
+    summary = seen["results"]["v2.2"]["all"]
+    assert summary["two_frame_extended_comfort"] is None and summary["score"] == pytest.approx(0.5)
+
+    page = world.client.get("/", params={"version": "v2.2"})
+    assert page.status_code == 200
+    assert "EPDMS v2.2" in page.text and "commit 359c7f7" in page.text and ">EC<" in page.text
 
 
 def test_web_page_shows_rows_baseline_flag_and_interval(world: World) -> None:

@@ -23,7 +23,9 @@ def _samples(world: World) -> dict[tuple[str, tuple[tuple[str, str], ...]], floa
 
 
 def test_metrics_count_runs_failures_chunks_and_scoring(world: World) -> None:
-    submit_scored(world, world.team_id, b"scored", [uniform(0.5)])  # 3 chunks of 0.5 s per version
+    submit_scored(
+        world, world.team_id, b"scored", [uniform(0.5)]
+    )  # 3 chunks of 0.5 s per version, 3 versions
     failed = claimed_submission(world, b"failed").id
     running = claimed_submission(world, b"running").id
     with transaction(world.factory) as session:
@@ -37,8 +39,8 @@ def test_metrics_count_runs_failures_chunks_and_scoring(world: World) -> None:
     assert samples[("navsim_lb_failed_runs", (("kind", "infrastructure"),))] == 1
     assert samples[("navsim_lb_chunks", (("state", "queued"),))] == 2
     assert samples[("navsim_lb_chunk_deaths_total", ())] == 0
-    assert samples[("navsim_lb_scored_tokens_total", ())] == 2 * 40  # two versions x 40 tokens
-    assert samples[("navsim_lb_scoring_seconds_total", ())] == 2 * 3 * 0.5
-    assert samples[("navsim_lb_tokens_per_second", ())] == 80 / 3.0
+    assert samples[("navsim_lb_scored_tokens_total", ())] == 3 * 40  # three versions x 40 tokens
+    assert samples[("navsim_lb_scoring_seconds_total", ())] == 3 * 3 * 0.5
+    assert samples[("navsim_lb_tokens_per_second", ())] == 120 / 4.5
     assert samples[("navsim_lb_queue_depth", ())] == 0  # the embedded broker, where the test sent nothing
     assert ("navsim_lb_workers", ()) in samples

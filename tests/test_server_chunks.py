@@ -6,8 +6,10 @@ from __future__ import annotations
 
 from datetime import datetime, timedelta
 
-from server_testing import World, claimed_submission, reference_tokens
+from server_testing import REFERENCE_DIR, World, claimed_submission, reference_tokens
 
+from scorer.evaluate import pairing_contexts
+from scorer.scene import scene_start
 from server.db import transaction
 from server.models import ChunkState, ScoringChunk, Submission, utc_now
 from server.services.chunks import (
@@ -23,9 +25,14 @@ from server.services.chunks import (
     start_chunk,
 )
 from server.services.scoring import cancel
+from server.services.splits import scene_starts
 from server.services.workers import LIVE_WITHIN_S
 
-TOKENS = reference_tokens()
+# In the order chunks take them: by log, then start time (scene_starts).
+PROBES = REFERENCE_DIR.parent / "epdms" / "probes"
+TOKENS = sorted(
+    reference_tokens(), key=lambda token: (scene_start(REFERENCE_DIR / "scenes" / f"{token}.json.gz"), token)
+)
 
 
 def _chunk(world: World, chunk_id: int) -> ScoringChunk:
@@ -123,3 +130,38 @@ def test_a_chunk_queued_since_before_the_cut_is_forgotten(world: World) -> None:
         (chunk,) = forgotten_chunks(session, utc_now() + timedelta(seconds=1))
         resend_chunk(session, chunk, died=False)
     assert _chunk(world, queued).deaths == 0  # lost by the broker is not a death
+
+
+def test_chunks_carry_the_earlier_frames_they_pair_with_and_so_do_the_chunks_of_a_split(world: World) -> None:
+    """v2.2's EC pairs a frame with the one 0.5 s earlier in its log: a chunk takes consecutive frames of a log,
+    and carries the earlier frames that other chunks hold (its context); split one token per chunk after a
+    death, each child carries its own, its former neighbours among them."""
+    submission = claimed_submission(world, b"contexts")
+    with transaction(world.factory) as session:
+        split = session.get(Submission, submission.id).split
+        split.directory = str(PROBES)  # twins 0.5 s and 1 s apart in one log
+        starts = scene_starts(session, split)
+    chunk_ids = _plan(world, submission, sorted(starts), 5)
+    chunks = [_chunk(world, chunk_id) for chunk_id in chunk_ids]
+    assert [chunk.context for chunk in chunks] == pairing_contexts(starts, [chunk.tokens for chunk in chunks])
+    alone = pairing_contexts(starts, [[token] for chunk in chunks for token in chunk.tokens])
+    assert 0 < sum(map(len, (chunk.context for chunk in chunks))) < sum(map(len, alone))
+
+    chunk = next(
+        chunk
+        for chunk in chunks
+        if any(
+            set(context) & set(chunk.tokens)
+            for context in pairing_contexts(starts, [[token] for token in chunk.tokens])
+        )
+    )
+    started = utc_now()
+    assert _start(world, chunk.id, "host/1", started) == StartAction.score
+    assert _kill(world, chunk.id, started) == [chunk.id]
+    with transaction(world.factory) as session:
+        split_up = start_chunk(session, chunk.id, 1, "host/2")
+    children = [_chunk(world, child) for child in split_up.children]
+    assert [child.context for child in children] == pairing_contexts(starts, [[t] for t in chunk.tokens])
+    assert any(set(child.context) & set(chunk.tokens) for child in children)
+    with transaction(world.factory) as session:
+        assert start_chunk(session, children[0].id, 1, "host/3").context == tuple(children[0].context)

@@ -28,6 +28,7 @@ from server.models import ChunkState, Result, ScoringChunk, Status, Submission, 
 from server.services.chunks import plan_chunks
 from server.services.errors import Conflict
 from server.services.scoring import (
+    BOARD_VERSIONS,
     cancel,
     claim_submission,
     load_job,
@@ -68,7 +69,7 @@ def test_job_holds_the_stored_file_and_the_split(world: World) -> None:
     with world.session() as session:
         job = load_job(session, submission_id, world.settings.storage_dir)
     assert (job.data, job.run, job.tokens, job.seed_count) == (b"file bytes", 1, tuple(TOKENS), 1)
-    assert job.versions == ("v1.0", "v1.1")
+    assert job.versions == ("v1.0", "v1.1", "v2.2")
 
 
 def _check_idempotent_chunks(factory: sessionmaker[Session], submission_id: int) -> None:
@@ -80,7 +81,9 @@ def _check_idempotent_chunks(factory: sessionmaker[Session], submission_id: int)
         with transaction(factory) as session:
             assert write_chunk_results(session, submission_id, run, "v1.1", chunk, "w1", 1.0)
     assert _rows(factory, submission_id) == 20
-    assert _get(factory, submission_id).progress == 25  # 20 of 40 tokens x 2 versions
+    assert _get(factory, submission_id).progress == 100 * 20 // (
+        40 * len(BOARD_VERSIONS)
+    )  # of 40 tokens x versions
     changed = token_results(uniform(0.25, TOKENS[:20]))
     with transaction(factory) as session:
         write_chunk_results(session, submission_id, run, "v1.1", changed, "w2", 1.0)
@@ -115,7 +118,10 @@ def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:
     with transaction(world.factory) as session:
         run = claim_submission(session, submission_id, "w1")
         write_chunk_results(session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1.0)
-    with pytest.raises(Conflict, match="40 of 80"), transaction(world.factory) as session:
+    with (
+        pytest.raises(Conflict, match=f"40 of {40 * len(BOARD_VERSIONS)}"),
+        transaction(world.factory) as session,
+    ):
         mark_scored(session, submission_id, 1, "e", 100)
     assert _get(world.factory, submission_id).status == Status.running
 
@@ -152,10 +158,11 @@ def test_a_rerun_keeps_the_old_results_until_it_is_scored(world: World) -> None:
     assert world.client.get("/api/v1/leaderboard").json()["rows"][0]["score"] == pytest.approx(0.6)
     with world.session() as session:
         results = session.scalars(select(Result).where(Result.submission_id == submission_id)).all()
-    # one row per (version, subset, seed): v1.0 and v1.1 on "all", with provenance
+    # one row per (version, subset, seed): every version on "all", with provenance
     assert sorted((r.metric_version, r.subset, r.seed) for r in results) == [
         ("v1.0", "all", 0),
         ("v1.1", "all", 0),
+        ("v2.2", "all", 0),
     ]
     assert {(r.engine_version, r.workers, r.tokens) for r in results} == {("test-engine", "test-worker", 40)}
     assert results[0].duration_s == pytest.approx(3 * 0.5)  # three chunks (16, 16, 8 tokens) of 0.5 s each

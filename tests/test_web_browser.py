@@ -152,6 +152,24 @@ def test_leaderboard_rows_sort_both_ways_by_any_column(demo: Demo, browser: Brow
     page.get_by_role("link", name="PDMS v1.0").click()
     expect(page.locator('th[data-key="driving_direction_compliance"]')).to_contain_text("multiplier")
     assert "version=v1.0" in page.url
+    page.get_by_role("link", name="EPDMS v2.2").click()
+    caption = page.locator("#leaderboard caption")
+    expect(caption).to_contain_text("EPDMS v2.2")
+    expect(caption).to_contain_text("tag v2.2, commit 359c7f7")  # the exact official code it reproduces
+    headers = page.locator("#leaderboard thead th").all_inner_texts()
+    assert [h.split("\n")[0] for h in headers[4:13]] == [
+        "NC",
+        "DAC",
+        "DDC",
+        "TLC",
+        "EP",
+        "TTC",
+        "LK",
+        "HC",
+        "EC",
+    ]
+    assert page.locator('th[data-key="score"]').inner_text().startswith("EPDMS")
+    _screenshot(page, "leaderboard-v2.2")
 
 
 def test_leaderboard_at_390_px_keeps_rank_and_pdms_in_view_without_sideways_scroll(
@@ -252,6 +270,10 @@ def test_a_team_signs_in_sees_every_problem_then_watches_its_upload_scored(
     page.select_option("#other", label=f"{_latest_id(demo) - 1}: Noisy human (demo)")
     expect(page.locator("#diff-counts")).to_contain_text("of 12 tokens both scored")
     _screenshot(page, "submission")
+    page.get_by_role("link", name="EPDMS v2.2").click()
+    expect(page.locator("#histograms figure")).to_have_count(1 + 9)  # EPDMS and its nine subscores
+    expect(page.locator("#worst thead")).to_contain_text("EPDMS")
+    _screenshot(page, "submission-v2.2")
 
     narrow = _page(browser, 390)
     narrow.goto(f"{demo.url}/team")  # the token is per tab: this one signs in again

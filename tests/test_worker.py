@@ -5,6 +5,7 @@ submission with a message while the worker goes on."""
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import shutil
@@ -29,6 +30,8 @@ from worker_testing import (
 
 from navsim_lb.scratch import scratch_redis_queue
 from scorer.blas import engine_provenance
+from scorer.evaluate import score_tokens
+from scorer.submission import load_submission
 from server.db import transaction
 from server.models import FailureKind, Result, Status, Submission, utc_now
 from server.queue import celery_client, enqueue_submission
@@ -40,6 +43,7 @@ from server.services.splits import create_phase, register_split
 from worker.app import CHUNK_TASK
 from worker.tasks import ENGINE_FAILURE
 
+PROBES = Path(__file__).parent / "fixtures" / "epdms" / "probes"
 REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
 MAX_ATTEMPTS = 3
 NAVSIM_LB = str(Path(sys.executable).parent / "navsim-lb")
@@ -85,7 +89,7 @@ def test_submit_cli_upload_is_scored_as_the_engine_scores_it(
     )
     assert done.returncode == 0, done.stderr
     submission_id = int(done.stdout.strip())
-    assert "PDMS" in done.stderr  # the results table
+    assert "PDMS v1.1" in done.stderr and "EPDMS v2.2" in done.stderr  # the results table
     submission = service.submission(submission_id)
     assert (submission.status, submission.progress, submission.seed_count) == (Status.scored, 100, 2)
     assert service.rows(submission_id) == len(entry.seeds[0]) * 2 * len(VERSIONS)
@@ -104,6 +108,11 @@ def test_submit_cli_upload_is_scored_as_the_engine_scores_it(
         assert row["seeds"]["count"] == 2
         # Equal up to summation order: the service averages seeds x tokens at once, the engine per seed.
         for column in ("score", *subscore_columns(version)):
+            if math.isnan(
+                expected[column]
+            ):  # v2.2's EC where no token has the frame before: null on the board
+                assert row[column] is None, (version, column)
+                continue
             assert row[column] == pytest.approx(expected[column], rel=1e-12, abs=1e-12), (version, column)
 
 
@@ -151,6 +160,55 @@ def test_redelivered_chunks_never_duplicate_rows(service: Service, synthetic_spl
     assert service.result(submission_id, "v1.1")["score"] == pytest.approx(
         direct_means(synthetic_split, entry, "v1.1")["score"], rel=1e-12
     )
+
+
+def test_chunks_with_their_contexts_store_the_v2_2_rows_of_the_whole_split(
+    service: Service, tmp_path: Path
+) -> None:
+    """v2.2's EC pairs adjacent frames of a log, which chunks may hold apart: a run in chunks of 7 tokens, each
+    scoring the earlier frames others hold beside its own, stores every row the engine gives the whole split at
+    once (EC and its partner, the human filter's overrides), on the probe split's twins 0.5 s and 1 s apart."""
+    name = f"probes-{tmp_path.name}"
+    with transaction(service.factory) as session:
+        split = register_split(session, name, PROBES)
+        create_phase(
+            session, name, split, opens_at=utc_now() - timedelta(days=30)
+        )  # "test" stays the default
+    path = PROBES / "submissions" / "swerve_left.json"
+    entry = load_submission(path.read_bytes(), path.name)
+    submission_id = service.stored(entry, phase=name)
+    with transaction(service.factory) as session:
+        run = claim_submission(session, submission_id, "test-coordinator")
+        chunks = plan_chunks(session, session.get(Submission, submission_id), sorted(entry.seeds[0]), 7)
+    sender = celery_client(service.settings)
+    for chunk in chunks:
+        sender.send_task(CHUNK_TASK, args=[submission_id, run, chunk])
+    assert service.final(submission_id).status == Status.scored
+    assert service.rows(submission_id) == len(entry.seeds[0]) * len(VERSIONS)
+
+    whole = {r.token: r for r in score_tokens(PROBES, service.settings.cache_dir, entry.seeds[0], "v2.2")}
+    with service.client() as client:
+        response = client.get(f"/api/v1/submissions/{submission_id}/tokens", params={"version": "v2.2"})
+    assert response.status_code == 200, response.text
+    stored = {row["token"]: row for row in response.json()}
+    assert stored.keys() == whole.keys()
+    paired = 0
+    for token, row in stored.items():
+        expected = whole[token]
+        assert row["valid"] == expected.valid, token
+        metrics = {column: math.nan if value is None else value for column, value in row["metrics"].items()}
+        assert metrics.keys() == expected.metrics.keys()
+        for column, value in expected.metrics.items():
+            assert value == metrics[column] or math.isnan(value) and math.isnan(metrics[column]), (
+                token,
+                column,
+            )
+        team_view = expected.detail | {
+            "human_filter": {k: v for k, v in expected.detail["human_filter"].items() if k != "human"}
+        }
+        assert row["detail"] == team_view, token  # the team does not see the human's own scores
+        paired += "previous_token" in row["detail"].get("two_frame_extended_comfort", {})
+    assert paired > 10  # the pairs the chunks cut apart were found
 
 
 def test_reaper_requeues_a_run_left_without_chunks_and_fails_one_out_of_attempts(

@@ -26,7 +26,7 @@ from scorer.evaluate import build_split_cache, score_tokens, summarize
 from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionMetadata, dump_submission_json
 from scorer.synth import synthesize_split
-from scorer.versions import METRIC_COLUMNS, VERSIONS
+from scorer.versions import VERSIONS, get_version
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import upgrade
 from server.models import ACTIVE_STATUSES, Approval, Phase, Scope, Submission, Team, TokenResultRow
@@ -91,11 +91,12 @@ def predictions(split_dir: Path, seeds: int, noise: float, method: str) -> Predi
 
 def direct_means(split: SplitFixture, submission: Predictions, version: str) -> dict[str, float]:
     """Return each metric column averaged over seeds and tokens, scored by scorer.evaluate directly."""
+    columns = get_version(version).result_columns
     per_seed = [
-        summarize(score_tokens(split.directory, split.cache_dir, poses, version, seed=seed))
+        summarize(score_tokens(split.directory, split.cache_dir, poses, version, seed=seed), columns)
         for seed, poses in enumerate(submission.seeds)
     ]
-    return {column: float(np.mean([summary[column] for summary in per_seed])) for column in METRIC_COLUMNS}
+    return {column: float(np.mean([summary[column] for summary in per_seed])) for column in columns}
 
 
 @dataclass

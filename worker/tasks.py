@@ -285,13 +285,17 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
             timed = {version: (rows, 0.0) for version, rows in _failed_rows(job, todo).items()}
         elif todo:  # a chunk whose rows were all written by an earlier holder only checks for completion
             predictions = _predictions(job)
+            # Tokens written already still pair with the rest for EC, as the chunk's context does.
+            context = [*start.context, *(token for token in start.tokens if token not in todo)]
             with beating(sessions, chunk_id, worker):
                 for version in job.versions:
                     started = perf_counter()
                     rows = [
                         row
                         for seed, poses in enumerate(predictions.seeds)
-                        for row in score_tokens(job.split_dir, settings.cache_dir, poses, version, todo, seed)
+                        for row in score_tokens(
+                            job.split_dir, settings.cache_dir, poses, version, todo, seed, context=context
+                        )
                     ]
                     timed[version] = rows, perf_counter() - started
 

@@ -234,10 +234,11 @@ def disqualify(
 
 @router.post("/rescore", status_code=202)
 def rescore(request: Request, session: SessionDep, admin: AdminDep, body: RescoreIn) -> RescoreStarted:
-    """Re-run every scored entry of a phase; the report compares the rankings under `version` before and after."""
+    """Re-run every scored entry of a phase; the report compares the ranking under `version` after with the one
+    under `compare_with` (by default `version`) before."""
     view = leaderboard_view(session, body.version, body.subset, "score", body.phase, admin=True)
     rescore_run, queued = actions.start_rescore(
-        session, admin, resolve_phase(session, view["phase"]), body.version, view["subset"]
+        session, admin, resolve_phase(session, view["phase"]), body.version, view["subset"], body.compare_with
     )
     session.commit()
     _enqueue(request, [submission.id for submission in queued])

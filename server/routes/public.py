@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse, Response
 from sqlalchemy import select, text
 from sqlalchemy.orm import Session
 
-from scorer.versions import DEFAULT_VERSION, VersionName
+from scorer.versions import DEFAULT_VERSION, VersionName, get_version
 from server.auth import SessionDep, TokenDep
 from server.migrate import current_revision
 from server.models import Approval, Phase, Scope, Split
@@ -68,8 +68,11 @@ def leaderboard_view(
         raise Forbidden(
             f"subset {subset!r} of phase {phase.name!r} is revealed when the phase closes ({closes})"
         )
+    metric_version = get_version(version)
     return {
         "version": version,
+        "score_label": metric_version.score_label,
+        "official_code": metric_version.official_code,
         "phase": phase.name,
         "split": phase.split.name,
         "subset": subset,

@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from scorer.versions import METRIC_COLUMNS
+from scorer.versions import get_version
 from server.models import Phase, Result, Submission, Summary, TokenResultRow
 from server.schemas import (
     AdminSubmissionOut,
@@ -157,8 +157,18 @@ def token_result_views(
             seed=row.seed,
             valid=row.valid,
             error=row.error,
-            metrics={column: getattr(row, column) for column in METRIC_COLUMNS},
+            metrics={column: getattr(row, column) for column in get_version(version).result_columns},
+            detail=_detail(row.detail or {}, admin),
         )
         for row in rows
         if row.token in allowed
     ]
+
+
+def _detail(detail: dict[str, Any], admin: bool) -> dict[str, Any]:
+    """Return a row's detail as the caller may read it: a team sees which columns the human filter set to 1
+    (the logged human scores 0 there too), not the rest of the human's scores on a hidden log."""
+    human_filter = detail.get("human_filter")
+    if admin or not human_filter:
+        return detail
+    return detail | {"human_filter": {k: v for k, v in human_filter.items() if k != "human"}}

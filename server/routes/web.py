@@ -24,6 +24,7 @@ from server.services.scoring import BOARD_VERSIONS
 WEB_DIR = Path(str(files("server.web")))
 TEMPLATES = Jinja2Templates(directory=WEB_DIR / "templates")
 router = APIRouter(include_in_schema=False)
+SCORE_LABELS = {name: VERSIONS[name].score_label for name in BOARD_VERSIONS}  # PDMS or EPDMS per version
 
 
 @router.get("/", response_class=HTMLResponse)
@@ -43,6 +44,7 @@ def leaderboard_page(
 
     context: dict[str, Any] = {
         "versions": list(BOARD_VERSIONS),
+        "score_labels": SCORE_LABELS,
         "phases": [p.name for p in session.scalars(select(Phase).order_by(Phase.opens_at.desc())).all()],
         "labels": METRIC_LABELS,
         "query": query,
@@ -76,7 +78,12 @@ def rescore_page(request: Request, rescore_id: RowId) -> HTMLResponse:
 @router.get("/team", response_class=HTMLResponse)
 def team_page(request: Request) -> HTMLResponse:
     """Sign in or register; upload with live progress, history, metadata and final-entry choice (team API)."""
-    return TEMPLATES.TemplateResponse(request, "team.html", {})
+    page = {
+        "versions": list(BOARD_VERSIONS),
+        "score_labels": SCORE_LABELS,
+        "default_version": DEFAULT_VERSION,
+    }
+    return TEMPLATES.TemplateResponse(request, "team.html", {"page": page})
 
 
 @router.get("/submissions/{submission_id}", response_class=HTMLResponse)
@@ -85,6 +92,7 @@ def submission_page(request: Request, submission_id: RowId) -> HTMLResponse:
     page = {
         "submission_id": submission_id,
         "versions": list(BOARD_VERSIONS),
+        "score_labels": SCORE_LABELS,
         "default_version": DEFAULT_VERSION,
         "labels": METRIC_LABELS,
         "ddc_roles": {name: VERSIONS[name].ddc_role for name in BOARD_VERSIONS},

@@ -15,6 +15,7 @@ from typing import Any
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
+from scorer.versions import DEFAULT_VERSION, get_version
 from server.models import (
     ApiToken,
     Approval,
@@ -249,10 +250,21 @@ def disqualify_submission(
 
 
 def start_rescore(
-    session: Session, actor: ApiToken | None, phase: Phase, version: str, subset: str
+    session: Session,
+    actor: ApiToken | None,
+    phase: Phase,
+    version: str,
+    subset: str,
+    compare_with: str | None = None,
 ) -> tuple[Rescore, list[Submission]]:
-    """Snapshot the leaderboard and queue a new run of every scored entry of the phase (baselines included)."""
-    before = leaderboard(session, phase, version, subset)
+    """Snapshot the leaderboard under `compare_with` and queue a new run of every scored entry of the phase
+    (baselines included). By default the snapshot is `version`'s, or the default version's when `version` ranks
+    no entry yet: rescoring under a version new on the board then reports how it reorders the board."""
+    before_version = compare_with or version
+    before = leaderboard(session, phase, before_version, subset)
+    if compare_with is None and not any(not row["baseline"] for row in before):
+        before_version = DEFAULT_VERSION
+        before = leaderboard(session, phase, before_version, subset)
     submissions = session.scalars(
         select(Submission)
         .where(
@@ -266,6 +278,7 @@ def start_rescore(
         reset_for_rerun(session, submission)
     rescore = Rescore(
         metric_version=version,
+        before_version=before_version,
         subset=subset,
         phase_id=phase.id,
         before=before,
@@ -280,6 +293,7 @@ def start_rescore(
         "phase",
         phase.name,
         version=version,
+        compared_with=before_version,
         subset=subset,
         rescore_id=rescore.id,
         submissions=len(submissions),
@@ -301,9 +315,13 @@ def rescore_report(session: Session, rescore_id: int) -> dict[str, Any]:
     report = rank_change_report(
         rescore.before, leaderboard(session, phase, rescore.metric_version, rescore.subset)
     )
+    before_version = rescore.before_version or rescore.metric_version
     return {
         "id": rescore.id,
         "version": rescore.metric_version,
+        "before_version": before_version,
+        "score_label": get_version(rescore.metric_version).score_label,
+        "before_score_label": get_version(before_version).score_label,
         "subset": rescore.subset,
         "phase": phase.name,
         "created_at": rescore.created_at.isoformat(),

@@ -27,6 +27,7 @@ from sqlalchemy import CursorResult, Select, func, select, update
 from sqlalchemy.orm import Session
 
 from server.models import ChunkState, ScoringChunk, Status, Submission, utc_now
+from server.services.splits import scene_starts
 from server.services.workers import LIVE_WITHIN_S
 
 POISON_DEATHS = 2
@@ -45,6 +46,7 @@ class ChunkStart:
     action: StartAction
     tokens: tuple[str, ...] = ()
     children: tuple[int, ...] = ()
+    context: tuple[str, ...] = ()  # scored beside the tokens for EC to pair with, not written
 
 
 def _current_run(session: Session, submission_id: int, run: int) -> bool:
@@ -52,10 +54,25 @@ def _current_run(session: Session, submission_id: int, run: int) -> bool:
     return submission is not None and submission.run == run and submission.status == Status.running
 
 
+def _with_contexts(session: Session, submission: Submission, groups: list[list[str]]) -> list[ScoringChunk]:
+    """Return queued chunks of the run for `groups` of tokens, each with the earlier frames it pairs with."""
+    from scorer.evaluate import pairing_contexts  # the engine is heavy: imported only where chunks are made
+
+    contexts = pairing_contexts(scene_starts(session, submission.split), groups)
+    return [
+        ScoringChunk(submission_id=submission.id, run=submission.run, tokens=group, context=context)
+        for group, context in zip(groups, contexts, strict=True)
+    ]
+
+
 def plan_chunks(
     session: Session, submission: Submission, tokens: Sequence[str], size: int, now: datetime | None = None
 ) -> list[int]:
-    """Record queued chunks of `size` for those of `tokens` no live chunk of the run holds; return their ids."""
+    """Record queued chunks of `size` for those of `tokens` no live chunk of the run holds; return their ids.
+
+    A chunk takes consecutive frames of a log (the split's tokens in log and time order) so that few of its
+    tokens need a context to pair with.
+    """
     held = {
         token
         for chunk_tokens in session.scalars(
@@ -67,26 +84,27 @@ def plan_chunks(
         )
         for token in chunk_tokens
     }
-    todo = [token for token in tokens if token not in held]
-    now = now or utc_now()
-    chunks = [
-        ScoringChunk(
-            submission_id=submission.id, run=submission.run, tokens=todo[start : start + size], sent_at=now
-        )
-        for start in range(0, len(todo), size)
-    ]
+    starts = scene_starts(session, submission.split)
+    todo = sorted(
+        (token for token in tokens if token not in held),
+        key=lambda token: (starts.get(token, ("", 0)), token),
+    )
+    chunks = _with_contexts(
+        session, submission, [todo[start : start + size] for start in range(0, len(todo), size)]
+    )
+    for chunk in chunks:
+        chunk.sent_at = now or utc_now()
     session.add_all(chunks)
     session.flush()
     return [chunk.id for chunk in chunks]
 
 
 def _split(session: Session, chunk: ScoringChunk, now: datetime) -> tuple[int, ...]:
-    children = [
-        ScoringChunk(
-            submission_id=chunk.submission_id, run=chunk.run, tokens=[token], deaths=chunk.deaths, sent_at=now
-        )
-        for token in chunk.tokens
-    ]
+    submission = session.get(Submission, chunk.submission_id)
+    assert submission is not None  # start_chunk checked the run
+    children = _with_contexts(session, submission, [[token] for token in chunk.tokens])
+    for child in children:
+        child.deaths, child.sent_at = chunk.deaths, now
     session.add_all(children)
     chunk.state, chunk.finished_at = ChunkState.split_up, now
     session.flush()
@@ -112,7 +130,7 @@ def start_chunk(
     chunk.starts += 1
     chunk.started_at = chunk.beat_at = now
     session.flush()
-    return ChunkStart(StartAction.score, tokens)
+    return ChunkStart(StartAction.score, tokens, context=tuple(chunk.context))
 
 
 def beat_chunk(session: Session, chunk_id: int, worker: str, now: datetime | None = None) -> bool:

@@ -6,16 +6,16 @@ scored counting 0, and the number of such tokens is reported.
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from scipy.stats import kendalltau
 from sqlalchemy import case, delete, func, or_, select
 from sqlalchemy.orm import Session
 
-from scorer.versions import METRIC_COLUMNS, get_version
+from scorer.versions import ALL_RESULT_COLUMNS, get_version
 from server.models import Phase, Result, Status, Submission, Summary, Team, TokenResultRow
 from server.services.errors import Invalid
 
@@ -48,16 +48,26 @@ def bootstrap_ci(token_scores: np.ndarray, samples: int, seed: int = BOOTSTRAP_S
 
 
 def _token_results(rows: Sequence[TokenResultRow]) -> dict[tuple[str, int], dict[str, Any]]:
-    """Return (metric version, seed) -> token -> scorer TokenResult."""
+    """Return (metric version, seed) -> token -> scorer TokenResult (a null column of a valid row as NaN)."""
     from scorer.evaluate import TokenResult
 
     grouped: dict[tuple[str, int], dict[str, Any]] = defaultdict(dict)
     for row in rows:
-        metrics = {column: getattr(row, column) for column in METRIC_COLUMNS} if row.valid else {}
+        columns = get_version(row.metric_version).result_columns
+        metrics = {column: _value(getattr(row, column)) for column in columns} if row.valid else {}
         grouped[row.metric_version, row.seed][row.token] = TokenResult(
             row.token, row.seed, row.valid, metrics, row.error
         )
     return grouped
+
+
+def _value(stored: float | None) -> float:
+    return math.nan if stored is None else stored
+
+
+def _column(value: float) -> float | None:
+    """Return a mean as a column holds it: undefined (NaN: no token defines it) as null."""
+    return None if math.isnan(value) else value
 
 
 def aggregate_submission(
@@ -84,6 +94,7 @@ def aggregate_submission(
     versions = sorted({version for version, _ in grouped})
     seeds = sorted({seed for _, seed in grouped})
     for version in versions:
+        columns = get_version(version).result_columns
         for subset, tokens in subsets.items():
             per_seed = []
             for seed in seeds:
@@ -91,7 +102,7 @@ def aggregate_submission(
                 # A token without a row was never scored: it counts as a failed token.
                 results = [by_token.get(t) or TokenResult(t, seed, False, {}, "not scored") for t in tokens]
                 per_seed.append(results)
-                summary = summarize(results)
+                summary = summarize(results, columns)
                 chosen = set(tokens)
                 rows_here = [row for row in provenance[version, seed] if row.token in chosen]
                 session.add(
@@ -106,22 +117,30 @@ def aggregate_submission(
                         split_hash=submission.split.content_hash,
                         workers=",".join(sorted({row.worker for row in rows_here})),
                         duration_s=float(sum(row.duration_s for row in rows_here)),
-                        **{column: summary[column] for column in METRIC_COLUMNS},
+                        **{column: _column(summary[column]) for column in columns},
                     )
                 )
-            session.add(_summary(submission.id, version, subset, per_seed, bootstrap_samples))
+            session.add(_summary(submission.id, version, subset, per_seed, bootstrap_samples, columns))
     session.flush()
 
 
 def _summary(
-    submission_id: int, version: str, subset: str, per_seed: list[list[Any]], bootstrap_samples: int
+    submission_id: int,
+    version: str,
+    subset: str,
+    per_seed: list[list[Any]],
+    bootstrap_samples: int,
+    columns: tuple[str, ...],
 ) -> Summary:
-    """Combine the seeds of one (version, subset): means, per-seed PDMS spread, CI of seed-averaged token PDMS."""
+    """Combine the seeds of one (version, subset): means, per-seed score spread, CI of seed-averaged token scores.
+
+    A column's mean skips undefined values (NaN) as `summarize` does; the score is defined on every token.
+    """
     values = {
         column: np.array(
             [[r.metrics.get(column, 0.0) for r in results] for results in per_seed], dtype=np.float64
         )
-        for column in METRIC_COLUMNS
+        for column in columns
     }  # column -> (seeds, tokens), unscored tokens as 0
     seed_scores = values["score"].mean(axis=1) if values["score"].size else np.full(len(per_seed), np.nan)
     low, high = bootstrap_ci(values["score"].mean(axis=0), bootstrap_samples)
@@ -137,11 +156,13 @@ def _summary(
         ci_high=high,
         tokens=len(per_seed[0]) if per_seed else 0,
         failed=len(failed_anywhere),
-        **{
-            column: float(values[column].mean()) if values[column].size else float("nan")
-            for column in METRIC_COLUMNS
-        },
+        **{column: _column(_mean(values[column])) for column in columns},
     )
+
+
+def _mean(values: np.ndarray) -> float:
+    defined = values[~np.isnan(values)]
+    return float(defined.mean()) if defined.size else math.nan
 
 
 def summary_figures(summary: Any, columns: tuple[str, ...]) -> dict[str, Any]:
@@ -208,7 +229,7 @@ def _entries(session: Session, phase: Phase, version: str, subset: str) -> Seque
             Summary.ci_high,
             Summary.tokens,
             Summary.failed,
-            *(getattr(Summary, column) for column in METRIC_COLUMNS),
+            *(getattr(Summary, column) for column in ALL_RESULT_COLUMNS),
             choice.label("choice"),
         )
         .join(Submission, Summary.submission_id == Submission.id)
@@ -281,6 +302,8 @@ def rank_change_report(before: list[dict[str, Any]], after: list[dict[str, Any]]
     ]
     tau = None
     if len(common) >= 2:
+        from scipy.stats import kendalltau  # seconds to import: only when a rescore is reported
+
         statistic = kendalltau([old[t]["rank"] for t in common], [new[t]["rank"] for t in common]).statistic
         tau = None if np.isnan(statistic) else float(statistic)
     return {

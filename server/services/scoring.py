@@ -8,6 +8,7 @@ cancelled submission is dropped instead of mixing with the new one. Per-token ro
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -18,7 +19,7 @@ from sqlalchemy import func, select
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
-from scorer.versions import METRIC_COLUMNS, VersionName
+from scorer.versions import ALL_RESULT_COLUMNS, VERSIONS
 from server.models import (
     ACTIVE_STATUSES,
     FailureKind,
@@ -56,9 +57,8 @@ class ScoringJob:
     versions: tuple[str, ...]
 
 
-# The versions the board stores. v2.2's engine is complete, but its columns and its two-frame pairs (EC joins
-# tokens of one log, which must then share a chunk) are not on the board yet (issue 13).
-BOARD_VERSIONS = (VersionName.V1_0, VersionName.V1_1)
+# The versions every submission is scored under and the board shows: all the engine has.
+BOARD_VERSIONS = tuple(VERSIONS)
 
 
 def metric_versions() -> tuple[str, ...]:
@@ -154,6 +154,11 @@ def _insert(session: Session) -> Any:
     return inserts[dialect]
 
 
+def _stored(value: float | None) -> float | None:
+    """Return a result value as a column holds it: an undefined one (NaN, v2.2's EC without a pair) as null."""
+    return None if value is None or math.isnan(value) else value
+
+
 def write_chunk_results(
     session: Session,
     submission_id: int,
@@ -187,7 +192,11 @@ def write_chunk_results(
                 "worker": worker,
                 "duration_s": share,
                 "scored_at": now,
-                **{column: result.metrics.get(column) if result.valid else None for column in METRIC_COLUMNS},
+                "detail": result.detail or None,
+                **{
+                    column: _stored(result.metrics.get(column)) if result.valid else None
+                    for column in ALL_RESULT_COLUMNS
+                },
             }
             for result in results
         ]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -20,6 +21,26 @@ PRIVATE_SUBSET = "private"
 def split_tokens(split: Split) -> tuple[str, ...]:
     """Return the tokens of a split's directory in token order."""
     return tuple(scene_paths(split.directory))
+
+
+def scene_starts(session: Session, split: Split) -> dict[str, tuple[str, int]]:
+    """Return token -> (log name, t0 in us) of a split's readable scenes, read from its files the first time.
+
+    Scoring pairs adjacent frames of a log for v2.2's EC, across the chunks of a run; a scene that cannot be
+    read pairs with nothing (scoring reports it).
+    """
+    if split.scene_starts is None:
+        from scorer.scene import scene_start  # the engine is heavy: imported only when the index is built
+
+        starts: dict[str, list[Any]] = {}
+        for token, path in scene_paths(split.directory).items():
+            try:
+                starts[token] = list(scene_start(path))
+            except (SceneFormatError, OSError):
+                continue
+        split.scene_starts = starts
+        session.flush()
+    return {token: (log_name, t0_us) for token, (log_name, t0_us) in split.scene_starts.items()}
 
 
 def register_split(

@@ -219,10 +219,12 @@ $("#audit-filter").addEventListener("input", fillAudit);
 
 $("#rescore").addEventListener("submit", async (event) => {
   event.preventDefault();
-  const version = new FormData(event.target).get("version");
+  const form = new FormData(event.target);
+  const version = form.get("version");
+  const compareWith = form.get("compare_with") || null;
   if (!window.confirm(`Re-run every scored entry and report rank changes under ${version}?`)) return;
   try {
-    const started = await api("POST", `${ADMIN}/rescore`, { json: { version } });
+    const started = await api("POST", `${ADMIN}/rescore`, { json: { version, compare_with: compareWith } });
     const link = Object.assign(document.createElement("a"), { href: `/admin/rescores/${started.id}`, textContent: "open its rank-change report" });
     $("#report").replaceChildren(`Rescore ${started.id}: ${started.queued} submissions queued; `, link, ".");
     await refresh();

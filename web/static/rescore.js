@@ -17,7 +17,9 @@ async function show() {
     return;
   }
   const tau = report.kendall_tau === null ? "–" : report.kendall_tau.toFixed(3);
-  $("#summary").textContent = `${report.phase}, PDMS ${report.version}, ${report.subset} tokens · ${report.submissions} ` +
+  const compared = report.before_version === report.version ? ""
+    : ` (ranks before: ${report.before_score_label} ${report.before_version})`;
+  $("#summary").textContent = `${report.phase}, ${report.score_label} ${report.version}${compared}, ${report.subset} tokens · ${report.submissions} ` +
     `submissions re-run, ${report.pending} still running, ${report.failed} failed · Kendall's tau ${tau} over ` +
     `${report.entries} entries · ${report.complete ? "complete" : "in progress"}`;
   const body = $("#moved tbody");

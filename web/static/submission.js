@@ -16,7 +16,9 @@ const scoped = (path) => ({ team: path, admin: `/admin${path}`, public: path.rep
 const read = (path) => api("GET", scoped(path), { bearer: bearer() });
 const state = { submission: null, version: PAGE.default_version, subset: null, rows: {}, others: [] };
 
-const label = (column) => LABELS[column] || column;
+const label = (column) => (column === "score" ? PAGE.score_labels[state.version] : LABELS[column] || column);
+const defined = (value) => value !== null && value !== undefined;
+const FILTER_SHOWN = 15;
 const columnsOf = (results) => Object.keys(results).filter((key) => key in LABELS && key !== "score");
 
 function tab(text, current, action) {
@@ -34,26 +36,48 @@ async function tokenRows(submissionId, version) {
   return state.rows[key];
 }
 
-// Per token the mean over seeds, as the leaderboard averages seeds (an unscored token counts 0).
+// Per token the mean over seeds, as the leaderboard averages seeds (an unscored token counts 0; an undefined
+// value, v2.2's EC without the frame before, is left out, and null where no seed defines it). With it, the
+// columns the human filter set to 1 and the agent's values before it (v2.2), over all seeds.
 function perToken(rows, columns) {
   const tokens = new Map();
   for (const row of rows) {
-    const entry = tokens.get(row.token) || { token: row.token, seeds: 0, errors: [], values: {} };
-    entry.seeds += 1;
+    const entry = tokens.get(row.token) || { token: row.token, errors: [], sums: {}, counts: {}, overridden: new Set(), before: {} };
     if (!row.valid) entry.errors.push(row.error || "not scored");
     for (const column of ["score", ...columns]) {
-      entry.values[column] = (entry.values[column] || 0) + (row.valid ? row.metrics[column] ?? 0 : 0);
+      const value = row.valid ? row.metrics[column] : 0;
+      if (!defined(value)) continue;
+      entry.sums[column] = (entry.sums[column] || 0) + value;
+      entry.counts[column] = (entry.counts[column] || 0) + 1;
+    }
+    const filter = (row.detail || {}).human_filter;
+    for (const column of (filter && filter.overridden) || []) {
+      entry.overridden.add(column);
+      (entry.before[column] ||= []).push(filter.agent_before[column]);
     }
     tokens.set(row.token, entry);
   }
-  for (const entry of tokens.values()) for (const column in entry.values) entry.values[column] /= entry.seeds;
+  for (const entry of tokens.values()) {
+    entry.values = {};
+    for (const column of ["score", ...columns]) {
+      entry.values[column] = column in entry.counts ? entry.sums[column] / entry.counts[column] : null;
+    }
+  }
   return Array.from(tokens.values());
+}
+
+// "DAC counts 1 (yours 0)": what the filter did to a token's columns, for a person to read.
+function overrides(entry) {
+  return [...entry.overridden].map((column) => {
+    const before = entry.before[column].reduce((a, b) => a + b, 0) / entry.before[column].length;
+    return `${label(column)} counts 1 (yours ${pct(before)})`;
+  }).join(" · ");
 }
 
 function histogram(title, values, bins) {
   const width = 260, height = 120, pad = 18;
   const counts = new Array(bins).fill(0);
-  for (const value of values) counts[Math.min(bins - 1, Math.max(0, Math.floor(value * bins)))] += 1;
+  for (const value of values.filter(defined)) counts[Math.min(bins - 1, Math.max(0, Math.floor(value * bins)))] += 1;
   const top = Math.max(1, ...counts);
   const bar = (width - 2 * pad) / bins;
   const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
@@ -83,7 +107,8 @@ function histogram(title, values, bins) {
   }
   const figure = document.createElement("figure");
   const caption = document.createElement("figcaption");
-  caption.textContent = `${title} (max bar: ${top} tokens)`;
+  caption.textContent = values.some(defined) ? `${title} (max bar: ${top} tokens)`
+    : `${title} (undefined on every token: none has its log's frame 0.5 s earlier here)`;
   figure.append(caption, svg);
   return figure;
 }
@@ -105,7 +130,8 @@ async function render() {
   if (!subsets.includes(state.subset)) state.subset = subsets.includes("public") ? "public" : subsets[0];
   const versionTabs = $("#version-tabs");
   versionTabs.replaceChildren(...PAGE.versions.map((version) =>
-    tab(`PDMS ${version}`, version === state.version, () => { state.version = version; render(); })));
+    tab(`${PAGE.score_labels[version]} ${version}`, version === state.version, () => { state.version = version; render(); })));
+  for (const element of document.querySelectorAll(".score-label")) element.textContent = label("score");
   $("#subset-tabs").replaceChildren(...subsets.map((subset) =>
     tab(`${subset} tokens`, subset === state.subset, () => { state.subset = subset; render(); })));
   const summary = results[state.subset];
@@ -148,7 +174,7 @@ async function render() {
 
   // Histograms and the worst tokens.
   const tokens = perToken(await tokenRows(submission.id, state.version), columns);
-  const figures = [histogram("PDMS", tokens.map((t) => t.values.score), 20)];
+  const figures = [histogram(label("score"), tokens.map((t) => t.values.score), 20)];
   for (const column of columns) figures.push(histogram(label(column), tokens.map((t) => t.values[column]), 10));
   $("#histograms").replaceChildren(...figures);
   const worst = $("#worst tbody");
@@ -157,11 +183,29 @@ async function render() {
     const row = worst.insertRow();
     cell(row, button(entry.token, () => showScene(entry.token), "draw this scene"), "token");
     cell(row, pct(entry.values.score), "num");
-    const short = columns.filter((column) => entry.values[column] < 1)
+    const short = columns.filter((column) => defined(entry.values[column]) && entry.values[column] < 1)
       .map((column) => `${label(column)} ${pct(entry.values[column])}`);
-    cell(row, entry.errors.length ? entry.errors.join("; ") : short.join(" · ") || "–");
+    const filtered = entry.overridden.size ? [`human filter: ${overrides(entry)}`] : [];
+    cell(row, entry.errors.length ? entry.errors.join("; ") : [...short, ...filtered].join(" · ") || "–");
   }
+  renderFilter(tokens);
   await renderDiff(tokens, summary, columns);
+}
+
+// The human filter (v2.2): where the logged human scores 0 too, the column counts 1 for the agent.
+function renderFilter(tokens) {
+  const filtered = tokens.filter((entry) => entry.overridden.size);
+  $("#human-filter").hidden = !filtered.length;
+  if (!filtered.length) return;
+  $("#filter-count").textContent = `${filtered.length} of ${tokens.length} tokens`;
+  const body = $("#filter-tokens tbody");
+  body.replaceChildren();
+  for (const entry of filtered.sort((a, b) => a.values.score - b.values.score).slice(0, FILTER_SHOWN)) {
+    const row = body.insertRow();
+    cell(row, button(entry.token, () => showScene(entry.token), "draw this scene"), "token");
+    cell(row, pct(entry.values.score), "num");
+    cell(row, overrides(entry));
+  }
 }
 
 async function showScene(token) {
@@ -176,8 +220,8 @@ async function showScene(token) {
     const image = $("#scene-image");
     if (image.src) URL.revokeObjectURL(image.src);
     image.src = URL.createObjectURL(await response.blob());
-    image.alt = `Bird's-eye view of scene ${token} under PDMS ${state.version}`;
-    $("#scene-caption").textContent = `${token}, PDMS ${state.version}: metres from the ego's start; objects white now, grey every second ahead; red: the first infraction of each kind and the object involved.`;
+    image.alt = `Bird's-eye view of scene ${token} under ${label("score")} ${state.version}`;
+    $("#scene-caption").textContent = `${token}, ${label("score")} ${state.version}: metres from the ego's start; objects white now, grey every second ahead; red: the first infraction of each kind and the object involved.`;
     figure.hidden = false;
     $("#scene-note").textContent = "";
     figure.scrollIntoView({ behavior: "smooth", block: "start" });

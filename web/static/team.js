@@ -3,6 +3,12 @@
 "use strict";
 
 const FINAL = ["scored", "failed", "cancelled"];
+const PAGE = JSON.parse($("#page-data").textContent);
+const HISTORY_VERSIONS = [...PAGE.versions].reverse(); // newest metric first
+const scoreOf = (submission, version) => {
+  const results = submission.results?.[version] || {};
+  return (results.all || results.public || {}).score;
+};
 
 // --- signing in and out -------------------------------------------------------------------------------
 
@@ -107,13 +113,12 @@ async function follow(id) {
     $("#progress-bar").value = submission.progress;
     $("#progress-text").textContent = `${submission.status}, ${submission.progress}%`;
     if (FINAL.includes(submission.status)) {
-      const score = submission.results?.["v1.1"]?.all?.score ?? submission.results?.["v1.1"]?.public?.score;
       const link = document.createElement("a");
       link.href = `/submissions/${id}`;
       link.textContent = "see its results";
       $("#upload-status").replaceChildren(
         submission.status === "scored"
-          ? `Submission ${id} is scored: PDMS v1.1 ${pct(score)}. `
+          ? `Submission ${id} is scored: ${HISTORY_VERSIONS.map((v) => `${PAGE.score_labels[v]} ${v} ${pct(scoreOf(submission, v))}`).join(", ")}. `
           : `Submission ${id} ${submission.status}: ${submission.error || "no detail"}. `,
         link,
       );
@@ -201,10 +206,7 @@ async function loadHistory() {
     status.textContent = FINAL.includes(submission.status) ? submission.status : `${submission.status} ${submission.progress}%`;
     if (submission.error) status.title = submission.error;
     cell(row, status);
-    for (const version of ["v1.1", "v1.0"]) {
-      const results = submission.results?.[version] || {};
-      cell(row, pct((results.all || results.public || {}).score), "num");
-    }
+    for (const version of HISTORY_VERSIONS) cell(row, pct(scoreOf(submission, version)), "num");
     cell(row, when(submission.submitted_at));
     cell(row, submission.selected ? "✓ final" : submission.status === "scored"
       ? button("make final", () => edit(submission.id, { selected: true }), "show this entry on the leaderboard")
@@ -220,7 +222,7 @@ async function loadHistory() {
   if (!submissions.length) {
     const row = body.insertRow();
     const td = cell(row, "No submission yet.", "empty");
-    td.colSpan = 8;
+    td.colSpan = 6 + HISTORY_VERSIONS.length;
   }
 }
 
