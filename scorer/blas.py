@@ -8,12 +8,18 @@ every reference number bit for bit; under others (Haswell, say) ego progress and
 kernels before numpy loads, whatever OPENBLAS_CORETYPE said (NAVSIM_LB_KEEP_OPENBLAS_CORETYPE=1 keeps
 the environment's choice), and `kernel_warning` says when other kernels run, e.g. when numpy was loaded
 before `scorer`.
+
+The comfort filters call LAPACK in SciPy's OpenBLAS, as scipy does, through `scipy_lapack_function`: that
+library alone, without importing `scipy.linalg` (docs/engine.md, "Start-up").
 """
 
 from __future__ import annotations
 
+import ctypes
+import importlib.util
 import os
-from functools import lru_cache
+from collections.abc import Callable
+from functools import cache, lru_cache
 from pathlib import Path
 
 from scorer import ENGINE_VERSION
@@ -47,6 +53,35 @@ def select_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> None:
         os.environ["OPENBLAS_CORETYPE"] = DEVKIT_KERNELS
 
 
+@cache
+def scipy_openblas() -> ctypes.CDLL:
+    """Return SciPy's OpenBLAS, the library `scipy.linalg` calls, loaded without importing `scipy.linalg` (0.13 s
+    here, most of it scipy's array-API layer importing numpy.f2py, numpy.ma and numpy.testing).
+
+    SciPy's manylinux wheel ships it in `scipy.libs`, named after its hash (auditwheel's layout). Loaded by
+    path, it is the very object scipy's extensions link: the dynamic loader matches it by its soname, so a
+    later `import scipy.linalg` shares it, and it picks its kernels once, as `select_devkit_kernels` asked.
+    """
+    spec = importlib.util.find_spec("scipy")  # finds the package without importing it
+    packages = spec.submodule_search_locations if spec is not None else None
+    found = sorted(Path(packages[0]).parent.glob("scipy.libs/libscipy_openblas*.so")) if packages else []
+    if len(found) != 1:
+        raise ImportError(
+            f"SciPy's OpenBLAS: expected one libscipy_openblas*.so in scipy.libs, found {found}; the engine "
+            "calls the LAPACK of SciPy's Linux wheel from PyPI, as the devkit did (`pip install scipy`)"
+        )
+    return ctypes.CDLL(str(found[0]))
+
+
+@cache
+def scipy_lapack_function(name: str) -> Callable[..., None]:
+    """Return LAPACK's routine `name` (e.g. "dgelsd") in SciPy's OpenBLAS, which prefixes its symbols with
+    "scipy_" and, being Fortran, appends "_"; every argument goes by reference and nothing is returned."""
+    function = getattr(scipy_openblas(), f"scipy_{name}_")
+    function.restype = None
+    return function
+
+
 @lru_cache(maxsize=1)
 def blas_kernels() -> tuple[str, ...]:
     """Return the kernel sets the loaded OpenBLAS libraries run (numpy's and SciPy's, both loaded here).
@@ -56,10 +91,10 @@ def blas_kernels() -> tuple[str, ...]:
     thread loading an extension module meanwhile (a first psycopg import) deadlocks with it. The answer is
     cached, and forked processes inherit it.
     """
-    import numpy  # noqa: F401 - load both libraries the engine calls before asking
-    import scipy.linalg  # noqa: F401
+    import numpy  # noqa: F401 - load both libraries the engine calls before asking: numpy's,
     from threadpoolctl import threadpool_info
 
+    scipy_openblas()  # and SciPy's
     return tuple(
         sorted(
             {

@@ -1,5 +1,6 @@
 """`scorer.blas`: importing the engine selects the official results' OpenBLAS kernels where the CPU runs
-them, says so when other kernels run, and the kernels are part of every result's and cache's provenance."""
+them, says so when other kernels run, and the kernels are part of every result's and cache's provenance;
+the engine calls SciPy's OpenBLAS without importing scipy."""
 
 from __future__ import annotations
 
@@ -134,3 +135,55 @@ def test_the_server_and_the_worker_ask_for_the_kernels_before_they_start_threads
     done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split()[-1] == "1"
+
+
+SHARED_LIBRARY = """
+import json
+import scorer
+from scorer.blas import scipy_openblas
+loaded = scipy_openblas()._name
+import scipy.linalg
+from threadpoolctl import threadpool_info
+print(json.dumps({"loaded": loaded, "openblas": [library["filepath"] for library in threadpool_info()]}))
+"""
+
+
+def test_scipys_openblas_is_the_library_scipy_linalg_then_uses() -> None:
+    """Loaded by path, SciPy's OpenBLAS is the very object its extensions link: no second copy, no second
+    choice of kernels."""
+    done = subprocess.run([sys.executable, "-c", SHARED_LIBRARY], capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    probed = json.loads(done.stdout)
+    scipys = [path for path in probed["openblas"] if "scipy.libs" in path]
+    assert len(probed["openblas"]) == 2 and scipys == [probed["loaded"]]
+
+
+SCORE_WITHOUT_SCIPY = """
+import json, sys
+from navsim_lb.cli import app
+split, submission, cache = sys.argv[1:]
+for version in ("v1.0", "v1.1", "v2.2"):
+    try:
+        app(["score", split, submission, "--version", version, "--cache-dir", cache])
+    except SystemExit as done:
+        assert not done.code, done.code
+print("scipy modules:", json.dumps(sorted(name for name in sys.modules if name.split(".")[0] == "scipy")))
+"""
+
+
+def test_scoring_a_token_imports_no_scipy_module(tmp_path: Path) -> None:
+    """`navsim-lb score` starts without scipy (docs/engine.md, "Start-up"): the comfort filters reproduce
+    ndimage's convolution in numpy and call dgelsd in SciPy's OpenBLAS directly. Caching and scoring every
+    version of a token, as the command does on a fresh split, must not import a scipy module."""
+    token, path = next(iter(scene_paths(REFERENCE).items()))
+    (tmp_path / "split" / "scenes").mkdir(parents=True)
+    (tmp_path / "split" / "scenes" / path.name).write_bytes(path.read_bytes())
+    submission = json.loads((REFERENCE / "submissions" / "human_noise.json").read_text())
+    submission["predictions"] = {token: submission["predictions"][token]}
+    (tmp_path / "submission.json").write_text(json.dumps(submission))
+    arguments = [str(tmp_path / name) for name in ("split", "submission.json", "cache")]
+    done = subprocess.run(
+        [sys.executable, "-c", SCORE_WITHOUT_SCIPY, *arguments], capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.splitlines()[-1] == "scipy modules: []"
