@@ -247,15 +247,20 @@ def extended_score(metrics: Mapping[str, float], version: MetricVersion) -> floa
     return float(aggregate(multipliers, np.array(weighted)[:, None], np.array(weights))[0])
 
 
-def score_against_references(
-    caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion
-) -> tuple[FloatArray, ProposalScores]:
-    """Return the agents' simulated states (B, 41, 11) and the scores (B, 2) of [PDM-Closed, agent] per token,
-    as the devkit scores them: proposal 0 is the cached PDM-Closed reference (it sets the progress
-    normaliser), proposal 1 the agent. Raises ValueError when a simulation diverges."""
+def simulate_agents(caches: Sequence[MetricCache], poses: Sequence[FloatArray]) -> FloatArray:
+    """Return the agents' simulated states (B, 41, 11), one trajectory per cache: what every metric version
+    scores, since the simulation depends on the poses and the scene's ego alone. Raises ValueError when a
+    simulation diverges."""
     initial = np.stack([initial_state(cache.ego) for cache in caches])
     t0_us = np.array([cache.t0_us for cache in caches], dtype=np.int64)
-    states = simulate(agent_references(initial, t0_us, np.stack(poses)), initial)
+    return simulate(agent_references(initial, t0_us, np.stack(poses)), initial)
+
+
+def score_simulated(
+    caches: Sequence[MetricCache], states: FloatArray, version: MetricVersion
+) -> ProposalScores:
+    """Return the scores (B, 2) of [PDM-Closed, agent] per token, as the devkit scores them: proposal 0 is the
+    cached PDM-Closed reference (it sets the progress normaliser), proposal 1 the agent's simulated states."""
     agent = measure_batch(
         states[:, None],
         [cache.observation for cache in caches],
@@ -266,7 +271,15 @@ def score_against_references(
     )
     reference = join_measures([cache.reference_measures for cache in caches], axis=0)
     pasts = [cache.past_states for cache in caches]
-    return states, score_measures(join_measures([reference, agent]), version.evaluation, pasts)
+    return score_measures(join_measures([reference, agent]), version.evaluation, pasts)
+
+
+def score_against_references(
+    caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion
+) -> tuple[FloatArray, ProposalScores]:
+    """Return the agents' simulated states (B, 41, 11) and their scores (`score_simulated`)."""
+    states = simulate_agents(caches, poses)
+    return states, score_simulated(caches, states, version)
 
 
 def score_caches(
@@ -279,39 +292,37 @@ def score_caches(
 
     Each token is scored alone: v2.2's EC, which pairs tokens, is left undefined (`join_two_frame_comfort`).
     """
-    return [
-        item.result if isinstance(item, ScoredToken) else item
-        for item in _scored(caches, poses, version, seed)
+    states, failed = _simulated([cache.token for cache in caches], caches, poses)
+    rows: list[TokenResult] = [
+        TokenResult(token, seed, False, error=error) for token, error in failed.items()
     ]
+    kept = [cache for cache in caches if cache.token in states]
+    if kept:
+        scores = score_simulated(kept, np.stack([states[cache.token] for cache in kept]), version)
+        rows += [token_result(cache, seed, scores, index, version) for index, cache in enumerate(kept)]
+    order = {cache.token: index for index, cache in enumerate(caches)}
+    return sorted(rows, key=lambda row: order[row.token])
 
 
-def _scored(
-    caches: Sequence[MetricCache], poses: Sequence[FloatArray], version: MetricVersion, seed: int | None
-) -> list[ScoredToken | TokenResult]:
-    if not caches:
-        return []
+def _simulated(
+    tokens: Sequence[str], caches: Sequence[MetricCache], poses: Sequence[FloatArray]
+) -> tuple[dict[str, FloatArray], dict[str, str]]:
+    """Return each token's simulated states, and the error of each token whose simulation diverged: one
+    diverging trajectory must not fail its neighbours, so a batch that diverges is simulated token by token."""
+    if not tokens:
+        return {}, {}
     try:
-        states, scores = score_against_references(caches, poses, version)
-    except ValueError:
-        if len(caches) == 1:
-            raise
-        # One diverging trajectory must not fail its neighbours: score them one by one.
-        return [item for c, p in zip(caches, poses, strict=True) for item in _score_one(c, p, version, seed)]
-    return [
-        ScoredToken(
-            token_result(cache, seed, scores, index, version), cache.log_name, cache.t0_us, states[index]
-        )
-        for index, cache in enumerate(caches)
-    ]
-
-
-def _score_one(
-    cache: MetricCache, poses: FloatArray, version: MetricVersion, seed: int | None
-) -> list[ScoredToken | TokenResult]:
-    try:
-        return _scored([cache], [poses], version, seed)
+        return dict(zip(tokens, simulate_agents(caches, poses), strict=True)), {}
     except ValueError as error:
-        return [TokenResult(cache.token, seed, False, error=f"scoring failed: {error}")]
+        if len(tokens) == 1:
+            return {}, {tokens[0]: f"scoring failed: {error}"}
+    states: dict[str, FloatArray] = {}
+    failed: dict[str, str] = {}
+    for token, cache, pose in zip(tokens, caches, poses, strict=True):
+        one, error_of_one = _simulated([token], [cache], [pose])
+        states |= one
+        failed |= error_of_one
+    return states, failed
 
 
 def score_tokens(
@@ -324,56 +335,125 @@ def score_tokens(
     progress: Callable[[int], None] | None = None,
     context: Sequence[str] = (),
 ) -> list[TokenResult]:
-    """Return one result per token (all tokens of the split by default), building whatever the cache lacks.
+    """Return one result per token (all tokens of the split by default) under one version (`score_versions`)."""
+    return score_versions(split_dir, cache_dir, predictions, [version], tokens, seed, progress, context)[
+        version
+    ]
+
+
+def score_versions(
+    split_dir: Path,
+    cache_dir: Path,
+    predictions: Mapping[str, object],
+    versions: Sequence[str],
+    tokens: Sequence[str] | None = None,
+    seed: int | None = None,
+    progress: Callable[[int], None] | None = None,
+    context: Sequence[str] = (),
+) -> dict[str, list[TokenResult]]:
+    """Return, per metric version, one result per token (all tokens of the split by default), building whatever
+    the cache lacks. Each token is simulated once for every version.
 
     `context` tokens are scored too, under a version with two-frame comfort, for their rows to pair with
     `tokens` (`pairing_contexts`), and are not returned.
     """
-    metric_version = get_version(version)
+    metric_versions = [get_version(version) for version in versions]
     paths = scene_paths(split_dir)
     tokens = list(paths) if tokens is None else list(tokens)
-    if metric_version.two_frame_extended_comfort_weight is None:
+    if all(version.two_frame_extended_comfort_weight is None for version in metric_versions):
         context = ()
     requested = set(tokens)
     scored_tokens = tokens + [token for token in dict.fromkeys(context) if token not in requested]
-    results: list[TokenResult | ScoredToken] = []
+    results: dict[str, list[TokenResult | ScoredToken]] = {version.name: [] for version in metric_versions}
     for start in range(0, len(scored_tokens), CHUNK_SIZE):
         chunk = scored_tokens[start : start + CHUNK_SIZE]
-        ready: list[tuple[MetricCache, FloatArray]] = []
-        unbuilt: list[tuple[str, FloatArray]] = []
-        for token in chunk:
-            try:
-                if token not in paths:
-                    raise TokenError("token is not part of the split")
-                if token not in predictions:
-                    raise TokenError("no prediction for this token")
-                poses = _checked_poses(predictions[token])
-            except TokenError as error:
-                results.append(TokenResult(token, seed, False, error=str(error)))
-                continue
-            cache = load_cache(Path(cache_dir), version, token, scene_file_hash(paths[token]))
-            if cache is None:
-                unbuilt.append((token, poses))
-            else:
-                ready.append((cache, poses))
-        # Every version at once: one PDM-Closed unroll serves them all, and the others are scored next.
-        built, errors = build_missing_caches(
-            [paths[token] for token, _ in unbuilt], Path(cache_dir), list(VERSIONS)
-        )
-        for token, poses in unbuilt:
-            name = paths[token].name
-            if version in built.get(name, {}):
-                ready.append((built[name][version], poses))
-            else:
-                results.append(TokenResult(token, seed, False, error=_build_error_text(token, errors[name])))
-        results.extend(_scored([c for c, _ in ready], [p for _, p in ready], metric_version, seed))
+        for name, scored_rows in _score_chunk(
+            paths, Path(cache_dir), predictions, metric_versions, chunk, seed
+        ).items():
+            results[name] += scored_rows
         if progress is not None:
             progress(len(chunk))
-    scored = [item for item in results if isinstance(item, ScoredToken)]
-    rows = [item for item in results if isinstance(item, TokenResult)]
-    rows += join_two_frame_comfort(scored, metric_version) if scored else []
     order = {token: index for index, token in enumerate(tokens)}
-    return sorted((row for row in rows if row.token in order), key=lambda result: order[result.token])
+    joined: dict[str, list[TokenResult]] = {}
+    for version in metric_versions:
+        scored = [item for item in results[version.name] if isinstance(item, ScoredToken)]
+        rows = [item for item in results[version.name] if isinstance(item, TokenResult)]
+        rows += join_two_frame_comfort(scored, version) if scored else []
+        joined[version.name] = sorted(
+            (row for row in rows if row.token in order), key=lambda row: order[row.token]
+        )
+    return joined
+
+
+def _score_chunk(
+    paths: Mapping[str, Path],
+    cache_dir: Path,
+    predictions: Mapping[str, object],
+    versions: Sequence[MetricVersion],
+    tokens: Sequence[str],
+    seed: int | None,
+) -> dict[str, list[TokenResult | ScoredToken]]:
+    """Score a chunk of tokens under `versions`: each token's caches loaded (or built, every version at once),
+    its trajectory simulated once, then measured and scored per version."""
+    rows: dict[str, list[TokenResult | ScoredToken]] = {version.name: [] for version in versions}
+    poses: dict[str, FloatArray] = {}
+    for token in tokens:
+        try:
+            if token not in paths:
+                raise TokenError("token is not part of the split")
+            if token not in predictions:
+                raise TokenError("no prediction for this token")
+            poses[token] = _checked_poses(predictions[token])
+        except TokenError as error:
+            for version in versions:
+                rows[version.name].append(TokenResult(token, seed, False, error=str(error)))
+    caches: dict[str, dict[str, MetricCache]] = {version.name: {} for version in versions}
+    unbuilt: list[str] = []
+    for token in poses:
+        scene_hash = scene_file_hash(paths[token])
+        for version in versions:
+            cache = load_cache(cache_dir, version.name, token, scene_hash)
+            if cache is not None:
+                caches[version.name][token] = cache
+        if any(token not in caches[version.name] for version in versions):
+            unbuilt.append(token)
+    # Every version at once: one PDM-Closed unroll serves them all.
+    built, errors = build_missing_caches([paths[token] for token in unbuilt], cache_dir, list(VERSIONS))
+    for token in unbuilt:
+        for version in versions:
+            if token in caches[version.name]:
+                continue
+            if version.name in built.get(paths[token].name, {}):
+                caches[version.name][token] = built[paths[token].name][version.name]
+            else:
+                reason = _build_error_text(token, errors[paths[token].name])
+                rows[version.name].append(TokenResult(token, seed, False, error=reason))
+    # Any version's cache holds the token's ego and start time for its simulation.
+    simulated = [token for token in poses if any(token in caches[version.name] for version in versions)]
+    first_cache = [
+        next(caches[v.name][token] for v in versions if token in caches[v.name]) for token in simulated
+    ]
+    states, failed = _simulated(simulated, first_cache, [poses[token] for token in simulated])
+    for version in versions:
+        held = caches[version.name]
+        rows[version.name] += [
+            TokenResult(token, seed, False, error=failed[token]) for token in failed if token in held
+        ]
+        kept = [held[token] for token in states if token in held]
+        if not kept:
+            continue
+        kept_states = np.stack([states[cache.token] for cache in kept])
+        scores = score_simulated(kept, kept_states, version)
+        rows[version.name] += [
+            ScoredToken(
+                token_result(cache, seed, scores, index, version),
+                cache.log_name,
+                cache.t0_us,
+                kept_states[index],
+            )
+            for index, cache in enumerate(kept)
+        ]
+    return rows
 
 
 def summarize(results: Sequence[TokenResult], columns: Sequence[str] = METRIC_COLUMNS) -> dict[str, float]:

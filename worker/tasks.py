@@ -36,7 +36,7 @@ from celery.utils.log import get_task_logger
 from sqlalchemy.orm import Session, sessionmaker
 
 from scorer.blas import engine_provenance, kernel_warning
-from scorer.evaluate import TokenResult, score_tokens
+from scorer.evaluate import TokenResult, score_versions
 from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionError, load_submission, validate_submission
 from server.db import make_engine, make_session_factory, transaction
@@ -288,16 +288,16 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
             # Tokens written already still pair with the rest for EC, as the chunk's context does.
             context = [*start.context, *(token for token in start.tokens if token not in todo)]
             with beating(sessions, chunk_id, worker):
-                for version in job.versions:
-                    started = perf_counter()
-                    rows = [
-                        row
-                        for seed, poses in enumerate(predictions.seeds)
-                        for row in score_tokens(
-                            job.split_dir, settings.cache_dir, poses, version, todo, seed, context=context
-                        )
-                    ]
-                    timed[version] = rows, perf_counter() - started
+                started = perf_counter()
+                rows: dict[str, list[TokenResult]] = {version: [] for version in job.versions}
+                for seed, poses in enumerate(predictions.seeds):  # one simulation serves every version
+                    scored = score_versions(
+                        job.split_dir, settings.cache_dir, poses, job.versions, todo, seed, context=context
+                    )
+                    for version, version_rows in scored.items():
+                        rows[version] += version_rows
+                share = (perf_counter() - started) / len(job.versions)
+                timed = {version: (version_rows, share) for version, version_rows in rows.items()}
 
         def write() -> str:
             with transaction(sessions) as session:

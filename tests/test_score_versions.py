@@ -1,0 +1,67 @@
+"""One simulation per token serves every metric version (`score_versions`): each version's rows are the bits
+`score_tokens` gives it alone, a trajectory that diverges fails in every version alone, and a scene one version
+cannot cache fails in that version only."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scorer.evaluate import TokenResult, score_tokens, score_versions
+from scorer.submission import load_submission
+from scorer.versions import VERSIONS
+
+REFERENCE = Path(__file__).parent / "fixtures" / "reference"
+
+
+def _same(ours: TokenResult, alone: TokenResult) -> bool:
+    def bits(metrics: dict[str, float]) -> dict[str, str]:
+        return {column: value.hex() for column, value in metrics.items()}
+
+    return (ours.token, ours.seed, ours.valid, ours.error, ours.detail) == (
+        alone.token,
+        alone.seed,
+        alone.valid,
+        alone.error,
+        alone.detail,
+    ) and bits(ours.metrics) == bits(alone.metrics)
+
+
+@pytest.mark.parametrize("family", ["swerve_offroad", "cv_decel"])
+def test_every_versions_rows_are_those_it_gets_alone(family: str, tmp_path: Path) -> None:
+    path = REFERENCE / "submissions" / f"{family}.json"
+    poses = dict(load_submission(path.read_bytes(), path.name).seeds[0])
+    diverging = sorted(poses)[3]
+    poses[diverging] = np.full((8, 3), 1e200)  # finite, but the tracker's fit overflows
+    with np.errstate(over="ignore", invalid="ignore"):
+        together = score_versions(REFERENCE, tmp_path, poses, list(VERSIONS), seed=0)
+        alone_rows = {
+            version: score_tokens(REFERENCE, tmp_path, poses, version, seed=0) for version in VERSIONS
+        }
+    for version, alone in alone_rows.items():
+        assert [row.token for row in together[version]] == [row.token for row in alone]
+        assert all(_same(ours, theirs) for ours, theirs in zip(together[version], alone, strict=True))
+        failed = {row.token: row.error for row in together[version] if not row.valid}
+        assert list(failed) == [diverging] and "scoring failed" in (failed[diverging] or "")
+
+
+def test_a_scene_one_version_cannot_cache_fails_in_that_version_only(tmp_path: Path) -> None:
+    split = tmp_path / "split"
+    shutil.copytree(REFERENCE / "scenes", split / "scenes")
+    token = min(path.name.split(".")[0] for path in (split / "scenes").iterdir())
+    scene_path = split / "scenes" / f"{token}.json.gz"
+    raw = json.loads(gzip.decompress(scene_path.read_bytes()))
+    raw["frames"] = raw["frames"][raw["current_index"] - 1 :]  # one past frame: v2.2 needs three
+    raw["current_index"] = 1
+    scene_path.write_bytes(gzip.compress(json.dumps(raw).encode()))
+    poses = {token: np.arange(24, dtype=np.float64).reshape(8, 3) * [1.0, 0.0, 0.0]}
+    rows = score_versions(split, tmp_path / "cache", poses, list(VERSIONS), [token])
+    assert [rows[version][0].valid for version in VERSIONS] == [True, True, False]
+    assert "could not be built" in (rows["v2.2"][0].error or "")
+    assert not math.isnan(rows["v1.1"][0].metrics["score"])
