@@ -1,9 +1,15 @@
-"""Engine speed and memory: cache building and warm-cache scoring on a synthetic split.
+"""Engine speed and memory per metric version: cache building and warm-cache scoring on a synthetic split.
 
-Prints scenes per second of cache building (every version at once, as the CLI and the server build them,
-and each version alone), tokens per second and CPU-ms per token of warm-cache scoring per version, for one
-process and for all cores, the start-up cost of `navsim-lb score` (a one-token split, warm cache), and the
-peak RSS.
+Prints, under a header that describes the host (benchmarks/host.py):
+- cache building, each in a fresh cache directory: every version alone, the two v1 versions together and all
+  three together (as `navsim-lb cache` and the server build them: one PDM-Closed unroll serves them all),
+  with 1 process and with --workers: scenes/s and CPU-ms per scene; then what the three versions' cache
+  costs against the two v1 versions' on the same scenes (target: at most 1.5x);
+- warm-cache scoring per version, with 1 process and with --workers: tokens/s and CPU-ms per token; then
+  v2.2's cost per token against v1.1's (target: at most 2x);
+- apart from those, the start-up cost of `navsim-lb score` (a one-token split, warm cache), and peak RSS.
+CPU time counts this process and its finished children (the process pool's), every thread of each. Cache
+building and scoring are first run, untimed, on a few scenes, so that no row pays the first calls' costs.
 Usage: .venv/bin/python benchmarks/engine.py [--scenes 1000] [--seed 1] [--workers 2]
 """
 
@@ -17,23 +23,71 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
+
+from host import host_header
 
 from scorer.baselines import constant_velocity
-from scorer.evaluate import build_split_cache, score_tokens
+from scorer.evaluate import build_missing_caches, build_split_cache, score_tokens
 from scorer.scene import iter_scenes, scene_paths
 from scorer.submission import Submission, SubmissionMetadata, dump_submission_json
 from scorer.synth import synthesize_split
-from scorer.versions import VERSIONS
+from scorer.versions import VERSIONS, VersionName
 
 DATA = Path(__file__).parent / ".data"
+ALL_VERSIONS = tuple(VERSIONS)
+V1_VERSIONS = (VersionName.V1_0, VersionName.V1_1)
+CACHE_TARGET = 1.5  # all three versions' cache against the two v1 versions'
+SCORE_TARGET = 2.0  # v2.2's scoring time per token against v1.1's
+WARM_UP_SCENES = 4
+T = TypeVar("T")
 
 
-def _peak_rss_mib() -> float:
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return max(own, children) / 1024
+@dataclass(frozen=True)
+class Timing:
+    label: str
+    processes: int
+    count: int  # scenes or tokens
+    seconds: float
+    cpu_seconds: float  # this process and its finished children, all threads
+    outcome: int  # failed scenes or valid tokens
+
+    def row(self) -> str:
+        return (
+            f"  {self.label:<16} {self.processes:>9} {self.count / self.seconds:>9.1f}"
+            f" {1000 * self.cpu_seconds / self.count:>9.1f} {self.seconds:>8.2f} {self.outcome:>6}"
+        )
+
+
+def _cpu_seconds() -> float:
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+def _timed(call: Callable[[], T]) -> tuple[T, float, float]:
+    """Return what `call` returns, its wall seconds and its CPU seconds."""
+    start, cpu_start = time.perf_counter(), _cpu_seconds()
+    result = call()
+    return result, time.perf_counter() - start, _cpu_seconds() - cpu_start
+
+
+def _header(unit: str, outcome: str) -> str:
+    return f"  {'versions':<16} {'processes':>9} {unit + '/s':>9} {'CPU-ms':>9} {'seconds':>8} {outcome:>6}"
+
+
+def _ratio(label: str, numerator: Timing, denominator: Timing, target: float) -> str:
+    cpu = numerator.cpu_seconds / numerator.count / (denominator.cpu_seconds / denominator.count)
+    wall = numerator.seconds / numerator.count / (denominator.seconds / denominator.count)
+    verdict = "within" if cpu <= target else "OVER"
+    return f"{label}: {cpu:.2f}x CPU, {wall:.2f}x wall ({verdict} the target of at most {target:g}x in CPU)"
+
+
+def _peak_rss_mib(who: int) -> float:
+    return resource.getrusage(who).ru_maxrss / 1024
 
 
 def _score_part(args: tuple[Path, Path, dict, str, list[str]]) -> int:
@@ -63,12 +117,39 @@ def _startup_seconds(split: Path, predictions: dict, cache_dir: Path, runs: int 
     return statistics.median(times)
 
 
+def build_cache(split: Path, cache_dir: Path, versions: Sequence[str], workers: int, count: int) -> Timing:
+    """Build the split's cache of `versions` in the fresh directory `cache_dir`; return how long it took."""
+    shutil.rmtree(cache_dir, ignore_errors=True)
+    failures, seconds, cpu = _timed(lambda: build_split_cache(split, cache_dir, versions, workers=workers))
+    return Timing("+".join(versions), workers, count, seconds, cpu, len(failures))
+
+
+def score(
+    split: Path, cache_dir: Path, predictions: dict, version: str, tokens: list[str], workers: int
+) -> Timing:
+    """Score every token under `version` with `workers` processes on a warm cache; return how long it took."""
+    if workers == 1:
+        valid, seconds, cpu = _timed(
+            lambda: sum(r.valid for r in score_tokens(split, cache_dir, predictions, version, tokens))
+        )
+    else:
+        parts = [(split, cache_dir, predictions, version, tokens[i::workers]) for i in range(workers)]
+
+        def in_pool() -> int:
+            with ProcessPoolExecutor(workers) as pool:
+                return sum(pool.map(_score_part, parts))
+
+        valid, seconds, cpu = _timed(in_pool)
+    return Timing(version, workers, len(tokens), seconds, cpu, valid)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--scenes", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     args = parser.parse_args()
+    print("\n".join(host_header()), flush=True)  # before any process pool (host.py says why)
 
     split = DATA / f"split_{args.scenes}_{args.seed}"
     if not (split / "scenes").is_dir():
@@ -78,56 +159,49 @@ def main() -> None:
     predictions = {scene.token: constant_velocity(scene) for scene in iter_scenes(split)}
     tokens = sorted(predictions)
     print(f"split: {split} ({len(tokens)} tokens)")
+    process_counts = sorted({1, args.workers})
+    stem = DATA / f"cache_{args.scenes}_{args.seed}"
 
-    for workers in sorted({1, args.workers}):
-        cache_dir = DATA / f"cache_{args.scenes}_{args.seed}_w{workers}"
-        # Both versions at once, as `navsim-lb cache` and the server build them (one PDM-Closed unroll).
-        shutil.rmtree(cache_dir, ignore_errors=True)
-        start = time.perf_counter()
-        failures = build_split_cache(split, cache_dir, list(VERSIONS), workers=workers)
-        elapsed = time.perf_counter() - start
-        print(
-            f"cache all versions: {len(tokens) / elapsed:8.1f} scenes/s"
-            f" ({len(VERSIONS) * len(tokens) / elapsed:.1f} scene-versions/s) with {workers} process(es)"
-            f" ({elapsed:.1f} s, {len(failures)} failed)"
-        )
+    warm_up = DATA / "cache_warm_up"
+    shutil.rmtree(warm_up, ignore_errors=True)
+    build_missing_caches(list(scene_paths(split).values())[:WARM_UP_SCENES], warm_up, ALL_VERSIONS)
+    shutil.rmtree(warm_up)
 
-    for version in VERSIONS:
-        cache_dir = DATA / f"cache_{args.scenes}_{args.seed}_{version}"
-        shutil.rmtree(cache_dir, ignore_errors=True)
-        start, cpu_start = time.perf_counter(), time.process_time()
-        build_split_cache(split, cache_dir, [version])
-        elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
-        print(
-            f"cache {version} alone: {len(tokens) / elapsed:8.1f} scenes/s with 1 process ({elapsed:.1f} s,"
-            f" {1000 * cpu / len(tokens):.1f} CPU-ms per scene)"
-        )
-        shutil.rmtree(cache_dir)
+    print("\ncache building, each in a fresh cache directory (CPU-ms per scene):")
+    print(_header("scenes", "failed"), flush=True)
+    for version in ALL_VERSIONS:
+        print(build_cache(split, Path(f"{stem}_{version}"), [version], 1, len(tokens)).row(), flush=True)
+        shutil.rmtree(f"{stem}_{version}")
+    v1 = build_cache(split, Path(f"{stem}_v1"), V1_VERSIONS, 1, len(tokens))
+    print(v1.row(), flush=True)
+    shutil.rmtree(f"{stem}_v1")
+    cache_dir = Path(f"{stem}_w1")  # all versions, 1 process: the cache the scoring below reads
+    every = build_cache(split, cache_dir, ALL_VERSIONS, 1, len(tokens))
+    print(every.row(), flush=True)
+    for workers in process_counts[1:]:
+        print(build_cache(split, Path(f"{stem}_w{workers}"), ALL_VERSIONS, workers, len(tokens)).row())
+        shutil.rmtree(f"{stem}_w{workers}")
+    print(_ratio("all three versions against the two v1 versions, 1 process", every, v1, CACHE_TARGET))
 
-    cache_dir = DATA / f"cache_{args.scenes}_{args.seed}_w1"
-    for version in VERSIONS:
-        start, cpu_start = time.perf_counter(), time.process_time()
-        valid = sum(r.valid for r in score_tokens(split, cache_dir, predictions, version, tokens))
-        elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
-        print(
-            f"score {version}: {len(tokens) / elapsed:8.1f} tokens/s with 1 process"
-            f" ({1000 * cpu / len(tokens):.2f} CPU-ms per token, {valid} valid)"
-        )
-        parts = [tokens[i :: args.workers] for i in range(args.workers)]
-        start = time.perf_counter()
-        with ProcessPoolExecutor(args.workers) as pool:
-            valid = sum(
-                pool.map(_score_part, [(split, cache_dir, predictions, version, part) for part in parts])
-            )
-        elapsed = time.perf_counter() - start
-        print(
-            f"score {version}: {len(tokens) / elapsed:8.1f} tokens/s with {args.workers} processes ({valid} valid)"
-        )
+    for version in ALL_VERSIONS:
+        score_tokens(split, cache_dir, predictions, version, tokens[:WARM_UP_SCENES])
+    print("\nwarm-cache scoring (CPU-ms per token):")
+    print(_header("tokens", "valid"), flush=True)
+    single: dict[str, Timing] = {}
+    for version in ALL_VERSIONS:
+        for workers in process_counts:
+            timing = score(split, cache_dir, predictions, version, tokens, workers)
+            single.setdefault(version, timing)
+            print(timing.row(), flush=True)
+    v2_2, v1_1 = single[VersionName.V2_2], single[VersionName.V1_1]
+    print(_ratio("v2.2 against v1.1 per token, 1 process", v2_2, v1_1, SCORE_TARGET))
+
+    startup = _startup_seconds(split, predictions, cache_dir)
+    print(f"\nstart-up: navsim-lb score of a one-token split takes {startup:.2f} s (median of 5, warm cache)")
     print(
-        f"start-up: navsim-lb score of a one-token split takes {_startup_seconds(split, predictions, cache_dir):.2f} s"
-        " (median of 5, warm cache)"
+        f"peak RSS: {_peak_rss_mib(resource.RUSAGE_SELF):.0f} MiB this process,"
+        f" {_peak_rss_mib(resource.RUSAGE_CHILDREN):.0f} MiB its largest child (a pool process or navsim-lb)"
     )
-    print(f"peak RSS: {_peak_rss_mib():.0f} MiB")
 
 
 if __name__ == "__main__":

@@ -12,6 +12,11 @@ With --load N: the leaderboard at --rate for --seconds while N uploads are score
 size, on each backend: p50/p99 latency, errors, and a check that every upload was scored exactly once
 (one row per token, version and seed; one leaderboard entry per version).
 
+Every run starts with a header that describes the host (benchmarks/host.py), and gives with each worker
+size the peak RSS (VmHWM) of the worker's processes: its main process, and the others of its session (the
+scoring pool's processes and the beat), read from /proc just before the worker is stopped. (RUSAGE_CHILDREN
+would give one maximum over every process this benchmark ever waited for, API and workers alike.)
+
 Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--rate 200] [--seconds 10]
        [--backends embedded,services] [--workers 1,2] [--load 20]
 """
@@ -35,12 +40,14 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from host import host_header
 from sqlalchemy import func, select
 
 from navsim_lb.processes import api_command, child_process
 from navsim_lb.scratch import scratch_postgres_database, scratch_redis_queue
 from scorer.baselines import baseline_submission
 from scorer.evaluate import build_split_cache
+from scorer.geometry import FloatArray
 from scorer.submission import Submission, SubmissionMetadata, dump_submission_json
 from scorer.synth import synthesize_split
 from scorer.versions import VERSIONS
@@ -79,7 +86,9 @@ def entry_file(split: Path, out: Path, seed: int = 0) -> Path:
     """Write a one-seed submission (the human trajectories with noise) covering every token of the split."""
     rng = np.random.default_rng(seed)
     human = baseline_submission(split, "human", "bench").seeds[0]
-    noisy = {token: poses + rng.normal(0.0, 0.2, poses.shape) for token, poses in human.items()}
+    noisy: dict[str, FloatArray] = {
+        token: poses + rng.normal(0.0, 0.2, poses.shape) for token, poses in human.items()
+    }
     out.write_bytes(dump_submission_json(Submission(SubmissionMetadata(method="bench"), (noisy,))))
     return out
 
@@ -178,19 +187,46 @@ async def leaderboard_latency(url: str, rate: float, seconds: float) -> tuple[fl
     return float(p50), float(p99), len(latencies), errors
 
 
+def worker_peak_rss(worker_pid: int) -> tuple[float, list[float]] | None:
+    """Return the peak RSS (VmHWM) in MiB of a running worker's main process and, largest first, of the other
+    processes of its session (pool processes, beat); None where there is no /proc."""
+    peaks: dict[int, float] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[3]) != worker_pid:  # the session's leader
+                continue
+            status = (stat.parent / "status").read_text().splitlines()
+        except (OSError, ValueError, IndexError):  # gone meanwhile
+            continue
+        kib = next((line.split()[1] for line in status if line.startswith("VmHWM:")), None)
+        if kib is not None:
+            peaks[int(stat.parent.name)] = int(kib) / 1024
+    if worker_pid not in peaks:
+        return None
+    return peaks.pop(worker_pid), sorted(peaks.values(), reverse=True)
+
+
+def peak_rss_text(peaks: tuple[float, list[float]] | None) -> str:
+    if peaks is None:
+        return "n/a (no /proc)"
+    main, others = peaks
+    return f"main {main:.0f}, pool and beat {' '.join(f'{peak:.0f}' for peak in others)}"
+
+
 @contextmanager
 def running(
     kind: str, workers: int, split: Path, cache: Path
-) -> Iterator[tuple[Path, str, httpx.Client, str]]:
-    """Run API and worker on a fresh backend; yield the scratch root, the URL, a team client, the database URL."""
+) -> Iterator[tuple[Path, str, httpx.Client, str, int]]:
+    """Run API and worker on a fresh backend; yield the scratch root, the URL, a team client, the database URL
+    and the worker's process id."""
     with tempfile.TemporaryDirectory(prefix="navsim-lb-bench-") as tmp, ExitStack() as stack:
         root = Path(tmp)
         variables = stack.enter_context(backend(kind, root)) | {"CACHE_DIR": str(cache)}
         env = {**os.environ, **variables}
-        database_url = Settings(**variables).database_url
+        database_url = Settings(**variables).database_url  # type: ignore[arg-type]  # keys are the aliases
         token = set_up(database_url, split)
         worker_log = root / "worker.log"
-        stack.enter_context(child_process(worker_command(workers, beat=True), env, worker_log))
+        worker = stack.enter_context(child_process(worker_command(workers, beat=True), env, worker_log))
         port = free_port()
         stack.enter_context(child_process(api_command("127.0.0.1", port), env, root / "api.log"))
         url = f"http://127.0.0.1:{port}"
@@ -199,17 +235,19 @@ def running(
         )
         wait_until(lambda: _answers(client), timeout=60)
         wait_until(lambda: "ready." in worker_log.read_text(errors="replace"), timeout=60)
-        yield root, url, client, database_url
+        yield root, url, client, database_url, worker.pid
 
 
 def measure(
     kind: str, workers: int, split: Path, cache: Path, latency_load: tuple[float, float] | None
-) -> tuple[float, float, tuple[float, float, int, int] | None]:
-    """Run one configuration on a fresh backend: POST-to-row times, then leaderboard latency if asked."""
-    with running(kind, workers, split, cache) as (root, url, client, _):
+) -> tuple[float, float, tuple[float, float, int, int] | None, tuple[float, list[float]] | None]:
+    """Run one configuration on a fresh backend: POST-to-row times, then leaderboard latency if asked, and
+    the worker's peak RSS."""
+    with running(kind, workers, split, cache) as (root, url, client, _, worker_pid):
         scored, on_board = post_to_row(client, entry_file(split, root / "entry.json"))
         latency = asyncio.run(leaderboard_latency(url, *latency_load)) if latency_load else None
-    return scored, on_board, latency
+        peaks = worker_peak_rss(worker_pid)
+    return scored, on_board, latency, peaks
 
 
 def scored_once(database_url: str, submission_ids: list[int], tokens: int) -> list[str]:
@@ -231,9 +269,10 @@ def scored_once(database_url: str, submission_ids: list[int], tokens: int) -> li
 
 def under_load(
     kind: str, workers: int, split: Path, cache: Path, uploads: int, rate: float, seconds: float
-) -> tuple[tuple[float, float, int, int], float, list[str]]:
-    """Leaderboard latency at `rate` while `uploads` submissions are scored; the seconds until all are."""
-    with running(kind, workers, split, cache) as (root, url, client, database_url):
+) -> tuple[tuple[float, float, int, int], float, list[str], tuple[float, list[float]] | None]:
+    """Leaderboard latency at `rate` while `uploads` submissions are scored; the seconds until all are; what
+    is wrong with their records; the worker's peak RSS."""
+    with running(kind, workers, split, cache) as (root, url, client, database_url, worker_pid):
         started = time.perf_counter()
         ids = []
         for index in range(uploads):
@@ -250,6 +289,7 @@ def under_load(
             latency,
             time.perf_counter() - started,
             scored_once(database_url, ids, split_size(split)),
+            worker_peak_rss(worker_pid),
         )
 
 
@@ -266,32 +306,36 @@ def main() -> None:
     parser.add_argument("--workers", default="1,2")
     parser.add_argument("--load", type=int, default=0, help="uploads scored while the leaderboard is read")
     args = parser.parse_args()
+    print("\n".join(host_header()), flush=True)  # before any thread or process starts (host.py says why)
 
     split, cache = prepared_split(args.tokens)
     sizes = [int(n) for n in args.workers.split(",")]
     if args.load:
         for kind in args.backends.split(","):
-            latency, total, problems = under_load(
+            loaded, total, problems, peaks = under_load(
                 kind, max(sizes), split, cache, args.load, args.rate, args.seconds
             )
-            p50, p99, answered, errors = latency
+            p50, p99, answered, errors = loaded
             print(
                 f"{kind}: GET /leaderboard {args.rate:.0f}/s for {args.seconds:.0f} s while {args.load} uploads of "
                 f"{args.tokens} tokens were scored by {max(sizes)} worker processes: p50 {p50:.1f} ms, "
                 f"p99 {p99:.1f} ms ({answered} answered, {errors} errors); all scored after {total:.0f} s; "
-                + ("every upload scored exactly once" if not problems else f"PROBLEMS: {problems}"),
+                + ("every upload scored exactly once" if not problems else f"PROBLEMS: {problems}")
+                + f"; worker peak RSS (MiB): {peak_rss_text(peaks)}",
                 flush=True,
             )
         return
     print(f"{args.tokens} tokens, both metric versions; seconds from POST to:")
-    print(f"{'backend':10} {'workers':>7} {'scored':>8} {'on board':>9}")
+    print(f"{'backend':10} {'workers':>7} {'scored':>8} {'on board':>9}  worker peak RSS (MiB)")
     latencies = {}
     for kind in args.backends.split(","):
         for workers in sizes:
             # Leaderboard latency once per backend, with the largest worker idle beside the API.
             load = (args.rate, args.seconds) if workers == max(sizes) else None
-            scored, on_board, latency = measure(kind, workers, split, cache, load)
-            print(f"{kind:10} {workers:>7} {scored:>8.1f} {on_board:>9.1f}", flush=True)
+            scored, on_board, latency, peaks = measure(kind, workers, split, cache, load)
+            print(
+                f"{kind:10} {workers:>7} {scored:>8.1f} {on_board:>9.1f}  {peak_rss_text(peaks)}", flush=True
+            )
             if latency is not None:
                 latencies[kind] = latency
     for kind, (p50, p99, answered, errors) in latencies.items():
