@@ -219,6 +219,16 @@ def test_both_versions_are_served(world: World) -> None:
     ]
 
 
+# A token where the logged human fails lane keeping too: the filter set the agent's 0 to 1.
+FILTERED = {
+    "human_filter": {
+        "overridden": ["lane_keeping"],
+        "agent_before": {"lane_keeping": 0.0, "ego_progress": 0.7},
+        "human": {"lane_keeping": 0.0, "ego_progress": 1.0},
+    }
+}
+
+
 def _scored_with_undefined_ec(world: World, undefined: set[str]) -> int:
     """Score a submission whose v2.2 rows leave EC undefined (NaN: no frame before) on `undefined` tokens."""
     with transaction(world.factory) as session:
@@ -240,7 +250,7 @@ def _scored_with_undefined_ec(world: World, undefined: set[str]) -> int:
                     True,
                     dict.fromkeys(VERSIONS[version].result_columns, 0.5)
                     | {"two_frame_extended_comfort": math.nan if token in undefined else 1.0},
-                    detail={"two_frame_extended_comfort": {"previous_token": "x"}}
+                    detail=FILTERED | {"two_frame_extended_comfort": {"previous_token": "x"}}
                     if token not in undefined
                     else {},
                 )
@@ -268,7 +278,20 @@ def test_v2_2_board_has_its_columns_its_official_code_and_ec_over_the_tokens_tha
     )
     by_token = {r["token"]: r for r in tokens.json()}
     assert by_token[TOKENS[0]]["metrics"]["two_frame_extended_comfort"] is None
-    assert by_token[TOKENS[-1]]["detail"] == {"two_frame_extended_comfort": {"previous_token": "x"}}
+    # The team reads the filter's overrides and its own values there, not the human's scores on a hidden log.
+    team_filter = {"overridden": ["lane_keeping"], "agent_before": {"lane_keeping": 0.0}}
+    assert by_token[TOKENS[-1]]["detail"] == {
+        "human_filter": team_filter,
+        "two_frame_extended_comfort": {"previous_token": "x"},
+    }
+    admin_rows = world.client.get(
+        f"/api/v1/admin/submissions/{submission_id}/tokens",
+        params={"version": "v2.2"},
+        headers=world.admin_headers(),
+    ).json()
+    assert {r["token"]: r for r in admin_rows}[TOKENS[-1]]["detail"]["human_filter"] == FILTERED[
+        "human_filter"
+    ]
     v11 = world.client.get(
         f"/api/v1/submissions/{submission_id}/tokens", params={"version": "v1.1"}, headers=team
     ).json()

@@ -203,10 +203,11 @@ def test_chunks_with_their_contexts_store_the_v2_2_rows_of_the_whole_split(
                 token,
                 column,
             )
-        team_view = expected.detail | {
-            "human_filter": {k: v for k, v in expected.detail["human_filter"].items() if k != "human"}
-        }
-        assert row["detail"] == team_view, token  # the team does not see the human's own scores
+        block = expected.detail["human_filter"]
+        seen = {k: v for k, v in block.items() if k not in ("human", "agent_before")}
+        if block["overridden"]:  # its own values where the filter set 1, not the human's scores
+            seen["agent_before"] = {column: block["agent_before"][column] for column in block["overridden"]}
+        assert row["detail"] == expected.detail | {"human_filter": seen}, token
         paired += "previous_token" in row["detail"].get("two_frame_extended_comfort", {})
     assert paired > 10  # the pairs the chunks cut apart were found
 

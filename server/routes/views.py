@@ -167,8 +167,14 @@ def token_result_views(
 
 def _detail(detail: dict[str, Any], admin: bool) -> dict[str, Any]:
     """Return a row's detail as the caller may read it: a team sees which columns the human filter set to 1
-    (the logged human scores 0 there too), not the rest of the human's scores on a hidden log."""
+    (the logged human scores 0 there too) and its own values there before, not the rest of the human's
+    scores on a hidden log (nor, to keep a navtest-size answer small, its values the filter left alone)."""
     human_filter = detail.get("human_filter")
     if admin or not human_filter:
         return detail
-    return detail | {"human_filter": {k: v for k, v in human_filter.items() if k != "human"}}
+    overridden = human_filter["overridden"]
+    before = human_filter.get("agent_before", {})
+    seen = {k: v for k, v in human_filter.items() if k not in ("human", "agent_before")}
+    if overridden:
+        seen["agent_before"] = {column: before[column] for column in overridden}
+    return detail | {"human_filter": seen}
