@@ -420,14 +420,19 @@ def _score_chunk(
     # Every version at once: one PDM-Closed unroll serves them all.
     built, errors = build_missing_caches([paths[token] for token in unbuilt], cache_dir, list(VERSIONS))
     for token in unbuilt:
+        name = paths[token].name
         for version in versions:
             if token in caches[version.name]:
                 continue
-            if version.name in built.get(paths[token].name, {}):
-                caches[version.name][token] = built[paths[token].name][version.name]
-            else:
-                reason = _build_error_text(token, errors[paths[token].name])
-                rows[version.name].append(TokenResult(token, seed, False, error=reason))
+            # Built here, or meanwhile by another process (then build_missing_caches found it and built nothing).
+            cache = built.get(name, {}).get(version.name) or load_cache(
+                cache_dir, version.name, token, scene_file_hash(paths[token])
+            )
+            if cache is not None:
+                caches[version.name][token] = cache
+                continue
+            cause = errors.get(name, RuntimeError("the cache file was not written"))
+            rows[version.name].append(TokenResult(token, seed, False, error=_build_error_text(token, cause)))
     # Any version's cache holds the token's ego and start time for its simulation.
     simulated = [token for token in poses if any(token in caches[version.name] for version in versions)]
     first_cache = [

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scorer import evaluate
+from scorer.cache import MetricCache, load_cache
 from scorer.evaluate import TokenResult, score_tokens, score_versions
 from scorer.submission import load_submission
 from scorer.versions import VERSIONS
@@ -65,3 +67,27 @@ def test_a_scene_one_version_cannot_cache_fails_in_that_version_only(tmp_path: P
     assert [rows[version][0].valid for version in VERSIONS] == [True, True, False]
     assert "could not be built" in (rows["v2.2"][0].error or "")
     assert not math.isnan(rows["v1.1"][0].metrics["score"])
+
+
+def test_caches_another_process_built_meanwhile_are_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two workers may miss a scene's cache at once: the one whose build finds the files written meanwhile
+    (and so builds nothing) reads them instead of failing the token."""
+    path = REFERENCE / "submissions" / "cv_decel.json"
+    poses = load_submission(path.read_bytes(), path.name).seeds[0]
+    token = min(poses)
+    expected = score_versions(REFERENCE, tmp_path, poses, list(VERSIONS), [token])  # writes the caches
+    missed: set[tuple[str, str]] = set()
+
+    def load_after_a_miss(cache_dir: Path, version: str, name: str, scene_hash: str) -> MetricCache | None:
+        if (version, name) not in missed:  # the first look comes before the other process wrote the file
+            missed.add((version, name))
+            return None
+        return load_cache(cache_dir, version, name, scene_hash)
+
+    monkeypatch.setattr(evaluate, "load_cache", load_after_a_miss)
+    rows = score_versions(REFERENCE, tmp_path, poses, list(VERSIONS), [token])
+    assert missed == {(version, token) for version in VERSIONS}
+    for version in VERSIONS:
+        assert _same(rows[version][0], expected[version][0]) and rows[version][0].valid
