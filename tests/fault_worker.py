@@ -19,16 +19,17 @@ import worker.tasks
 from worker.app import app
 
 __all__ = ["app"]
-_score_tokens = worker.tasks.score_tokens
+_score_versions = worker.tasks.score_versions
 
 
-def _faulty_score_tokens(
+def _faulty_score_versions(
     split_dir: Any,
     cache_dir: Any,
     predictions: Any,
-    version: str,
+    versions: Sequence[str],
     tokens: Sequence[str],
     seed: int | None = None,
+    context: Sequence[str] = (),
 ) -> Any:
     if os.environ.get("FAULT_POISON_TOKEN") in tokens:
         os.kill(os.getpid(), signal.SIGKILL)
@@ -37,7 +38,7 @@ def _faulty_score_tokens(
         while True:
             time.sleep(1)
     time.sleep(float(os.environ.get("FAULT_CHUNK_SECONDS", "0")))
-    return _score_tokens(split_dir, cache_dir, predictions, version, tokens, seed)
+    return _score_versions(split_dir, cache_dir, predictions, versions, tokens, seed, context=context)
 
 
-worker.tasks.score_tokens = _faulty_score_tokens
+worker.tasks.score_versions = _faulty_score_versions
