@@ -11,6 +11,7 @@ scene, unlike the devkit, whose planner instance carries it across the scenes of
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
@@ -26,8 +27,8 @@ from scorer.geometry import FloatArray
 from scorer.human import FILTERED_COLUMNS, human_future_poses, is_synthetic
 from scorer.metrics.history_comfort import past_states
 from scorer.observation import Observation, drop_tracks_on_ego, observe_scene
-from scorer.pdm_closed import ego_polygons, plan_references_batch
-from scorer.pdm_scorer import ProposalMeasures, measure_batch, score_measures
+from scorer.pdm_closed import PlannerOutput, ego_polygons, plan_references_batch
+from scorer.pdm_scorer import MeasureSettings, ProposalMeasures, measure_alike, measure_batch, score_measures
 from scorer.red_lights import RedLights, observe_red_lights
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
@@ -88,35 +89,44 @@ def build_cache_batch(
     frames = [scene.current_frame for scene in scenes]
     # One PDM-Closed unroll serves every version; only the proposal selection differs.
     plans = plan_references_batch(scenes, drivable_maps, [version.planner for version in versions])
-    # Every (version, scene) reference trajectory in one simulation, version-major.
     t0_us = np.array([frame.timestamp_us for frame in frames])
     trajectories = np.stack([plan[column].trajectory for column in range(len(versions)) for plan in plans])
     initial = np.stack([initial_state(frame.ego) for frame in frames])
-    states = simulate(
-        pdm_references(np.tile(t0_us, len(versions)), trajectories), np.tile(initial, (len(versions), 1))
-    ).reshape(len(versions), len(scenes), 1, -1, initial.shape[-1])
-    observed: dict[tuple[int, bool, bool], list[tuple[Observation, tuple[str, ...]]]] = {}
+    # The logged humans of original scenes, for the versions with the penalty filter (`score_humans`).
+    humans: list[int] = []
+    if any(version.human_penalty_filter for version in versions):
+        humans = [index for index, scene in enumerate(scenes) if not is_synthetic(scene.token)]
+    references = [pdm_references(np.tile(t0_us, len(versions)), trajectories)]
+    if humans:
+        poses = np.stack([human_future_poses(scenes[index]) for index in humans])
+        references.append(agent_references(initial[humans], t0_us[humans], poses))
+    # Every (version, scene) reference trajectory, version-major, then the humans, in one simulation: rows
+    # are independent, and each simulate call pays numpy's per-call cost 40 steps over.
+    simulated = simulate(
+        np.concatenate(references), np.concatenate([np.tile(initial, (len(versions), 1)), initial[humans]])
+    )
+    count = len(versions) * len(scenes)
+    states = simulated[:count].reshape(len(versions), len(scenes), 1, -1, initial.shape[-1])
+    keys = [_observation_key(version) for version in versions]
+    # Versions that observe alike share the observation.
+    observed = {key: [evaluation_observation(scene, *key) for scene in scenes] for key in dict.fromkeys(keys)}
+    observations = [[observation for observation, _ in observed[key]] for key in keys]
+    reference_measures = _reference_measures(states, versions, keys, observations, drivable_maps, plans)
     caches: list[dict[str, MetricCache]] = [{} for _ in scenes]
     for column, version in enumerate(versions):
         version_plans = [plan[column] for plan in plans]
-        reads_lights = "traffic_light_compliance" in version.evaluation.multiplier_rows
-        key = (version.observation_frames, reads_lights, version.drops_tracks_on_ego)
-        if key not in observed:  # versions that observe alike share the observation
-            observed[key] = [evaluation_observation(scene, *key) for scene in scenes]
-        observations = [observation for observation, _ in observed[key]]
         inputs = (
-            observations,
+            observations[column],
             drivable_maps,
             [plan.centerline[:, :2] for plan in version_plans],
             [plan.route_lane_ids for plan in version_plans],
         )
-        measures = measure_batch(states[column], *inputs, version.evaluation)
         pasts = None
         if "history_comfort" in version.evaluation.weights:
             pasts = [past_states(scene) for scene in scenes]
-        humans: list[dict[str, float] | None] = [None] * len(scenes)
+        human_results: list[dict[str, float] | None] = [None] * len(scenes)
         if version.human_penalty_filter:
-            humans = score_humans(scenes, initial, t0_us, *inputs, version)
+            human_results = score_humans(humans, simulated[count:], len(scenes), *inputs, version)
         for index, (scene, plan) in enumerate(zip(scenes, version_plans, strict=True)):
             caches[index][version.name] = MetricCache(
                 token=scene.token,
@@ -130,13 +140,68 @@ def build_cache_batch(
                 route_roadblocks=tuple(plan.route_roadblocks),
                 idm_target_velocities=np.asarray(plan.idm_target_velocities, dtype=np.float64),
                 drivable_map=drivable_maps[index],
-                observation=observations[index],
-                reference_measures=measures.token(index),
-                dropped_tracks=observed[key][index][1],
-                human=humans[index],
+                observation=observations[column][index],
+                reference_measures=reference_measures[column][index],
+                dropped_tracks=observed[keys[column]][index][1],
+                human=human_results[index],
                 past_states=None if pasts is None else pasts[index],
             )
     return caches
+
+
+def _observation_key(version: MetricVersion) -> tuple[int, bool, bool]:
+    """Return how a version observes a scene: future frames, red lights read, tracks on the ego dropped."""
+    reads_lights = "traffic_light_compliance" in version.evaluation.multiplier_rows
+    return version.observation_frames, reads_lights, version.drops_tracks_on_ego
+
+
+def _reference_measures(
+    states: FloatArray,
+    versions: Sequence[MetricVersion],
+    keys: Sequence[tuple[int, bool, bool]],
+    observations: Sequence[Sequence[Observation]],
+    drivable_maps: Sequence[DrivableMap],
+    plans: Sequence[Sequence[PlannerOutput]],
+) -> list[list[ProposalMeasures]]:
+    """Return each version's measures (1, 1) of each scene's simulated reference (V, S, 1, 41, 11), the
+    versions observing as `keys` say.
+
+    A token's measures read its own inputs only, so the versions that observe alike are measured in one call
+    (`measure_alike`), and a scene's reference they share (the same proposal selected, the same centerline
+    and route) is measured once.
+    """
+    measures: list[list[ProposalMeasures]] = [[] for _ in versions]
+    groups: dict[tuple[int, bool, bool], list[int]] = {}  # versions by how they observe (`_observation_key`)
+    for column, key in enumerate(keys):
+        groups.setdefault(key, []).append(column)
+    for columns in groups.values():
+        token_of: dict[tuple[int, bytes, bytes, tuple[str, ...]], int] = {}  # a scene's inputs -> token
+        tokens: list[tuple[int, int]] = []  # (column, scene) measured
+        token: dict[tuple[int, int], int] = {}
+        for column in columns:
+            for index, scene_plans in enumerate(plans):
+                plan = scene_plans[column]
+                inputs = (
+                    index,
+                    states[column, index].tobytes(),
+                    plan.centerline.tobytes(),
+                    plan.route_lane_ids,
+                )
+                if inputs not in token_of:
+                    token_of[inputs] = len(tokens)
+                    tokens.append((column, index))
+                token[column, index] = token_of[inputs]
+        measured = measure_alike(
+            np.stack([states[column, index] for column, index in tokens]),
+            [observations[column][index] for column, index in tokens],
+            [drivable_maps[index] for _, index in tokens],
+            [plans[index][column].centerline[:, :2] for column, index in tokens],
+            [plans[index][column].route_lane_ids for column, index in tokens],
+            [MeasureSettings.of(versions[column].evaluation) for column in columns],
+        )
+        for column, version_measures in zip(columns, measured, strict=True):
+            measures[column] = [version_measures.token(token[column, index]) for index in range(len(plans))]
+    return measures
 
 
 def evaluation_observation(
@@ -153,25 +218,23 @@ def evaluation_observation(
 
 
 def score_humans(
-    scenes: Sequence[Scene],
-    initial: FloatArray,
-    t0_us: np.ndarray,
+    original: Sequence[int],
+    states: FloatArray,
+    num_scenes: int,
     observations: Sequence[Observation],
     drivable_maps: Sequence[DrivableMap],
     centerlines: Sequence[FloatArray],
     route_lane_ids: Sequence[Sequence[str]],
     version: MetricVersion,
 ) -> list[dict[str, float] | None]:
-    """Return the logged human's result per scene, as the filter reads it (None on synthetic scenes).
+    """Return the logged human's result per scene, as the filter reads it (None on synthetic scenes), from the
+    simulated states (H, 41, 11) of the humans of the scenes `original` (`human_future_poses`).
 
-    Each human is simulated and scored alone, a batch of one in the devkit, without past states.
+    Each human is scored alone, a batch of one in the devkit, without past states.
     """
-    original = [index for index, scene in enumerate(scenes) if not is_synthetic(scene.token)]
-    humans: list[dict[str, float] | None] = [None] * len(scenes)
+    humans: list[dict[str, float] | None] = [None] * num_scenes
     if not original:
         return humans
-    poses = np.stack([human_future_poses(scenes[index]) for index in original])
-    states = simulate(agent_references(initial[original], t0_us[original], poses), initial[original])
     scores = score_measures(
         measure_batch(
             states[:, None],
@@ -292,7 +355,7 @@ def _unpack(data: bytes | bytearray) -> tuple[dict[str, Any], dict[str, np.ndarr
         dtype = np.dtype(dtype)
         if dtype.hasobject:
             raise ValueError(f"{name}: object arrays are not allowed")
-        count = int(np.prod(shape))
+        count = math.prod(shape)  # the header's integers (numpy's prod costs more than reading the array)
         arrays[name] = np.frombuffer(body, dtype=dtype, count=count, offset=offset).reshape(shape)
     return header["meta"], arrays
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
@@ -40,41 +39,6 @@ class DrivableMap:
     types: tuple[str, ...]
     polygons: npt.NDArray[np.object_]  # (m,) shapely Polygons
 
-    def of_types(self, types: Sequence[str]) -> BoolArray:
-        """Return the mask (m,) of polygons whose type is one of `types`."""
-        return np.array([kind in types for kind in self.types], dtype=bool)
-
-    @cached_property
-    def is_lane(self) -> BoolArray:
-        """Return the mask of lanes and lane connectors (they decide lanes and route, never drivability)."""
-        return self.of_types(LANE_TYPES)
-
-    @cached_property
-    def is_drivable(self) -> BoolArray:
-        """Return the mask of drivable polygons: roadblocks, intersections, car parks."""
-        return self.of_types(DRIVABLE_TYPES)
-
-    @cached_property
-    def is_intersection(self) -> BoolArray:
-        """Return the mask of intersections."""
-        return self.of_types([INTERSECTION])
-
-    def on_route(self, route_lane_ids: Collection[str]) -> BoolArray:
-        """Return the mask of lanes and lane connectors whose id is in `route_lane_ids`."""
-        route = set(route_lane_ids)
-        return self.is_lane & np.array([token in route for token in self.tokens], dtype=bool)
-
-    @cached_property
-    def prepared_polygons(self) -> npt.NDArray[np.object_]:
-        """Return the polygons, prepared for fast point-in-polygon tests (same results, GEOS caches indexes)."""
-        shapely.prepare(self.polygons)
-        return self.polygons
-
-    @cached_property
-    def bounds(self) -> FloatArray:
-        """Return the bounding boxes (m, 4) xmin, ymin, xmax, ymax."""
-        return shapely.bounds(self.polygons).reshape(-1, 4)
-
 
 @dataclass(frozen=True, eq=False)
 class MapBatch:
@@ -94,19 +58,22 @@ class MapBatch:
 
     @classmethod
     def of(cls, maps: Sequence[DrivableMap], route_lane_ids: Sequence[Collection[str]]) -> MapBatch:
-        """Return the batch of `maps`, each with its token's route lane ids."""
+        """Return the batch of `maps`, each with its token's route lane ids, in one pass over their polygons."""
         count = np.array([len(drivable_map.tokens) for drivable_map in maps], dtype=np.intp)
-
-        def joined(masks: list[BoolArray]) -> BoolArray:
-            return np.concatenate(masks).astype(bool)
-
+        polygons = np.concatenate([drivable_map.polygons for drivable_map in maps])
+        # Prepared in place (a prepared one is left as is): the same results, faster point-in-polygon tests.
+        shapely.prepare(polygons)
+        types = [kind for drivable_map in maps for kind in drivable_map.types]
+        routes = [set(route) for route in route_lane_ids]
+        listed = [token in route for m, route in zip(maps, routes, strict=True) for token in m.tokens]
+        is_lane = np.array([kind in LANE_TYPES for kind in types], dtype=bool)
         return cls(
-            polygons=np.concatenate([drivable_map.prepared_polygons for drivable_map in maps]),
-            bounds=np.concatenate([drivable_map.bounds for drivable_map in maps]),
-            is_lane=joined([drivable_map.is_lane for drivable_map in maps]),
-            is_drivable=joined([drivable_map.is_drivable for drivable_map in maps]),
-            is_intersection=joined([drivable_map.is_intersection for drivable_map in maps]),
-            is_route=joined([m.on_route(route) for m, route in zip(maps, route_lane_ids, strict=True)]),
+            polygons=polygons,
+            bounds=shapely.bounds(polygons).reshape(-1, 4),
+            is_lane=is_lane,
+            is_drivable=np.array([kind in DRIVABLE_TYPES for kind in types], dtype=bool),
+            is_intersection=np.array([kind == INTERSECTION for kind in types], dtype=bool),
+            is_route=is_lane & np.array(listed, dtype=bool),
             start=np.cumsum(count) - count,
             count=count,
         )

@@ -44,7 +44,7 @@ from scorer.geometry import (
     normalize_angle,
     rear_axle_round_trip,
 )
-from scorer.pdm_scorer import score_proposals
+from scorer.pdm_scorer import MeasureSettings, measure_alike, score_measures
 from scorer.planner_observation import PlannerObservation, observe_for_planner, scoring_observation
 from scorer.route import (
     Route,
@@ -427,6 +427,31 @@ def unroll_proposals(plans: Sequence[ScenePlan]) -> Proposals:
     return Proposals(plans=tuple(plans), unroll=unroll)
 
 
+def best_proposals(
+    states: FloatArray,
+    plans: Sequence[ScenePlan],
+    drivable_maps: Sequence[DrivableMap],
+    configs: Sequence[ScorerConfig],
+) -> npt.NDArray[np.intp]:
+    """Return the index (S, C) of each scene's best proposal under each planner config, from the simulated
+    proposals (S, 15, 41, 11): the devkit's `score_proposals` per scene and config, then the first best score.
+
+    A token's measures do not depend on the tokens measured with it, so the scenes are measured together, and
+    once for all configs (`measure_alike`): only what a config's `MeasureSettings` change is measured apart.
+    """
+    inputs = (
+        [scoring_observation(plan.observation) for plan in plans],
+        drivable_maps,
+        [plan.centerline[:, :2] for plan in plans],
+        [plan.route.lane_ids for plan in plans],
+    )
+    measured = measure_alike(states, *inputs, [MeasureSettings.of(config) for config in configs])
+    best = np.empty((len(plans), len(configs)), dtype=np.intp)
+    for column, (config, measures) in enumerate(zip(configs, measured, strict=True)):
+        best[:, column] = np.argmax(score_measures(measures, config).score, axis=1)
+    return best
+
+
 def plan_references_batch(
     scenes: Sequence[Scene], drivable_maps: Sequence[DrivableMap], configs: Sequence[ScorerConfig]
 ) -> list[list[PlannerOutput]]:
@@ -439,20 +464,11 @@ def plan_references_batch(
         [initial_state(scene.current_frame.ego) for scene in scenes], NUM_PATHS * NUM_POLICIES, axis=0
     )
     simulated = simulate(proposals.poses(rows, slice(0, PROPOSAL_STEPS + 1)), initial)
-    selected = np.empty((len(scenes), len(configs)), dtype=np.intp)
-    for index, (plan, drivable_map) in enumerate(zip(proposals.plans, drivable_maps, strict=True)):
-        scene_rows = proposals.rows(index)
-        observation = scoring_observation(plan.observation)
-        for column, config in enumerate(configs):
-            scores = score_proposals(
-                simulated[scene_rows],
-                observation,
-                drivable_map,
-                plan.centerline[:, :2],
-                plan.route.lane_ids,
-                config,
-            )
-            selected[index, column] = scene_rows[int(np.argmax(scores.score))]
+    count = NUM_PATHS * NUM_POLICIES
+    best = best_proposals(
+        simulated.reshape(len(scenes), count, *simulated.shape[1:]), proposals.plans, drivable_maps, configs
+    )
+    selected = best + count * np.arange(len(scenes))[:, None]
     # Only the selected proposals are unrolled on to 5 s, each alone (its own leading-agent buffer).
     extended = np.unique(selected)
     proposals.unroll.run(extended, range(PROPOSAL_STEPS + 1, TRAJECTORY_STEPS + 1), groups=extended)

@@ -13,16 +13,18 @@ from __future__ import annotations
 
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, fields
+from functools import cache
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from scorer.drivable_map import DrivableMap, MapBatch
-from scorer.geometry import FloatArray
+from scorer.geometry import BoolArray, FloatArray
 from scorer.metrics.aggregation import aggregate
 from scorer.metrics.collisions import no_at_fault_collisions
 from scorer.metrics.comfort import comfort_series, is_comfortable
+from scorer.metrics.contacts import FirstInfraction
 from scorer.metrics.drivable_area import drivable_area_compliance
 from scorer.metrics.driving_direction import driving_direction_compliance, off_route_steps
 from scorer.metrics.ego_areas import ego_areas, in_intersection
@@ -132,6 +134,37 @@ class ProposalMeasures:
         )
 
 
+@dataclass(frozen=True)
+class MeasureSettings:
+    """What `measure_batch` reads of a `ScorerConfig`: configs that agree here measure proposals alike and
+    differ only in `score_measures`, so they can share one measurement (PDM-Closed's planner configs of v1.0
+    and v1.1 do)."""
+
+    stopped_speed_threshold: float
+    ttc_evaluated_steps: int
+    ddc_excludes_intersections: bool
+    traffic_light_compliance: bool
+    lane_keeping: tuple[float, float] | None  # deviation limit (m) and horizon window (s); None without LK
+    comfort_at_centre: bool  # v2's history comfort reads the longitudinal acceleration at the centre
+
+    @classmethod
+    def of(cls, config: ScorerConfig) -> MeasureSettings:
+        """Return what `config` sets of the measures."""
+        uses = set(config.multiplier_rows) | set(config.weights)
+        return cls(
+            stopped_speed_threshold=config.stopped_speed_threshold,
+            ttc_evaluated_steps=config.ttc_evaluated_steps,
+            ddc_excludes_intersections=config.ddc_excludes_intersections,
+            traffic_light_compliance="traffic_light_compliance" in uses,
+            lane_keeping=(
+                (config.lane_keeping_deviation_limit, config.lane_keeping_horizon_window)
+                if "lane_keeping" in uses
+                else None
+            ),
+            comfort_at_centre="history_comfort" in uses,
+        )
+
+
 def join_measures(parts: Sequence[ProposalMeasures], axis: int = 1) -> ProposalMeasures:
     """Return the measures of `parts` side by side: as more proposals (axis 1) or more tokens (axis 0)."""
     return ProposalMeasures(
@@ -185,7 +218,23 @@ def measure_batch(
     route_lane_ids: Sequence[Collection[str]],
     config: ScorerConfig,
 ) -> ProposalMeasures:
-    """Return the per-proposal measures (B, P) of B tokens' simulated proposals (B, P, 41, 11)."""
+    """Return the per-proposal measures (B, P) of B tokens' simulated proposals (B, P, 41, 11); of `config`,
+    only its `MeasureSettings` count."""
+    inputs = (observations, drivable_maps, centerlines, route_lane_ids)
+    return measure_alike(states, *inputs, [MeasureSettings.of(config)])[0]
+
+
+def measure_alike(
+    states: FloatArray,
+    observations: Sequence[Observation],
+    drivable_maps: Sequence[DrivableMap],
+    centerlines: Sequence[FloatArray],
+    route_lane_ids: Sequence[Collection[str]],
+    settings: Sequence[MeasureSettings],
+) -> list[ProposalMeasures]:
+    """Return the per-proposal measures (B, P) of B tokens' simulated proposals (B, P, 41, 11) under each of
+    `settings`, each as measured alone: what no setting changes (the ego boxes, their areas, NC, progress) is
+    measured once, every other measure once per value of the settings it reads."""
     states = np.asarray(states, dtype=np.float64)
     if states.ndim != 4 or states.shape[2:] != (SCORING_POSES + 1, STATE_SIZE):
         raise ValueError(
@@ -206,67 +255,94 @@ def measure_batch(
 
     points = ego_box_points(rows)
     areas = ego_areas(points, row_token, maps)
-    collisions, collision = no_at_fault_collisions(rows, points, areas, row_token, batch_observations)
-    ttc, ttc_infraction = time_to_collision(
-        rows,
-        points,
-        areas,
-        row_token,
-        batch_observations,
-        maps,
-        config.stopped_speed_threshold,
-        SCORING_INTERVAL_S,
-        config.ttc_evaluated_steps,
-    )
     centers = points[..., BoxPoint.CENTER, :]
     num_steps = rows.shape[1]
-    uses = set(config.multiplier_rows) | set(config.weights)
-    centre_in_intersection = None
-    if config.ddc_excludes_intersections or "lane_keeping" in uses:
-        centre_in_intersection = in_intersection(
+    centerline_lines = centerline_strings(list(centerlines))
+    no_index = np.full(len(rows), -1, dtype=np.intp)
+
+    @cache
+    def ttc(stopped_speed_threshold: float) -> dict[int, tuple[FloatArray, FirstInfraction]]:
+        horizons = sorted({setting.ttc_evaluated_steps for setting in settings})
+        measured = time_to_collision(
+            rows,
+            points,
+            areas,
+            row_token,
+            batch_observations,
+            maps,
+            stopped_speed_threshold,
+            SCORING_INTERVAL_S,
+            horizons,
+        )
+        return dict(zip(horizons, measured, strict=True))
+
+    @cache
+    def centre_in_intersection() -> BoolArray:
+        return in_intersection(
             centers[..., 0].reshape(-1), centers[..., 1].reshape(-1), np.repeat(row_token, num_steps), maps
         ).reshape(len(rows), num_steps)
-    no_index = np.full(len(rows), -1, dtype=np.intp)
-    traffic_light: FloatArray = np.ones(len(rows))
-    red_light_index, red_light = no_index, no_index
-    if "traffic_light_compliance" in uses:
-        traffic_light, red_light_index, red_light = traffic_light_compliance(
+
+    @cache
+    def traffic_light() -> tuple[FloatArray, IntArray, IntArray]:
+        return traffic_light_compliance(
             ego_corners(points), row_token, [observation.red_lights for observation in observations]
         )
-    centerline_lines = centerline_strings(list(centerlines))
-    keeping: FloatArray = np.ones(len(rows))
-    keeping_index, keeping_run = no_index, np.zeros(len(rows), dtype=np.intp)
-    if "lane_keeping" in uses:
-        assert centre_in_intersection is not None
-        keeping, keeping_index, keeping_run = lane_keeping(
-            centers,
-            centre_in_intersection,
-            centerline_lines,
-            row_token,
-            config.lane_keeping_deviation_limit,
-            config.lane_keeping_horizon_window,
-            SCORING_INTERVAL_S,
+
+    @cache
+    def keeping(limits: tuple[float, float]) -> tuple[FloatArray, IntArray, IntArray]:
+        inside = centre_in_intersection()
+        return lane_keeping(centers, inside, centerline_lines, row_token, *limits, SCORING_INTERVAL_S)
+
+    @cache
+    def comfort(at_centre: bool) -> FloatArray:
+        return per_token(comfort_series(rows, at_centre=at_centre))
+
+    @cache
+    def off_route(excludes_intersections: bool) -> FloatArray:
+        excluded = centre_in_intersection() if excludes_intersections else None
+        return per_token(off_route_steps(points, areas, excluded))
+
+    collisions, collision = no_at_fault_collisions(rows, points, areas, row_token, batch_observations)
+    shared = {
+        "no_at_fault_collisions": per_token(collisions),
+        "collision_index": per_token(collision.index),
+        "collision_object": per_token(local_object(collision.obj)),
+        "drivable_area_compliance": per_token(drivable_area_compliance(areas)),
+        "progress_raw": per_token(raw_progress(points, centerline_lines, row_token)),
+        "ego_areas": per_token(areas),
+    }
+    measures = []
+    for setting in settings:
+        time_to_collision_within_bound, ttc_infraction = ttc(setting.stopped_speed_threshold)[
+            setting.ttc_evaluated_steps
+        ]
+        light: tuple[FloatArray, IntArray, IntArray] = (np.ones(len(rows)), no_index, no_index)
+        if setting.traffic_light_compliance:
+            light = traffic_light()
+        lane: tuple[FloatArray, IntArray, IntArray] = (
+            np.ones(len(rows)),
+            no_index,
+            np.zeros(len(rows), dtype=np.intp),
         )
-    excluded = centre_in_intersection if config.ddc_excludes_intersections else None
-    return ProposalMeasures(
-        no_at_fault_collisions=per_token(collisions),
-        collision_index=per_token(collision.index),
-        collision_object=per_token(local_object(collision.obj)),
-        drivable_area_compliance=per_token(drivable_area_compliance(areas)),
-        time_to_collision_within_bound=per_token(ttc),
-        ttc_index=per_token(ttc_infraction.index),
-        ttc_object=per_token(local_object(ttc_infraction.obj)),
-        comfort_series=per_token(comfort_series(rows, at_centre="history_comfort" in uses)),
-        progress_raw=per_token(raw_progress(points, centerline_lines, row_token)),
-        off_route_steps=per_token(off_route_steps(points, areas, excluded)),
-        ego_areas=per_token(areas),
-        traffic_light_compliance=per_token(traffic_light),
-        red_light_index=per_token(red_light_index),
-        red_light=per_token(red_light),
-        lane_keeping=per_token(keeping),
-        lane_keeping_index=per_token(keeping_index),
-        lane_keeping_run=per_token(keeping_run),
-    )
+        if setting.lane_keeping is not None:
+            lane = keeping(setting.lane_keeping)
+        measures.append(
+            ProposalMeasures(
+                **shared,
+                time_to_collision_within_bound=per_token(time_to_collision_within_bound),
+                ttc_index=per_token(ttc_infraction.index),
+                ttc_object=per_token(local_object(ttc_infraction.obj)),
+                comfort_series=comfort(setting.comfort_at_centre),
+                off_route_steps=off_route(setting.ddc_excludes_intersections),
+                traffic_light_compliance=per_token(light[0]),
+                red_light_index=per_token(light[1]),
+                red_light=per_token(light[2]),
+                lane_keeping=per_token(lane[0]),
+                lane_keeping_index=per_token(lane[1]),
+                lane_keeping_run=per_token(lane[2]),
+            )
+        )
+    return measures
 
 
 def score_measures(

@@ -212,6 +212,24 @@ def _read_ego(reader: _Reader, raw: Any, where: str) -> EgoStatus:
     return EgoStatus(**values)
 
 
+def _valid_object_columns(raw_objects: list[Any]) -> tuple[FloatArray, FloatArray] | None:
+    """Return a frame's boxes (n, 7) and velocities (n, 2) when every object's are valid, each converted as
+    `_Reader.array` converts it, else None: then `_read_frame` reads them object by object, to name the first
+    invalid field. Most of a scene's numbers are there, and one call per frame costs less than one per object.
+    """
+    count = len(raw_objects)
+    try:
+        boxes = np.asarray([item["box"] for item in raw_objects], dtype=np.float64)
+        velocities = np.asarray([item["velocity"] for item in raw_objects], dtype=np.float64)
+    except (TypeError, KeyError, ValueError, OverflowError):
+        return None
+    if boxes.shape != (count, 7) or velocities.shape != (count, 2):
+        return None
+    if not (np.isfinite(boxes).all() and np.isfinite(velocities).all() and (boxes[:, 3:5] > 0).all()):
+        return None
+    return boxes, velocities
+
+
 def _read_frame(reader: _Reader, raw: Any, where: str) -> Frame:
     token = reader.string(raw, "token", where)
     timestamp_us = reader.integer(reader.get(raw, "timestamp_us", where), f"{where}.timestamp_us")
@@ -226,6 +244,7 @@ def _read_frame(reader: _Reader, raw: Any, where: str) -> Frame:
     raw_objects = reader.get(raw, "objects", where)
     if not isinstance(raw_objects, list):
         raise reader.fail(f"{where}.objects", "expected a list")
+    columns = _valid_object_columns(raw_objects)
     tracks, categories, boxes, velocities = [], [], [], []
     for index, raw_object in enumerate(raw_objects):
         at = f"{where}.objects[{index}]"
@@ -236,6 +255,8 @@ def _read_frame(reader: _Reader, raw: Any, where: str) -> Frame:
                 f"{at}.category", f"unknown category {category!r}; expected one of {CATEGORIES}"
             )
         categories.append(category)
+        if columns is not None:  # every box and velocity is valid: read in one call below
+            continue
         box = reader.array(reader.get(raw_object, "box", at), f"{at}.box", (7,))
         if box[3] <= 0 or box[4] <= 0:
             raise reader.fail(f"{at}.box", "length and width must be positive")
@@ -265,8 +286,12 @@ def _read_frame(reader: _Reader, raw: Any, where: str) -> Frame:
         driving_command=tuple(command),
         tracks=tuple(tracks),
         categories=tuple(categories),
-        boxes=np.array(boxes, dtype=np.float64).reshape(len(boxes), 7),
-        velocities=np.array(velocities, dtype=np.float64).reshape(len(velocities), 2),
+        boxes=np.array(boxes, dtype=np.float64).reshape(len(boxes), 7) if columns is None else columns[0],
+        velocities=(
+            np.array(velocities, dtype=np.float64).reshape(len(velocities), 2)
+            if columns is None
+            else columns[1]
+        ),
         traffic_lights=tuple(lights),
         route_roadblocks=reader.id_list(raw, "route_roadblocks", where),
     )

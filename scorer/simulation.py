@@ -12,6 +12,7 @@ several times faster (tests check both claims against einsum).
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from scorer.geometry import WHEEL_BASE, FloatArray, normalize_angle, principal_value
 from scorer.trajectory import SCORING_INTERVAL_S, SCORING_POSES, STATE_SIZE, StateIndex
@@ -189,13 +190,15 @@ def _lateral_steering_rate(
     offset[:, 1] = heading_offsets[:, -1]
 
     error = np.einsum("bij, bj -> bi", transition, lateral_state) + offset
-    error[:, 1:] = normalize_angle(error[:, 1:])
+    # The devkit wraps the heading and the steering error; the steering error meets Q's zero weight and is
+    # never read, so only the heading error is wrapped (elementwise: the same bits, half the arctan2 work).
+    heading_error = normalize_angle(error[:, 1])
     control = np.stack([lateral_input, heading_inputs[:, -1]], axis=-1)  # B0, B1 (B2 meets Q's zero weight)
     weighted_control = control * LATERAL_Q_DIAGONAL[:2]  # B^T Q
     inverse = -1 / (
         weighted_control[:, 0] * control[:, 0] + weighted_control[:, 1] * control[:, 1] + LATERAL_R
     )
-    return inverse * (weighted_control[:, 0] * error[:, 0] + weighted_control[:, 1] * error[:, 1])
+    return inverse * (weighted_control[:, 0] * error[:, 0] + weighted_control[:, 1] * heading_error)
 
 
 def _track(
@@ -267,9 +270,9 @@ def _propagate(states: FloatArray, acceleration: FloatArray, steering_rate: Floa
 def simulate(reference: FloatArray, initial: FloatArray) -> FloatArray:
     """Return the simulated states (P, 41, 11) tracking reference poses (P, >=41, >=3) from `initial`.
 
-    `initial` is one (11,) state shared by all proposals or one (P, 11) state per proposal. Raises
-    ValueError when a reference is not finite or the simulation diverges to a non-finite heading
-    (docs/engine.md, "Simulation").
+    `initial` is one (11,) state shared by all proposals or one (P, 11) state per proposal; rows that repeat
+    another's reference and initial state are simulated once (`_distinct_rows`). Raises ValueError when a
+    reference is not finite or the simulation diverges to a non-finite heading (docs/engine.md, "Simulation").
     """
     reference = np.asarray(reference, dtype=np.float64)
     if reference.ndim != 3 or reference.shape[1] < SCORING_POSES + 1 or reference.shape[2] < 3:
@@ -278,9 +281,34 @@ def simulate(reference: FloatArray, initial: FloatArray) -> FloatArray:
     if not np.all(np.isfinite(poses)):
         rows = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2))).tolist()
         raise ValueError(f"reference: non-finite pose in proposal row(s) {rows[:10]}")
+    initial_states = np.broadcast_to(np.asarray(initial, dtype=np.float64), (len(poses), STATE_SIZE))
+    distinct, inverse = _distinct_rows(poses, initial_states)
+    if len(distinct) < len(poses):
+        return _simulate(poses[distinct], initial_states[distinct])[inverse]
+    return _simulate(poses, initial_states)
+
+
+def _distinct_rows(
+    poses: FloatArray, initial: FloatArray
+) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """Return one row of each distinct (poses, initial state) pair, and for every row its distinct one.
+
+    Rows are compared byte for byte (so -0.0 and 0.0 differ, as they may in a simulation). Rows are
+    independent (`simulate`), so a pair simulated once gives every copy's bits: metric versions whose
+    PDM-Closed selects the same proposal, IDM proposals that coincide.
+    """
+    flat_poses = poses.reshape(len(poses), (SCORING_POSES + 1) * 3)  # simulate's (P, 41, 3)
+    keys = np.ascontiguousarray(np.concatenate([flat_poses, initial], axis=1))
+    rows = keys.view(np.dtype((np.void, keys.shape[1] * keys.itemsize))).reshape(-1)
+    _, distinct, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    return distinct, inverse.reshape(-1)
+
+
+def _simulate(poses: FloatArray, initial: FloatArray) -> FloatArray:
+    """Return the simulated states (P, 41, 11) tracking finite reference poses (P, 41, 3) from `initial` (P, 11)."""
     batch = len(poses)
     states = np.zeros((batch, SCORING_POSES + 1, STATE_SIZE), dtype=np.float64)
-    states[:, 0] = np.broadcast_to(np.asarray(initial, dtype=np.float64), (batch, STATE_SIZE))
+    states[:, 0] = initial
 
     velocity, curvature = reference_profiles(poses)
     # Lookahead index min(k + 10, 39); the curvature window is padded with its value there.

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import gzip
 import json
+from dataclasses import fields, replace
 from functools import cache
 from pathlib import Path
 
@@ -15,8 +16,11 @@ import pytest
 from scorer.drivable_map import build_drivable_map
 from scorer.observation import observe_scene
 from scorer.pdm_scorer import (
+    MeasureSettings,
+    ProposalMeasures,
     ProposalScores,
     join_measures,
+    measure_alike,
     measure_batch,
     score_batch,
     score_measures,
@@ -93,3 +97,25 @@ def test_proposals_measured_apart_and_joined_score_as_together(version: str) -> 
     submitted = measure_batch(states[:, 1:], observations, maps, centerlines, routes, config)
     joined = score_measures(join_measures([reference, submitted]), config)
     assert _same(joined, score_batch(states, observations, maps, centerlines, routes, config))
+
+
+def test_configs_measured_together_get_what_each_gets_alone() -> None:
+    """`measure_alike` shares what no setting changes (areas, NC, progress) and TTC's contacts over the longest
+    horizon; every setting's measures are still those it gets measured alone, bit for bit."""
+    cases = _tokens("v1.1")
+    states, observations, maps, centerlines, routes = (list(column) for column in zip(*cases, strict=True))
+    inputs = (np.stack(states), observations, maps, centerlines, routes)
+    v1 = MeasureSettings.of(get_version("v1.1").evaluation)
+    settings = [
+        v1,
+        replace(v1, ttc_evaluated_steps=32),  # v2.2's TTC horizon: a prefix of v1's contacts
+        replace(v1, ttc_evaluated_steps=12, stopped_speed_threshold=1.0),
+        replace(v1, ddc_excludes_intersections=True, comfort_at_centre=True, lane_keeping=(0.5, 2.0)),
+        v1,
+    ]
+    together = measure_alike(*inputs, settings)
+    for setting, measures in zip(settings, together, strict=True):
+        (alone,) = measure_alike(*inputs, [setting])
+        for name in (field.name for field in fields(ProposalMeasures)):
+            assert np.array_equal(getattr(measures, name), getattr(alone, name)), (setting, name)
+    assert any(0.0 in measures.time_to_collision_within_bound for measures in together)  # TTC is exercised

@@ -8,7 +8,7 @@ import numpy as np
 import shapely
 
 from scorer.geometry import box_corners
-from scorer.observation import OBSERVATION_STEPS, observe_scene
+from scorer.observation import OBSERVATION_STEPS, ObservationBatch, observe_scene
 from scorer.scene import EgoStatus, Frame, MapExcerpt, Scene
 
 CURRENT = 3  # NAVSIM: 3 history frames, then the current one
@@ -113,4 +113,4 @@ def test_a_scene_without_objects_has_an_empty_observation() -> None:
     observation = observe_scene(scene_with({}))
     assert observation.tokens == ()
     assert observation.present.shape == (OBSERVATION_STEPS, 0)
-    assert observation.bounds.shape == (OBSERVATION_STEPS, 0, 4)
+    assert ObservationBatch.of([observation]).extent.shape == (0, 4)

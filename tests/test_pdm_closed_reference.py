@@ -13,7 +13,6 @@ import gzip
 import json
 from functools import cache
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -156,8 +155,8 @@ def test_given_the_devkits_choice_every_cached_field_matches(monkeypatch: pytest
             )
             assert choice.sum() == 1, (token, version)
             choices.append(choice.astype(np.float64))
-    queue = iter(choices)
-    monkeypatch.setattr(pdm_closed, "score_proposals", lambda *args: SimpleNamespace(score=next(queue)))
+    best = np.argmax(choices, axis=1).reshape(len(SCENES), len(versions))
+    monkeypatch.setattr(pdm_closed, "best_proposals", lambda *args: best)
     scenes = [_scene(token) for token in SCENES]
     outputs = plan_references_batch(
         scenes, [build_drivable_map(s) for s in scenes], [VERSIONS[v].planner for v in versions]

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+import scorer.scene as scene_module
 from scorer.scene import SceneFormatError, iter_scenes, load_scene, scene_paths
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
@@ -102,6 +103,26 @@ def test_broken_rule_names_file_and_field(
     with pytest.raises(SceneFormatError) as error:
         load_scene(path)
     assert str(error.value).startswith(f"{path}: {field}:"), str(error.value)
+
+
+def test_objects_read_in_one_call_equal_those_read_one_by_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    path = REFERENCE / "scenes" / f"{TOKEN}.json.gz"
+    together = load_scene(path)
+    monkeypatch.setattr(scene_module, "_valid_object_columns", lambda raw_objects: None)
+    alone = load_scene(path)
+    for first, second in zip(together.frames, alone.frames, strict=True):
+        assert first.boxes.tobytes() == second.boxes.tobytes() and first.boxes.shape == second.boxes.shape
+        assert first.velocities.tobytes() == second.velocities.tobytes()
+
+
+def test_the_first_invalid_object_field_is_named_in_file_order(tmp_path: Path) -> None:
+    raw = _raw_scene()
+    objects = raw["frames"][3]["objects"]
+    objects[0]["box"][4] = 0.0  # a zero width, found before the next object's category
+    objects[1]["category"] = "truck"
+    path = _write(tmp_path, raw)
+    with pytest.raises(SceneFormatError, match=r"frames\[3\]\.objects\[0\]\.box: length and width"):
+        load_scene(path)
 
 
 def test_duplicate_map_id_is_rejected(tmp_path: Path) -> None:

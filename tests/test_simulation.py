@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from scorer import simulation
 from scorer.geometry import arctan2_avx512
 from scorer.simulation import (
     _LONGITUDINAL_GAIN,
@@ -157,6 +158,26 @@ def test_rows_are_independent_of_the_batch() -> None:
     together = simulate(reference, initial)
     for row in range(4):
         assert np.array_equal(simulate(reference[row : row + 1], initial)[0], together[row])
+
+
+def test_a_repeated_row_is_simulated_once_and_its_copies_are_its_bits(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    reference, initial = _straight_reference(8.0, 0.5, count=3)
+    reference[1, :, 1] += np.linspace(0, 1, 41)
+    reference[0, 0, 2], reference[2, 0, 2] = 0.0, -0.0  # rows 0 and 2 differ in a zero's sign only: two rows
+    simulated_rows: list[int] = []
+    run = simulation._simulate
+
+    def counted(poses: np.ndarray, initial: np.ndarray) -> np.ndarray:
+        simulated_rows.append(len(poses))
+        return run(poses, initial)
+
+    monkeypatch.setattr(simulation, "_simulate", counted)
+    together = simulate(reference[[0, 1, 0, 2, 1, 0]], initial)
+    assert simulated_rows == [3]
+    for index, row in enumerate([0, 1, 0, 2, 1, 0]):
+        assert np.array_equal(together[index], simulate(reference[row : row + 1], initial)[0])
 
 
 def test_extra_poses_and_columns_are_ignored() -> None:

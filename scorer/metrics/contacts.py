@@ -50,7 +50,9 @@ def find_contacts(
         & ~observations.is_red_light[objects]
     )
     rows, objects = rows[near], objects[near]
-    object_bounds = observations.bounds[map_index[None, :], objects[:, None]]  # (pairs, S, 4)
+    # Bounds of the objects left, at every time index, each box once, then per pair and box (pairs, S, 4).
+    near_objects, column = np.unique(objects, return_inverse=True)
+    object_bounds = corner_bounds(observations.corners[:, near_objects])[map_index[None, :], column[:, None]]
     pair, step = np.nonzero(boxes_touch(box_bounds[rows], object_bounds))
     if not len(pair):
         return Contacts(

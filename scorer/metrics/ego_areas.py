@@ -44,12 +44,12 @@ def ego_areas(points: FloatArray, row_token: IntArray, maps: MapBatch) -> BoolAr
     rows, polygons = rows[near], polygons[near]
     # Then per state, then per point: only points of states whose box touches the polygon's box.
     pair, step = np.nonzero(boxes_touch(state_bounds[rows], maps.bounds[polygons][:, None]))
-    pair, step, point = (
-        np.repeat(pair, num_points),
-        np.repeat(step, num_points),
-        np.tile(np.arange(num_points), len(pair)),
-    )
-    coords = points[rows[pair], step, point]
+    # The centre decides ONCOMING_TRAFFIC alone, which reads on-route lanes only: no other polygon needs it.
+    needed = np.ones((len(pair), num_points), dtype=bool)
+    needed[:, CORNERS] = maps.is_route[polygons[pair]]
+    coords = points[rows[pair], step][needed]
+    tested, point = np.nonzero(needed)
+    pair, step = pair[tested], step[tested]
     inside = points_inside(coords[:, 0], coords[:, 1], polygons[pair], maps)
     pair, step, point = pair[inside], step[inside], point[inside]
     row, polygon = rows[pair], polygons[pair]

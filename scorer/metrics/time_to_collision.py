@@ -10,6 +10,8 @@ contacts put the token on the proposal's own ignore-list (separate from NC's), i
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import numpy.typing as npt
 
@@ -45,12 +47,17 @@ def time_to_collision(
     maps: MapBatch,
     stopped_speed_threshold: float,
     step_s: float,
-    evaluated_steps: int,
-) -> tuple[FloatArray, FirstInfraction]:
-    """Return TTC (R,) and each row's first infraction: time index and object (-1 if none), checking the
-    first `evaluated_steps` time indices."""
+    evaluated_steps: Sequence[int],
+) -> list[tuple[FloatArray, FirstInfraction]]:
+    """Return TTC (R,) and each row's first infraction, time index and object (-1 if none), checking the first
+    n time indices, for each n of `evaluated_steps`.
+
+    The contacts are found once, over the longest horizon; a shorter one keeps those that start before its
+    end. That is what it finds alone: each contact is judged on its own, and whether it counts depends on the
+    earlier contacts of its (row, object) only (`counted_contacts`).
+    """
     num_rows = states.shape[0]
-    num_steps = min(evaluated_steps, states.shape[1])
+    num_steps = min(max(evaluated_steps), states.shape[1])
     num_projections = len(PROJECTION_STEPS)
     heading = states[..., StateIndex.HEADING]
     speed = np.hypot(states[..., StateIndex.VELOCITY_X], states[..., StateIndex.VELOCITY_Y])
@@ -65,7 +72,7 @@ def time_to_collision(
     map_index = (np.arange(num_steps)[:, None] + PROJECTION_STEPS).reshape(-1)
     contacts = find_contacts(corners.reshape(num_rows, -1, 4, 2), map_index, row_token, observations)
     if not len(contacts.row):
-        return no_contacts(num_rows)
+        return [no_contacts(num_rows) for _ in evaluated_steps]
     row, step = contacts.row, contacts.step // num_projections
     moving = speed[row, step] >= stopped_speed_threshold
     row, step, order, obj = row[moving], step[moving], contacts.step[moving], contacts.obj[moving]
@@ -83,7 +90,11 @@ def time_to_collision(
     )
     at_fault = (angle < AHEAD_ANGLE) | (exposed & ~(angle > BEHIND_ANGLE))
 
-    counted = counted_contacts(row, obj, order, at_fault)
-    scores = np.ones(num_rows)
-    scores[row[counted]] = 0.0
-    return scores, first_infraction(row, step, obj, counted, num_rows)
+    results: list[tuple[FloatArray, FirstInfraction]] = []
+    for horizon in evaluated_steps:
+        kept = step < horizon
+        counted = counted_contacts(row[kept], obj[kept], order[kept], at_fault[kept])
+        scores = np.ones(num_rows)
+        scores[row[kept][counted]] = 0.0
+        results.append((scores, first_infraction(row[kept], step[kept], obj[kept], counted, num_rows)))
+    return results
