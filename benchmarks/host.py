@@ -21,6 +21,7 @@ import shapely
 from threadpoolctl import threadpool_info
 
 from scorer.blas import DEVKIT_KERNELS, KEEP_VARIABLE, blas_kernels, cpu_runs_devkit_kernels
+from scorer.geometry import NUMPY_ARCTAN2_IS_SVML
 
 # The environment variables that decide how many threads OpenBLAS runs, and which kernels.
 THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -70,6 +71,9 @@ def host_header() -> list[str]:
         else "not the official results'"
     )
     avx512 = "yes" if cpu_runs_devkit_kernels() else "no"
+    # What numpy dispatches to (NPY_DISABLE_CPU_FEATURES can switch AVX-512 off on an AVX-512 CPU): where its
+    # arctan2 is not SVML's, the engine emulates SVML's (docs/engine.md, "Host dependence and kernels").
+    numpy_simd = "SVML's arctan2" if NUMPY_ARCTAN2_IS_SVML else "no SVML arctan2 (the engine emulates it)"
     libraries = ", ".join(f"{package}'s {version}" for package, version, _ in openblas_libraries())
     software = (
         f"Python {platform.python_version()}, numpy {numpy.__version__}, scipy {scipy.__version__}, "
@@ -77,7 +81,7 @@ def host_header() -> list[str]:
     )
     rows = [
         ("CPU", f"{cpu_model()}, {os.cpu_count()} logical cores ({usable} usable by this process)"),
-        ("AVX-512", f"{avx512} (what OpenBLAS's {DEVKIT_KERNELS} kernels need)"),
+        ("AVX-512", f"{avx512} (what OpenBLAS's {DEVKIT_KERNELS} kernels need); numpy runs {numpy_simd}"),
         ("OpenBLAS", f"{kernels} ({official}): {libraries}"),
         ("BLAS threads", blas_threads()),
         ("software", software),
