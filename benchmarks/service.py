@@ -2,9 +2,11 @@
 
 For each backend (embedded: SQLite + SQLite broker; services: PostgreSQL + Redis) and each worker size
 (1 and 2 scoring processes), on a fresh database with the split's metric cache already built:
-- POST one submission of every token (both metric versions are always scored), then time until it is
-  scored (GET /submissions/{id}) and until its row is on the leaderboard (GET /leaderboard, whose 2 s
-  cache is on as in production);
+- POST one submission of every token with --seeds seeds (every metric version is always scored), then time
+  until it is scored (GET /submissions/{id}) and until its row is on the leaderboard (GET /leaderboard, whose
+  2 s cache is on as in production), against the engine alone scoring the same tokens, seeds and versions
+  with as many processes (`score_versions`, warm, one BLAS thread each and at the workers' niceness, as
+  the workers run): the service's target is at most SERVICE_TARGET times that;
 - with the workers idle, GET /leaderboard at a fixed rate from one open-loop client on loopback and report
   p50/p99 latency, measured from each request's scheduled start (a slow answer delays no later request).
 
@@ -12,12 +14,14 @@ With --load N: the leaderboard at --rate for --seconds while N uploads are score
 size, on each backend: p50/p99 latency, errors, and a check that every upload was scored exactly once
 (one row per token, version and seed; one leaderboard entry per version).
 
-Every run starts with a header that describes the host (benchmarks/host.py), and gives with each worker
-size the peak RSS (VmHWM) of the worker's processes: its main process, and the others of its session (the
-scoring pool's processes and the beat), read from /proc just before the worker is stopped. (RUSAGE_CHILDREN
-would give one maximum over every process this benchmark ever waited for, API and workers alike.)
+Every run starts with a header that describes the host (benchmarks/host.py). With each worker size it gives
+the CPU seconds the worker's and the API's processes used from POST to row, against the engine's (on a host
+shared with other work wall times swing, CPU times much less), and the peak RSS (VmHWM) of the worker's
+processes: its main process, and the others of its session (the scoring pool's processes and the beat), read
+from /proc just before the worker is stopped. (RUSAGE_CHILDREN would give one maximum over every process this
+benchmark ever waited for, API and workers alike.)
 
-Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--rate 200] [--seconds 10]
+Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--seeds 1] [--rate 200] [--seconds 10]
        [--backends embedded,services] [--workers 1,2] [--load 20]
 """
 
@@ -29,6 +33,8 @@ import scorer  # noqa: F401 - before numpy, so that numpy loads the official res
 # isort: on
 import argparse
 import asyncio
+import itertools
+import multiprocessing
 import os
 import socket
 import tempfile
@@ -36,29 +42,34 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from multiprocessing.synchronize import Barrier
 from pathlib import Path
 
 import httpx
 import numpy as np
 from host import host_header
 from sqlalchemy import func, select
+from threadpoolctl import threadpool_limits
 
 from navsim_lb.processes import api_command, child_process
 from navsim_lb.scratch import scratch_postgres_database, scratch_redis_queue
 from scorer.baselines import baseline_submission
-from scorer.evaluate import build_split_cache
+from scorer.evaluate import build_split_cache, score_versions
 from scorer.geometry import FloatArray
-from scorer.submission import Submission, SubmissionMetadata, dump_submission_json
+from scorer.scene import scene_paths
+from scorer.submission import Submission, SubmissionMetadata, dump_submission_json, load_submission
 from scorer.synth import synthesize_split
 from scorer.versions import VERSIONS
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import upgrade
 from server.models import Approval, Scope, Summary, TokenResultRow
 from server.models import Submission as SubmissionRow
-from server.services.splits import create_phase, register_split
+from server.services.splits import create_phase, register_split, scene_starts
 from server.services.teams import create_team
 from server.services.tokens import create_token
 from server.settings import Settings
+from worker import SCORING_NICENESS
 from worker.cli import worker_command
 
 DATA = Path(__file__).parent / ".data"
@@ -66,6 +77,10 @@ POSTGRES_URL = os.environ.get("NAVSIM_LB_BENCH_POSTGRES", "postgresql+psycopg://
 REDIS_URL = os.environ.get("NAVSIM_LB_BENCH_REDIS", "redis://127.0.0.1:6379/0")
 SPLIT_SEED = 11
 CONNECTIONS = 64  # concurrent clients of the leaderboard load
+SERVICE_TARGET = 1.25  # POST to leaderboard row against the engine alone (issue 14)
+# How often the client asks whether its upload is scored: each answer costs the API a few ms of the CPU the
+# workers score on, so asking 20 times a second would slow what it measures by several percent.
+STATUS_POLL_S = 0.25
 
 
 def prepared_split(tokens: int) -> tuple[Path, Path]:
@@ -82,15 +97,63 @@ def prepared_split(tokens: int) -> tuple[Path, Path]:
     return split, cache
 
 
-def entry_file(split: Path, out: Path, seed: int = 0) -> Path:
-    """Write a one-seed submission (the human trajectories with noise) covering every token of the split."""
+def entry_file(split: Path, out: Path, seed: int = 0, seeds: int = 1) -> Path:
+    """Write a submission of `seeds` seeds (the human trajectories with noise) covering every token of the split."""
     rng = np.random.default_rng(seed)
     human = baseline_submission(split, "human", "bench").seeds[0]
-    noisy: dict[str, FloatArray] = {
-        token: poses + rng.normal(0.0, 0.2, poses.shape) for token, poses in human.items()
-    }
-    out.write_bytes(dump_submission_json(Submission(SubmissionMetadata(method="bench"), (noisy,))))
+    noisy: tuple[dict[str, FloatArray], ...] = tuple(
+        {token: poses + rng.normal(0.0, 0.2, poses.shape) for token, poses in human.items()}
+        for _ in range(seeds)
+    )
+    out.write_bytes(dump_submission_json(Submission(SubmissionMetadata(method="bench"), noisy)))
     return out
+
+
+# What each process of the engine alone scores, set by its initializer: the split, its cache and the entry.
+_engine_work: tuple[Path, Path, Submission] | None = None
+
+
+def _warm_engine_process(barrier: Barrier, split: Path, cache: Path, entry: Path) -> None:
+    """Run as a worker's pool process does: one BLAS thread, its niceness; read the entry and score a token
+    untimed, then wait for the other processes (a warm worker pays neither imports nor first calls, and the
+    engine alone is timed without reading the file)."""
+    global _engine_work
+    threadpool_limits(1)
+    os.nice(SCORING_NICENESS)
+    predictions = load_submission(entry.read_bytes(), entry.name)
+    score_versions(split, cache, predictions.seeds[0], list(VERSIONS), [next(iter(scene_paths(split)))])
+    _engine_work = split, cache, predictions
+    barrier.wait()
+
+
+def _engine_part(tokens: list[str]) -> tuple[int, float]:
+    """Score `tokens` of the entry under every version and seed, as one process of the engine alone; return
+    how many rows are valid and the CPU seconds it took."""
+    assert _engine_work is not None, "run by a pool whose initializer is _warm_engine_process"
+    split, cache, predictions = _engine_work
+    started = time.process_time()
+    scored = 0
+    for seed, poses in enumerate(predictions.seeds):
+        rows = score_versions(split, cache, poses, list(VERSIONS), tokens, seed)
+        scored += sum(row.valid for version_rows in rows.values() for row in version_rows)
+    return scored, time.process_time() - started
+
+
+def engine_only(split: Path, cache: Path, entry: Path, processes: int) -> tuple[float, float]:
+    """Return the seconds, and the CPU seconds, the engine alone takes to score `entry` (every token, seed and
+    version) with `processes` warm processes, each a contiguous part of the tokens, as a run's chunks are."""
+    tokens = list(scene_paths(split))
+    bounds = [index * len(tokens) // processes for index in range(processes + 1)]
+    parts = [tokens[start:stop] for start, stop in itertools.pairwise(bounds)]
+    context = multiprocessing.get_context("fork")
+    barrier = context.Barrier(processes + 1)
+    with context.Pool(processes, _warm_engine_process, (barrier, split, cache, entry)) as pool:
+        barrier.wait()
+        started = time.perf_counter()
+        scored = pool.map(_engine_part, parts, chunksize=1)
+        seconds = time.perf_counter() - started
+    assert sum(valid for valid, _ in scored), "the engine scored no token"
+    return seconds, sum(cpu for _, cpu in scored)
 
 
 @contextmanager
@@ -111,16 +174,25 @@ def backend(kind: str, root: Path) -> Iterator[dict[str, str]]:
         }
 
 
-def set_up(database_url: str, split: Path) -> str:
-    """Migrate, register the split (no baselines: nothing may compete), open a phase; return a team token."""
+def set_up(database_url: str, split: Path) -> tuple[str, float]:
+    """Migrate, register the split (no baselines: nothing may compete) with its index of log frames, open a
+    phase; return a team token and the seconds the index took.
+
+    The index (`scene_starts`) is built once per split, by the first run on it, like the metric cache: a
+    board's submissions find both ready, and so does the one timed here (what the first run pays is apart).
+    """
     upgrade(database_url)
     engine = make_engine(database_url)
     with transaction(make_session_factory(engine)) as session:
-        create_phase(session, "bench", register_split(session, "bench", split))
+        registered = register_split(session, "bench", split)
+        started = time.perf_counter()
+        scene_starts(session, registered)
+        index_s = time.perf_counter() - started
+        create_phase(session, "bench", registered)
         team = create_team(session, "bench-team", [], "", Approval.approved)
         _, token = create_token(session, Scope.team, team, "bench")
     engine.dispose()
-    return token
+    return token, index_s
 
 
 def wait_until(condition: Callable[[], bool], timeout: float = 600.0, poll_s: float = 0.05) -> None:
@@ -138,7 +210,8 @@ def post_to_row(client: httpx.Client, entry: Path) -> tuple[float, float]:
     assert response.status_code == 202, response.text
     submission_id = response.json()["id"]
     wait_until(
-        lambda: client.get(f"/api/v1/submissions/{submission_id}").json()["status"] in ("scored", "failed")
+        lambda: client.get(f"/api/v1/submissions/{submission_id}").json()["status"] in ("scored", "failed"),
+        poll_s=STATUS_POLL_S,
     )
     scored = time.perf_counter() - started
     state = client.get(f"/api/v1/submissions/{submission_id}").json()
@@ -187,20 +260,35 @@ async def leaderboard_latency(url: str, rate: float, seconds: float) -> tuple[fl
     return float(p50), float(p99), len(latencies), errors
 
 
+def session_processes(leader: int) -> dict[int, tuple[list[str], list[str]]]:
+    """Return pid -> (the fields of /proc/pid/stat after the name, the lines of /proc/pid/status) of the running
+    processes of `leader`'s session (a worker: its main process, pool processes and beat); empty without /proc."""
+    processes = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[3]) != leader:  # the session's leader
+                continue
+            processes[int(stat.parent.name)] = (fields, (stat.parent / "status").read_text().splitlines())
+        except (OSError, ValueError, IndexError):  # gone meanwhile
+            continue
+    return processes
+
+
+def session_cpu_seconds(leader: int) -> float:
+    """Return the CPU seconds (user and system) the running processes of `leader`'s session have used."""
+    ticks = sum(int(fields[11]) + int(fields[12]) for fields, _ in session_processes(leader).values())
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
 def worker_peak_rss(worker_pid: int) -> tuple[float, list[float]] | None:
     """Return the peak RSS (VmHWM) in MiB of a running worker's main process and, largest first, of the other
     processes of its session (pool processes, beat); None where there is no /proc."""
     peaks: dict[int, float] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            if int(stat.read_text().rsplit(")", 1)[1].split()[3]) != worker_pid:  # the session's leader
-                continue
-            status = (stat.parent / "status").read_text().splitlines()
-        except (OSError, ValueError, IndexError):  # gone meanwhile
-            continue
+    for pid, (_, status) in session_processes(worker_pid).items():
         kib = next((line.split()[1] for line in status if line.startswith("VmHWM:")), None)
         if kib is not None:
-            peaks[int(stat.parent.name)] = int(kib) / 1024
+            peaks[pid] = int(kib) / 1024
     if worker_pid not in peaks:
         return None
     return peaks.pop(worker_pid), sorted(peaks.values(), reverse=True)
@@ -213,44 +301,69 @@ def peak_rss_text(peaks: tuple[float, list[float]] | None) -> str:
     return f"main {main:.0f}, pool and beat {' '.join(f'{peak:.0f}' for peak in others)}"
 
 
+@dataclass(frozen=True)
+class Running:
+    """A service on a fresh backend: API and worker processes (each the leader of its session)."""
+
+    root: Path  # scratch directory
+    url: str
+    client: httpx.Client  # a team's
+    database_url: str
+    worker_pid: int
+    api_pid: int
+    index_s: float  # what the split's index of log frames took at set-up (a first run on the split pays it)
+
+    def cpu_seconds(self) -> float:
+        """Return the CPU seconds its worker's and API's processes have used (the database's are apart)."""
+        return session_cpu_seconds(self.worker_pid) + session_cpu_seconds(self.api_pid)
+
+
 @contextmanager
-def running(
-    kind: str, workers: int, split: Path, cache: Path
-) -> Iterator[tuple[Path, str, httpx.Client, str, int]]:
-    """Run API and worker on a fresh backend; yield the scratch root, the URL, a team client, the database URL
-    and the worker's process id."""
+def running(kind: str, workers: int, split: Path, cache: Path) -> Iterator[Running]:
+    """Run API and worker on a fresh backend for the block."""
     with tempfile.TemporaryDirectory(prefix="navsim-lb-bench-") as tmp, ExitStack() as stack:
         root = Path(tmp)
         variables = stack.enter_context(backend(kind, root)) | {"CACHE_DIR": str(cache)}
         env = {**os.environ, **variables}
         database_url = Settings(**variables).database_url  # type: ignore[arg-type]  # keys are the aliases
-        token = set_up(database_url, split)
+        token, index_s = set_up(database_url, split)
         worker_log = root / "worker.log"
         worker = stack.enter_context(child_process(worker_command(workers, beat=True), env, worker_log))
         port = free_port()
-        stack.enter_context(child_process(api_command("127.0.0.1", port), env, root / "api.log"))
+        api = stack.enter_context(child_process(api_command("127.0.0.1", port), env, root / "api.log"))
         url = f"http://127.0.0.1:{port}"
         client = stack.enter_context(
             httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=60)
         )
         wait_until(lambda: _answers(client), timeout=60)
         wait_until(lambda: "ready." in worker_log.read_text(errors="replace"), timeout=60)
-        yield root, url, client, database_url, worker.pid
+        yield Running(root, url, client, database_url, worker.pid, api.pid, index_s)
+
+
+@dataclass(frozen=True)
+class Measured:
+    scored: float  # seconds from POST to its scored status
+    on_board: float  # and to its leaderboard row
+    cpu: float  # CPU seconds the worker and the API used meanwhile
+    index_s: float  # Running's
+    latency: tuple[float, float, int, int] | None  # leaderboard_latency's, if asked
+    peaks: tuple[float, list[float]] | None  # worker_peak_rss's
 
 
 def measure(
-    kind: str, workers: int, split: Path, cache: Path, latency_load: tuple[float, float] | None
-) -> tuple[float, float, tuple[float, float, int, int] | None, tuple[float, list[float]] | None]:
-    """Run one configuration on a fresh backend: POST-to-row times, then leaderboard latency if asked, and
-    the worker's peak RSS."""
-    with running(kind, workers, split, cache) as (root, url, client, _, worker_pid):
-        scored, on_board = post_to_row(client, entry_file(split, root / "entry.json"))
-        latency = asyncio.run(leaderboard_latency(url, *latency_load)) if latency_load else None
-        peaks = worker_peak_rss(worker_pid)
-    return scored, on_board, latency, peaks
+    kind: str, workers: int, split: Path, cache: Path, entry: Path, latency_load: tuple[float, float] | None
+) -> Measured:
+    """Run one configuration on a fresh backend: POST-to-row times of `entry` and the CPU they took, then
+    leaderboard latency if asked, and the worker's peak RSS."""
+    with running(kind, workers, split, cache) as service:
+        cpu = service.cpu_seconds()
+        scored, on_board = post_to_row(service.client, entry)
+        cpu = service.cpu_seconds() - cpu
+        latency = asyncio.run(leaderboard_latency(service.url, *latency_load)) if latency_load else None
+        return Measured(scored, on_board, cpu, service.index_s, latency, worker_peak_rss(service.worker_pid))
 
 
-def scored_once(database_url: str, submission_ids: list[int], tokens: int) -> list[str]:
+def scored_once(database_url: str, submission_ids: list[int], tokens: int, seeds: int) -> list[str]:
     """Return what is wrong with each submission's record: not scored, rows missing or doubled, entries."""
     engine = make_engine(database_url)
     problems = []
@@ -261,26 +374,27 @@ def scored_once(database_url: str, submission_ids: list[int], tokens: int) -> li
             entries = session.scalar(select(func.count()).where(Summary.submission_id == submission_id))
             if submission is None or submission.status != "scored":
                 problems.append(f"{submission_id}: {submission.status if submission else 'missing'}")
-            elif rows != tokens * len(VERSIONS) or entries != len(VERSIONS):
+            elif rows != tokens * seeds * len(VERSIONS) or entries != len(VERSIONS):
                 problems.append(f"{submission_id}: {rows} rows, {entries} leaderboard entries")
     engine.dispose()
     return problems
 
 
 def under_load(
-    kind: str, workers: int, split: Path, cache: Path, uploads: int, rate: float, seconds: float
+    kind: str, workers: int, split: Path, cache: Path, uploads: int, seeds: int, rate: float, seconds: float
 ) -> tuple[tuple[float, float, int, int], float, list[str], tuple[float, list[float]] | None]:
     """Leaderboard latency at `rate` while `uploads` submissions are scored; the seconds until all are; what
     is wrong with their records; the worker's peak RSS."""
-    with running(kind, workers, split, cache) as (root, url, client, database_url, worker_pid):
+    with running(kind, workers, split, cache) as service:
+        client = service.client
         started = time.perf_counter()
         ids = []
         for index in range(uploads):
-            entry = entry_file(split, root / f"entry-{index}.json", seed=index)
+            entry = entry_file(split, service.root / f"entry-{index}.json", seed=index, seeds=seeds)
             response = client.post("/api/v1/submissions", files={"file": (entry.name, entry.read_bytes())})
             assert response.status_code == 202, response.text
             ids.append(response.json()["id"])
-        latency = asyncio.run(leaderboard_latency(url, rate, seconds))
+        latency = asyncio.run(leaderboard_latency(service.url, rate, seconds))
         done = lambda: all(
             client.get(f"/api/v1/submissions/{i}").json()["status"] in ("scored", "failed") for i in ids
         )
@@ -288,8 +402,8 @@ def under_load(
         return (
             latency,
             time.perf_counter() - started,
-            scored_once(database_url, ids, split_size(split)),
-            worker_peak_rss(worker_pid),
+            scored_once(service.database_url, ids, split_size(split), seeds),
+            worker_peak_rss(service.worker_pid),
         )
 
 
@@ -300,6 +414,7 @@ def split_size(split: Path) -> int:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--tokens", type=int, default=2000)
+    parser.add_argument("--seeds", type=int, default=1, help="seeds of each upload (navtest entries have 3)")
     parser.add_argument("--rate", type=float, default=200.0)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--backends", default="embedded,services")
@@ -313,31 +428,47 @@ def main() -> None:
     if args.load:
         for kind in args.backends.split(","):
             loaded, total, problems, peaks = under_load(
-                kind, max(sizes), split, cache, args.load, args.rate, args.seconds
+                kind, max(sizes), split, cache, args.load, args.seeds, args.rate, args.seconds
             )
             p50, p99, answered, errors = loaded
             print(
                 f"{kind}: GET /leaderboard {args.rate:.0f}/s for {args.seconds:.0f} s while {args.load} uploads of "
-                f"{args.tokens} tokens were scored by {max(sizes)} worker processes: p50 {p50:.1f} ms, "
-                f"p99 {p99:.1f} ms ({answered} answered, {errors} errors); all scored after {total:.0f} s; "
+                f"{args.tokens} tokens x {args.seeds} seeds were scored by {max(sizes)} worker processes: "
+                f"p50 {p50:.1f} ms, p99 {p99:.1f} ms ({answered} answered, {errors} errors); "
+                f"all scored after {total:.0f} s; "
                 + ("every upload scored exactly once" if not problems else f"PROBLEMS: {problems}")
                 + f"; worker peak RSS (MiB): {peak_rss_text(peaks)}",
                 flush=True,
             )
         return
-    print(f"{args.tokens} tokens, both metric versions; seconds from POST to:")
-    print(f"{'backend':10} {'workers':>7} {'scored':>8} {'on board':>9}  worker peak RSS (MiB)")
+    entry = entry_file(split, DATA / f"entry_{args.tokens}_{SPLIT_SEED}_{args.seeds}.json", seeds=args.seeds)
+    engine = {workers: engine_only(split, cache, entry, workers) for workers in sizes}
+    print(
+        f"{args.tokens} tokens x {args.seeds} seeds, every metric version ({', '.join(VERSIONS)}): seconds from"
+        " POST to its scored status and to its leaderboard row, against the engine alone on as many processes"
+        f" (target: at most {SERVICE_TARGET}x); CPU seconds of the worker and the API meanwhile, against the"
+        " engine's (what a host shared with other work still measures); the split's index of log frames, which"
+        " the first run on a split builds:"
+    )
+    print(
+        f"{'backend':10} {'workers':>7} {'scored':>8} {'on board':>9} {'engine':>7} {'ratio':>6}"
+        f" {'CPU':>7} {'engine':>7} {'ratio':>6} {'index':>6}  worker peak RSS (MiB)"
+    )
     latencies = {}
     for kind in args.backends.split(","):
         for workers in sizes:
             # Leaderboard latency once per backend, with the largest worker idle beside the API.
             load = (args.rate, args.seconds) if workers == max(sizes) else None
-            scored, on_board, latency, peaks = measure(kind, workers, split, cache, load)
+            measured = measure(kind, workers, split, cache, entry, load)
+            seconds, cpu = engine[workers]
             print(
-                f"{kind:10} {workers:>7} {scored:>8.1f} {on_board:>9.1f}  {peak_rss_text(peaks)}", flush=True
+                f"{kind:10} {workers:>7} {measured.scored:>8.1f} {measured.on_board:>9.1f} {seconds:>7.1f}"
+                f" {measured.on_board / seconds:>5.2f}x {measured.cpu:>7.1f} {cpu:>7.1f}"
+                f" {measured.cpu / cpu:>5.2f}x {measured.index_s:>6.1f}  {peak_rss_text(measured.peaks)}",
+                flush=True,
             )
-            if latency is not None:
-                latencies[kind] = latency
+            if measured.latency is not None:
+                latencies[kind] = measured.latency
     for kind, (p50, p99, answered, errors) in latencies.items():
         print(
             f"GET /leaderboard {kind}: {args.rate:.0f}/s for {args.seconds:.0f} s: "

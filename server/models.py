@@ -317,7 +317,11 @@ class TokenResultRow(MetricColumns, Base):
     """One token's result under one metric version and seed; written idempotently per chunk."""
 
     __tablename__ = "token_results"
-    __table_args__ = (UniqueConstraint("submission_id", "metric_version", "seed", "token"),)
+    __table_args__ = (
+        UniqueConstraint("submission_id", "metric_version", "seed", "token"),
+        # Which of a chunk's tokens are scored (server.services.scoring.completed_tokens).
+        Index("ix_token_results_submission_token", "submission_id", "token"),
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     submission_id: Mapped[int] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"))

@@ -1,12 +1,15 @@
-"""The services a worker calls: claim, chunk writes (idempotent, run-checked), progress, scored/failed, stalled runs."""
+"""The services a worker calls: claim, chunk writes (idempotent, run-checked), progress and completion from the
+chunk records, scored/failed, stalled runs."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from datetime import timedelta
 from pathlib import Path
 
 import pytest
 from server_testing import (
+    REFERENCE_DIR,
     World,
     add_phase,
     add_team,
@@ -25,12 +28,14 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.db import transaction
 from server.migrate import upgrade
 from server.models import ChunkState, Result, ScoringChunk, Status, Submission, TokenResultRow, utc_now
-from server.services.chunks import plan_chunks
+from server.services.chunks import finish_chunk, plan_chunks
 from server.services.errors import Conflict
 from server.services.scoring import (
     BOARD_VERSIONS,
     cancel,
     claim_submission,
+    completed_tokens,
+    finish_if_complete,
     load_job,
     mark_scored,
     requeue,
@@ -40,6 +45,7 @@ from server.services.scoring import (
     write_chunk_results,
 )
 from server.services.submissions import create_submission
+from server.storage import read_file
 
 TOKENS = reference_tokens()
 
@@ -64,11 +70,12 @@ def _get(factory: sessionmaker[Session], submission_id: int) -> Submission:
         return submission
 
 
-def test_job_holds_the_stored_file_and_the_split(world: World) -> None:
+def test_job_names_the_stored_file_and_the_split(world: World) -> None:
     submission_id = _new(world.factory, world.team_id, world.settings.storage_dir, b"file bytes")
     with world.session() as session:
-        job = load_job(session, submission_id, world.settings.storage_dir)
-    assert (job.data, job.run, job.tokens, job.seed_count) == (b"file bytes", 1, tuple(TOKENS), 1)
+        job = load_job(session, submission_id)
+    assert read_file(world.settings.storage_dir, job.stored_name) == b"file bytes"
+    assert (job.run, job.split_dir, job.seed_count) == (1, REFERENCE_DIR, 1)
     assert job.versions == ("v1.0", "v1.1", "v2.2")
 
 
@@ -81,9 +88,6 @@ def _check_idempotent_chunks(factory: sessionmaker[Session], submission_id: int)
         with transaction(factory) as session:
             assert write_chunk_results(session, submission_id, run, "v1.1", chunk, "w1", 1.0)
     assert _rows(factory, submission_id) == 20
-    assert _get(factory, submission_id).progress == 100 * 20 // (
-        40 * len(BOARD_VERSIONS)
-    )  # of 40 tokens x versions
     changed = token_results(uniform(0.25, TOKENS[:20]))
     with transaction(factory) as session:
         write_chunk_results(session, submission_id, run, "v1.1", changed, "w2", 1.0)
@@ -103,14 +107,69 @@ def test_redelivered_chunks_overwrite_instead_of_duplicating(world: World) -> No
     _check_idempotent_chunks(world.factory, _new(world.factory, world.team_id, world.settings.storage_dir))
 
 
-@pytest.mark.services
-def test_redelivered_chunks_overwrite_on_postgresql(postgres_url: str, tmp_path: Path) -> None:
-    upgrade(postgres_url)
-    factory = factory_for(postgres_url)
+def _on_postgresql(url: str, storage: Path, check: Callable[[sessionmaker[Session], int], None]) -> None:
+    """Run `check` on a new submission in the migrated PostgreSQL database at `url`."""
+    upgrade(url)
+    factory = factory_for(url)
     team_id, _ = add_team(factory, "alpha")
     add_phase(factory, "test")
-    _check_idempotent_chunks(factory, _new(factory, team_id, tmp_path))
+    check(factory, _new(factory, team_id, storage))
     factory.kw["bind"].dispose()
+
+
+@pytest.mark.services
+def test_redelivered_chunks_overwrite_on_postgresql(postgres_url: str, tmp_path: Path) -> None:
+    _on_postgresql(postgres_url, tmp_path, _check_idempotent_chunks)
+
+
+def _write_rows(session: Session, submission_id: int, tokens: list[str]) -> None:
+    """Write every version's rows of `tokens` in run 1."""
+    for version in BOARD_VERSIONS:
+        assert write_chunk_results(
+            session, submission_id, 1, version, token_results(uniform(0.5, tokens)), "w1", 1
+        )
+
+
+def _write_chunk(factory: sessionmaker[Session], submission_id: int, chunk_id: int) -> bool:
+    """Write a chunk's rows and finish it, as the worker holding it does; return whether the run is scored."""
+    with transaction(factory) as session:
+        chunk = session.get(ScoringChunk, chunk_id)
+        assert chunk is not None
+        _write_rows(session, submission_id, chunk.tokens)
+        finish_chunk(session, chunk_id)
+        return finish_if_complete(session, submission_id, 1, "e", 100)
+
+
+def _check_finished_by_the_last_chunk(factory: sessionmaker[Session], submission_id: int) -> None:
+    """Chunks of 16, then 16 and 8 tokens: the run is scored when the last live one finishes with every row."""
+    with transaction(factory) as session:
+        claim_submission(session, submission_id, "w1")
+        (first,) = plan_chunks(session, session.get(Submission, submission_id), TOKENS[:16], 16)
+    assert not _write_chunk(factory, submission_id, first)  # no chunk is live, but rows are missing
+    assert _get(factory, submission_id).progress == 100 * 16 // 40
+    with transaction(factory) as session:
+        second, third = plan_chunks(session, session.get(Submission, submission_id), TOKENS[16:], 16)
+        assert completed_tokens(session, submission_id, 1, among=TOKENS[12:20]) == set(TOKENS[12:16])
+    assert not _write_chunk(factory, submission_id, third)  # 8 tokens
+    assert _get(factory, submission_id).progress == 100 * 24 // 40
+    with transaction(factory) as session:  # every row is there, but a chunk is still live
+        _write_rows(session, submission_id, TOKENS)
+        assert not finish_if_complete(session, submission_id, 1, "e", 100)
+    assert _write_chunk(factory, submission_id, second)
+    scored = _get(factory, submission_id)
+    assert (scored.status, scored.progress) == (Status.scored, 100)
+    assert _rows(factory, submission_id) == 40 * len(BOARD_VERSIONS)
+
+
+def test_the_last_chunk_finishes_the_run_and_finished_chunks_give_the_progress(world: World) -> None:
+    _check_finished_by_the_last_chunk(
+        world.factory, _new(world.factory, world.team_id, world.settings.storage_dir)
+    )
+
+
+@pytest.mark.services
+def test_the_last_chunk_finishes_the_run_on_postgresql(postgres_url: str, tmp_path: Path) -> None:
+    _on_postgresql(postgres_url, tmp_path, _check_finished_by_the_last_chunk)
 
 
 def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:

@@ -1,10 +1,12 @@
 """Real Celery worker processes (not eager mode) behind a real API process, on the embedded defaults (SQLite
 database, SQLite broker) and on PostgreSQL + Redis: uploads are scored like the engine scores them, chunks
 delivered twice never duplicate rows, the reaper recovers runs left without chunks, and broken inputs fail one
-submission with a message while the worker goes on."""
+submission with a message while the worker goes on. A worker process reads a run's file once."""
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 import os
 import re
@@ -31,17 +33,18 @@ from worker_testing import (
 from navsim_lb.scratch import scratch_redis_queue
 from scorer.blas import engine_provenance
 from scorer.evaluate import score_tokens
-from scorer.submission import load_submission
+from scorer.submission import dump_submission_json, load_submission
 from server.db import transaction
 from server.models import FailureKind, Result, Status, Submission, utc_now
 from server.queue import celery_client, enqueue_submission
 from server.services.chunks import plan_chunks
 from server.services.leaderboard import subscore_columns
 from server.services.scoring import BOARD_VERSIONS as VERSIONS
-from server.services.scoring import claim_submission
+from server.services.scoring import ScoringJob, claim_submission
 from server.services.splits import create_phase, register_split
+from server.storage import store_file
 from worker.app import CHUNK_TASK
-from worker.tasks import ENGINE_FAILURE
+from worker.tasks import ENGINE_FAILURE, Rejected, _predictions
 
 PROBES = Path(__file__).parent / "fixtures" / "epdms" / "probes"
 REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
@@ -278,6 +281,33 @@ def test_a_damaged_file_or_an_engine_error_fails_the_submission_and_the_worker_g
     assert service.worker.poll() is None
     after = predictions(synthetic_split.directory, seeds=1, noise=0.8, method="after the failures")
     assert service.final(service.upload(after, "after.json")).status == Status.scored
+
+
+def test_a_process_reads_the_file_of_a_run_once_and_of_a_new_run_again(
+    synthetic_split: SplitFixture, tmp_path: Path
+) -> None:
+    data = dump_submission_json(
+        predictions(synthetic_split.directory, seeds=2, noise=0.3, method="read once")
+    )
+    sha256 = hashlib.sha256(data).hexdigest()
+    job = ScoringJob(
+        submission_id=1,
+        run=1,
+        filename="entry.json",
+        stored_name=store_file(tmp_path, sha256, data),
+        sha256=sha256,
+        split_name="synthetic",
+        split_dir=synthetic_split.directory,
+        split_hash="",
+        seed_count=2,
+        versions=VERSIONS,
+    )
+    parsed = _predictions(job, tmp_path)
+    assert len(parsed.seeds) == 2
+    (tmp_path / job.stored_name).unlink()
+    assert _predictions(job, tmp_path) is parsed  # the run's next chunk
+    with pytest.raises(Rejected, match="missing"):
+        _predictions(dataclasses.replace(job, run=2), tmp_path)
 
 
 def test_health_reports_database_broker_and_the_running_worker(service: Service) -> None:

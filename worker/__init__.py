@@ -1,3 +1,8 @@
 """Celery workers that score submissions: `worker.app` (configuration), `worker.tasks`, `worker.cli`."""
 
 import scorer  # noqa: F401 - first, so that numpy loads the official results' OpenBLAS kernels (scorer.blas)
+
+# Scoring is batch work: where it shares a machine with the API (the demo, a small deployment), the pool
+# processes yield the CPU to the requests people wait for (worker.app; benchmarks/service.py runs the engine
+# alone at the same niceness).
+SCORING_NICENESS = 10

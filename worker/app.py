@@ -23,6 +23,7 @@ from celery.signals import worker_process_init
 from scorer.blas import blas_kernels
 from server.queue import celery_config, is_embedded_broker
 from server.settings import Settings, get_settings
+from worker import SCORING_NICENESS
 from worker.heartbeat import DatabaseHeartbeat
 from worker.logs import LOG_FORMAT, TASK_LOG_FORMAT
 
@@ -30,9 +31,6 @@ CHUNK_TASK = "worker.tasks.score_chunk"
 REAP_TASK = "worker.tasks.reap_lost_work"
 SOFT_LIMIT_MARGIN_S = 30.0
 EMBEDDED_POLL_S = 0.1
-# Scoring is batch work: where it shares a machine with the API (the demo, a small deployment), the pool
-# processes yield the CPU to the requests people wait for.
-SCORING_NICENESS = 10
 
 
 @worker_process_init.connect

@@ -3,11 +3,14 @@
 `score_submission` claims the submission (status running), then records one chunk per slice of the tokens
 not scored yet (server.services.chunks) and sends them. Each chunk scores its
 tokens under every metric version and seed, beating while it does, and upserts the rows; in the same
-transaction, under the submission's row lock, it marks the run scored when every expected row is there.
-The SQL row count is the barrier a chord would be: a chord needs a result backend and, on a broker without
-native chord support (the embedded SQLite one), a `chord_unlock` task polling it every second; this works
-the same on every broker, and a lost or repeated chunk cannot produce a wrong count (rows are keyed by
-submission, version, seed and token).
+transaction, under the submission's row lock, it marks the run scored when no chunk of the run is left
+and every expected row is there. The SQL records are the barrier a chord would be: a chord needs a result
+backend and, on a broker without native chord support (the embedded SQLite one), a `chord_unlock` task
+polling it every second; this works the same on every broker, and a lost or repeated chunk cannot produce
+a wrong count (rows are keyed by submission, version, seed and token).
+
+A process keeps the files it parsed last (`_predictions`): every chunk of a run scores the same file, and
+parsing a navtest-size one (12,000 tokens x 3 seeds) costs as much as scoring a chunk.
 
 `reap_lost_work` (beat) holds the broker to the SQL record: it re-sends the chunks of processes that
 stopped beating (splitting, then failing, a token that kills its workers), what the broker lost, and runs
@@ -37,6 +40,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from scorer.blas import engine_provenance, kernel_warning
 from scorer.evaluate import TokenResult, score_versions
+from scorer.scene import scene_paths
 from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionError, load_submission, validate_submission
 from server.db import make_engine, make_session_factory, transaction
@@ -68,6 +72,7 @@ from server.services.scoring import (
 )
 from server.services.splits import split_tokens
 from server.settings import get_settings
+from server.storage import read_file
 from worker.app import CHUNK_TASK, REAP_TASK, app
 from worker.heartbeat import beating
 
@@ -93,6 +98,8 @@ POISONED_TOKEN = (
     "it was not scored and counts as a failed token"
 )
 MAX_LISTED_PROBLEMS = 5
+# Parsed files a process keeps: the run it scores, and one more for the chunks of two runs interleaving.
+PARSED_FILES_KEPT = 2
 
 
 class Rejected(Exception):
@@ -120,46 +127,40 @@ def _worker_name(task: Task) -> str:
     return f"{task.request.hostname or 'worker'}/{os.getpid()}"
 
 
-def _job(session: Session, submission_id: int, storage_dir: Path) -> ScoringJob:
-    """Return the run's scoring job; raise Rejected when the stored file is gone."""
+def _unscored(
+    sessions: sessionmaker[Session], submission_id: int, run: int, tokens: Sequence[str]
+) -> tuple[ScoringJob, list[str]] | None:
+    """Return the run's job and which of `tokens` lack rows; None if the run is no longer wanted."""
+    with sessions() as session:
+        done = completed_tokens(session, submission_id, run, among=tokens)
+        if done is None:
+            return None
+        job = load_job(session, submission_id)
+    return job, [token for token in tokens if token not in done]
+
+
+@lru_cache(maxsize=PARSED_FILES_KEPT)
+def _predictions(job: ScoringJob, storage_dir: Path) -> Predictions:
+    """Return the stored file of the run parsed, or raise Rejected when it is missing, damaged or no longer
+    fits the split. A run's file is read and checked once per process; an error is raised again each time."""
     try:
-        return load_job(session, submission_id, storage_dir)
+        data = read_file(storage_dir, job.stored_name)
     except FileNotFoundError as error:
         raise Rejected(
             FailureKind.infrastructure, "the stored copy of this file is missing", str(error)
         ) from None
-
-
-def _unscored(
-    sessions: sessionmaker[Session],
-    submission_id: int,
-    run: int,
-    tokens: Sequence[str],
-    storage_dir: Path,
-) -> tuple[ScoringJob, list[str]] | None:
-    """Return the run's job and which of `tokens` lack rows; None if the run is no longer wanted."""
-    with sessions() as session:
-        done = completed_tokens(session, submission_id, run)
-        if done is None:
-            return None
-        job = _job(session, submission_id, storage_dir)
-    return job, [token for token in tokens if token not in done]
-
-
-def _predictions(job: ScoringJob) -> Predictions:
-    """Return the stored file read again, or raise Rejected when it is damaged or no longer fits the split."""
-    if hashlib.sha256(job.data).hexdigest() != job.sha256:
+    if hashlib.sha256(data).hexdigest() != job.sha256:
         raise Rejected(
             FailureKind.infrastructure,
             "the stored copy of this file is damaged (its sha256 differs from the upload)",
             f"stored bytes of submission {job.submission_id} do not hash to {job.sha256}",
         )
     try:
-        predictions = load_submission(job.data, job.filename)
+        predictions = load_submission(data, job.filename)
     except SubmissionError as error:
         listed = "; ".join(str(problem) for problem in error.problems[:MAX_LISTED_PROBLEMS])
         raise Rejected(FailureKind.submission, f"the file cannot be read: {listed}") from None
-    problems = validate_submission(predictions, job.tokens)
+    problems = validate_submission(predictions, scene_paths(job.split_dir))
     if problems:
         # The file was checked against the split at upload: the split's tokens changed since.
         raise Rejected(
@@ -275,7 +276,7 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
         return f"submission {submission_id} run {run}: chunk {chunk_id} split into {len(start.children)}"
 
     def score() -> str:
-        unscored = _unscored(sessions, submission_id, run, start.tokens, settings.storage_dir)
+        unscored = _unscored(sessions, submission_id, run, start.tokens)
         if unscored is None:
             return "dropped"
         job, todo = unscored
@@ -284,7 +285,7 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
         if poisoned:
             timed = {version: (rows, 0.0) for version, rows in _failed_rows(job, todo).items()}
         elif todo:  # a chunk whose rows were all written by an earlier holder only checks for completion
-            predictions = _predictions(job)
+            predictions = _predictions(job, settings.storage_dir)
             # Tokens written already still pair with the rest for EC, as the chunk's context does.
             context = [*start.context, *(token for token in start.tokens if token not in todo)]
             with beating(sessions, chunk_id, worker):

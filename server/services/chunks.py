@@ -32,6 +32,8 @@ from server.services.workers import LIVE_WITHIN_S
 
 POISON_DEATHS = 2
 LIVE_STATES = (ChunkState.queued, ChunkState.running)
+# Their rows are written: scored (done), or written as failed (a poisoned token).
+FINISHED_STATES = (ChunkState.done, ChunkState.failed)
 
 
 class StartAction(StrEnum):
@@ -201,3 +203,14 @@ def live_chunks(session: Session, submission_id: int, run: int) -> int:
         ScoringChunk.state.in_(LIVE_STATES),
     )
     return session.scalar(query) or 0
+
+
+def finished_tokens(session: Session, submission_id: int, run: int) -> int:
+    """Return how many tokens the finished chunks of the run hold: tokens with every row written, as the run's
+    chunks never share a token (a chunk split up counts through its children)."""
+    query = select(func.coalesce(func.sum(func.json_array_length(ScoringChunk.tokens)), 0)).where(
+        ScoringChunk.submission_id == submission_id,
+        ScoringChunk.run == run,
+        ScoringChunk.state.in_(FINISHED_STATES),
+    )
+    return int(session.scalar(query) or 0)

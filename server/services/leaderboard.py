@@ -9,10 +9,11 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from sqlalchemy import case, delete, func, or_, select
+from sqlalchemy import Row, case, delete, func, or_, select
 from sqlalchemy.orm import Session
 
 from scorer.versions import ALL_RESULT_COLUMNS, get_version
@@ -47,22 +48,65 @@ def bootstrap_ci(token_scores: np.ndarray, samples: int, seed: int = BOOTSTRAP_S
     return float(low), float(high)
 
 
-def _token_results(rows: Sequence[TokenResultRow]) -> dict[tuple[str, int], dict[str, Any]]:
-    """Return (metric version, seed) -> token -> scorer TokenResult (a null column of a valid row as NaN)."""
-    from scorer.evaluate import TokenResult
+@dataclass(frozen=True)
+class _SeedRows:
+    """A run's rows of one (metric version, seed), in the order the database gave them, as arrays."""
 
-    grouped: dict[tuple[str, int], dict[str, Any]] = defaultdict(dict)
-    for row in rows:
-        columns = get_version(row.metric_version).result_columns
-        metrics = {column: _value(getattr(row, column)) for column in columns} if row.valid else {}
-        grouped[row.metric_version, row.seed][row.token] = TokenResult(
-            row.token, row.seed, row.valid, metrics, row.error
+    position: dict[str, int]  # token -> its row
+    # (rows + 1, ALL_RESULT_COLUMNS): a null value as NaN, every value of an invalid row 0; the last row, all 0
+    # and invalid, stands for a token without a row (never scored: it counts as a failed token).
+    values: np.ndarray
+    valid: np.ndarray
+    tokens: list[str]
+    workers: list[str]
+    durations: list[float]
+
+    @classmethod
+    def of(cls, rows: Sequence[Row[Any]]) -> _SeedRows:
+        valid = np.array([row.valid for row in rows] + [False], dtype=bool)
+        values = np.zeros((len(rows) + 1, len(ALL_RESULT_COLUMNS)))
+        if rows:
+            values[:-1] = np.array([row[_FIRST_RESULT_COLUMN:] for row in rows], dtype=object).astype(
+                np.float64
+            )
+        values[~valid] = 0.0
+        return cls(
+            position={row.token: index for index, row in enumerate(rows)},
+            values=values,
+            valid=valid,
+            tokens=[row.token for row in rows],
+            workers=[row.worker for row in rows],
+            durations=[row.duration_s for row in rows],
         )
-    return grouped
+
+    def of_tokens(self, tokens: Sequence[str], columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return the `columns` (indices into ALL_RESULT_COLUMNS) of `tokens`' rows, (tokens, columns), and
+        their validity."""
+        at = np.array([self.position.get(token, len(self.tokens)) for token in tokens], dtype=np.intp)
+        return self.values[np.ix_(at, columns)], self.valid[at]
 
 
-def _value(stored: float | None) -> float:
-    return math.nan if stored is None else stored
+_ROW_COLUMNS = (
+    TokenResultRow.metric_version,
+    TokenResultRow.seed,
+    TokenResultRow.token,
+    TokenResultRow.valid,
+    TokenResultRow.worker,
+    TokenResultRow.duration_s,
+)
+_FIRST_RESULT_COLUMN = len(_ROW_COLUMNS)
+
+
+def _seed_rows(session: Session, submission: Submission) -> dict[tuple[str, int], _SeedRows]:
+    """Return (metric version, seed) -> the current run's rows: the columns the aggregation reads, not the
+    rows' details, selected as tuples (a navtest-size run has about 100,000)."""
+    query = select(*_ROW_COLUMNS, *(getattr(TokenResultRow, column) for column in ALL_RESULT_COLUMNS)).where(
+        TokenResultRow.submission_id == submission.id, TokenResultRow.run == submission.run
+    )
+    grouped: dict[tuple[str, int], list[Row[Any]]] = defaultdict(list)
+    for row in session.execute(query):
+        grouped[row.metric_version, row.seed].append(row)
+    return {key: _SeedRows.of(rows) for key, rows in grouped.items()}
 
 
 def _column(value: float) -> float | None:
@@ -77,47 +121,41 @@ def aggregate_submission(
     engine_version: str,
     bootstrap_samples: int,
 ) -> None:
-    """Replace the results and summaries of a submission with those of its current run's per-token rows."""
-    from scorer.evaluate import TokenResult, summarize
+    """Replace the results and summaries of a submission with those of its current run's per-token rows.
 
-    rows = session.scalars(
-        select(TokenResultRow).where(
-            TokenResultRow.submission_id == submission.id, TokenResultRow.run == submission.run
-        )
-    ).all()
-    grouped = _token_results(rows)
-    provenance: dict[tuple[str, int], list[TokenResultRow]] = defaultdict(list)
-    for row in rows:
-        provenance[row.metric_version, row.seed].append(row)
+    The means are `scorer.evaluate.summarize`'s to the bit: the same values in the same order (the subset's),
+    an unscored token 0 and an undefined value left out.
+    """
+    by_seed = _seed_rows(session, submission)
     session.execute(delete(Result).where(Result.submission_id == submission.id))
     session.execute(delete(Summary).where(Summary.submission_id == submission.id))
-    versions = sorted({version for version, _ in grouped})
-    seeds = sorted({seed for _, seed in grouped})
+    versions = sorted({version for version, _ in by_seed})
+    seeds = sorted({seed for _, seed in by_seed})
+    unscored = _SeedRows.of([])  # a (version, seed) without rows: every token counts as failed
     for version in versions:
         columns = get_version(version).result_columns
+        picked = np.array([ALL_RESULT_COLUMNS.index(column) for column in columns], dtype=np.intp)
         for subset, tokens in subsets.items():
+            chosen = set(tokens)
             per_seed = []
             for seed in seeds:
-                by_token = grouped[version, seed]
-                # A token without a row was never scored: it counts as a failed token.
-                results = [by_token.get(t) or TokenResult(t, seed, False, {}, "not scored") for t in tokens]
-                per_seed.append(results)
-                summary = summarize(results, columns)
-                chosen = set(tokens)
-                rows_here = [row for row in provenance[version, seed] if row.token in chosen]
+                rows = by_seed.get((version, seed), unscored)
+                values, valid = rows.of_tokens(tokens, picked)
+                per_seed.append((values, valid))
+                here = [index for index, token in enumerate(rows.tokens) if token in chosen]
                 session.add(
                     Result(
                         submission_id=submission.id,
                         metric_version=version,
                         subset=subset,
                         seed=seed,
-                        tokens=int(summary["tokens"]),
-                        failed=int(summary["failed"]),
+                        tokens=len(tokens),
+                        failed=int(np.count_nonzero(~valid)),
                         engine_version=engine_version,
                         split_hash=submission.split.content_hash,
-                        workers=",".join(sorted({row.worker for row in rows_here})),
-                        duration_s=float(sum(row.duration_s for row in rows_here)),
-                        **{column: _column(summary[column]) for column in columns},
+                        workers=",".join(sorted({rows.workers[index] for index in here})),
+                        duration_s=float(sum(rows.durations[index] for index in here)),
+                        **{column: _column(_mean(values[:, at])) for at, column in enumerate(columns)},
                     )
                 )
             session.add(_summary(submission.id, version, subset, per_seed, bootstrap_samples, columns))
@@ -128,23 +166,25 @@ def _summary(
     submission_id: int,
     version: str,
     subset: str,
-    per_seed: list[list[Any]],
+    per_seed: list[tuple[np.ndarray, np.ndarray]],
     bootstrap_samples: int,
     columns: tuple[str, ...],
 ) -> Summary:
-    """Combine the seeds of one (version, subset): means, per-seed score spread, CI of seed-averaged token scores.
+    """Combine the seeds of one (version, subset), each (values (tokens, columns), validity (tokens)): means,
+    per-seed score spread, CI of seed-averaged token scores.
 
     A column's mean skips undefined values (NaN) as `summarize` does; the score is defined on every token.
     """
+    tokens = len(per_seed[0][1])
     values = {
-        column: np.array(
-            [[r.metrics.get(column, 0.0) for r in results] for results in per_seed], dtype=np.float64
-        )
-        for column in columns
+        column: np.stack([seed_values[:, at] for seed_values, _ in per_seed])
+        for at, column in enumerate(columns)
     }  # column -> (seeds, tokens), unscored tokens as 0
     seed_scores = values["score"].mean(axis=1) if values["score"].size else np.full(len(per_seed), np.nan)
     low, high = bootstrap_ci(values["score"].mean(axis=0), bootstrap_samples)
-    failed_anywhere = {r.token for results in per_seed for r in results if not r.valid}
+    failed_anywhere = np.zeros(tokens, dtype=bool)
+    for _, valid in per_seed:
+        failed_anywhere |= ~valid
     return Summary(
         submission_id=submission_id,
         metric_version=version,
@@ -154,8 +194,8 @@ def _summary(
         score_max=float(np.max(seed_scores)),
         ci_low=low,
         ci_high=high,
-        tokens=len(per_seed[0]) if per_seed else 0,
-        failed=len(failed_anywhere),
+        tokens=tokens,
+        failed=int(np.count_nonzero(failed_anywhere)),
         **{column: _column(_mean(values[column])) for column in columns},
     )
 

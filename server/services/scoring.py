@@ -4,12 +4,16 @@ queued -> running -> scored | failed; any active state -> cancelled (admin). A r
 `Submission.run`; every write names the run it belongs to, so a late chunk of an older run or of a
 cancelled submission is dropped instead of mixing with the new one. Per-token rows are upserted on
 (submission, metric version, seed, token): a redelivered chunk overwrites, it never duplicates.
+
+A navtest-size run holds about 100,000 rows and 300 chunks: what a chunk does costs little beside its
+scoring only if it reads its own tokens' rows and the run's chunk records, never all of the run's rows
+(those are counted once, when no chunk of the run is left to write any).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -29,11 +33,10 @@ from server.models import (
     TokenResultRow,
     utc_now,
 )
-from server.services.chunks import LIVE_STATES
+from server.services.chunks import LIVE_STATES, finished_tokens, live_chunks
 from server.services.errors import Conflict, NotFound
 from server.services.leaderboard import aggregate_submission
-from server.services.splits import split_tokens, subset_tokens
-from server.storage import read_file
+from server.services.splits import subset_tokens
 
 MAX_ERROR_CHARS = 2000
 MAX_DETAIL_CHARS = 20000
@@ -42,17 +45,17 @@ UPSERT_KEY = ("submission_id", "metric_version", "seed", "token")
 
 @dataclass(frozen=True)
 class ScoringJob:
-    """Everything a worker needs to score one run of a submission."""
+    """Everything a worker needs to score one run of a submission but the file's bytes, stored under
+    `stored_name`, and the split's tokens: both are large, and read only when the file is parsed."""
 
     submission_id: int
     run: int
     filename: str
-    data: bytes
+    stored_name: str
     sha256: str  # of the upload: the stored bytes must still match it
     split_name: str
     split_dir: Path
     split_hash: str
-    tokens: tuple[str, ...]
     seed_count: int
     versions: tuple[str, ...]
 
@@ -78,8 +81,8 @@ def _current(submission: Submission, run: int) -> bool:
     return submission.run == run and submission.status in ACTIVE_STATUSES
 
 
-def load_job(session: Session, submission_id: int, storage_dir: Path) -> ScoringJob:
-    """Return the submission's stored file and split as a scoring job for its current run."""
+def load_job(session: Session, submission_id: int) -> ScoringJob:
+    """Return the current run of a submission as a scoring job (its file named, not read)."""
     submission = session.get(Submission, submission_id)
     if submission is None:
         raise NotFound(f"submission {submission_id} does not exist")
@@ -88,12 +91,11 @@ def load_job(session: Session, submission_id: int, storage_dir: Path) -> Scoring
         submission_id=submission.id,
         run=submission.run,
         filename=submission.filename,
-        data=read_file(storage_dir, submission.stored_name),
+        stored_name=submission.stored_name,
         sha256=submission.sha256,
         split_name=split.name,
         split_dir=Path(split.directory),
         split_hash=split.content_hash,
-        tokens=split_tokens(split),
         seed_count=submission.seed_count,
         versions=metric_versions(),
     )
@@ -129,21 +131,27 @@ def rows_written(session: Session, submission_id: int, run: int) -> int:
     return session.scalar(query) or 0
 
 
-def completed_tokens(session: Session, submission_id: int, run: int) -> set[str] | None:
-    """Return the tokens of `run` with every version and seed written; None when the run is no longer wanted.
+def completed_tokens(
+    session: Session, submission_id: int, run: int, among: Collection[str] | None = None
+) -> set[str] | None:
+    """Return the tokens of `run` with every version and seed written, of `among` only if given (a chunk's
+    tokens: an index finds their rows alone, whatever the size of the run); None when the run is no longer
+    wanted.
 
     A redelivered or re-dispatched chunk scores only the tokens missing here.
     """
     submission = session.get(Submission, submission_id)
     if submission is None or not _current(submission, run):
         return None
-    query = (
-        select(TokenResultRow.token)
-        .where(TokenResultRow.submission_id == submission_id, TokenResultRow.run == run)
-        .group_by(TokenResultRow.token)
-        .having(func.count() == submission.seed_count * len(BOARD_VERSIONS))
+    query = select(TokenResultRow.token).where(
+        TokenResultRow.submission_id == submission_id, TokenResultRow.run == run
     )
-    return set(session.scalars(query).all())
+    if among is not None:
+        query = query.where(TokenResultRow.token.in_(among))
+    grouped = query.group_by(TokenResultRow.token).having(
+        func.count() == submission.seed_count * len(BOARD_VERSIONS)
+    )
+    return set(session.scalars(grouped).all())
 
 
 def _insert(session: Session) -> Any:
@@ -169,7 +177,8 @@ def write_chunk_results(
     duration_s: float,
     now: datetime | None = None,
 ) -> bool:
-    """Upsert one chunk of scorer TokenResults (seed None counts as 0) and update the run's progress.
+    """Upsert one chunk of scorer TokenResults (seed None counts as 0); `finish_if_complete` then records
+    the run's progress.
 
     Returns False, writing nothing, when the run is no longer wanted (cancelled, finished or re-run):
     the worker should then stop.
@@ -200,13 +209,12 @@ def write_chunk_results(
             }
             for result in results
         ]
-        statement = _insert(session)(TokenResultRow).values(rows)
+        # One statement, its rows as parameters: compiled once per process, not once per chunk with every
+        # value in its text.
+        statement = _insert(session)(TokenResultRow.__table__)
         updated = {name: statement.excluded[name] for name in rows[0] if name not in UPSERT_KEY}
-        session.execute(statement.on_conflict_do_update(index_elements=list(UPSERT_KEY), set_=updated))
-    done = rows_written(session, submission_id, run)
-    # 100 only once the results are aggregated (mark_scored).
-    submission.progress = min(99, int(100 * done / max(expected_rows(submission), 1)))
-    session.flush()
+        upsert = statement.on_conflict_do_update(index_elements=list(UPSERT_KEY), set_=updated)
+        session.connection().execute(upsert, rows)
     return True
 
 
@@ -240,11 +248,23 @@ def mark_scored(
 def finish_if_complete(
     session: Session, submission_id: int, run: int, engine_version: str, bootstrap_samples: int
 ) -> bool:
-    """Mark the run scored when every row is written (the chunk that writes the last rows aggregates)."""
+    """Record the run's progress after a chunk; mark it scored when every row is written (the chunk that
+    writes the last rows aggregates).
+
+    Rows are counted only once no chunk of the run is queued or running: before that, one still has rows
+    to write. Under the submission's row lock, the last chunk to finish sees every other one finished.
+    """
     submission = _locked(session, submission_id)
-    complete = rows_written(session, submission_id, run) == expected_rows(submission)
-    if not (_current(submission, run) and complete):
+    if not _current(submission, run):
         return False
+    # 100 only once the results are aggregated.
+    submission.progress = min(
+        99, 100 * finished_tokens(session, submission_id, run) // max(submission.token_count, 1)
+    )
+    if live_chunks(session, submission_id, run):
+        return False
+    if rows_written(session, submission_id, run) != expected_rows(submission):
+        return False  # tokens without a chunk: the reaper finds the run stalled and plans them again
     return mark_scored(session, submission_id, run, engine_version, bootstrap_samples)
 
 
