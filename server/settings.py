@@ -34,7 +34,10 @@ class Settings(BaseSettings):
     leaderboard_cache_seconds: float = Field(2.0, validation_alias="LEADERBOARD_CACHE_SECONDS")
     # Workers: the broker queue shared by API and workers, and how a submission is cut into tasks.
     queue_name: str = Field("navsim-lb", validation_alias="QUEUE_NAME")
-    chunk_size: int = Field(128, ge=1, validation_alias="CHUNK_SIZE")  # (token, seed) pairs per chunk task
+    # (token, seed) pairs per chunk task. Fewer make each scoring call less efficient (a navtest-size run with 3
+    # seeds took 1.39x the engine's time at 128, 1.25x at 384: benchmarks/service.py); more cost memory
+    # (about 265 MiB per pool process at 384) and work lost with a killed process.
+    chunk_size: int = Field(384, ge=1, validation_alias="CHUNK_SIZE")
     # Hard limit of one task; the soft limit (the task's own clean failure) comes 30 s earlier.
     task_time_limit: float = Field(600.0, gt=30, validation_alias="TASK_TIME_LIMIT")
     # A pass costs a few queries: often enough that a lost chunk is re-sent within seconds of its last beat.

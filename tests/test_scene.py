@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import gzip
 import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -149,3 +150,30 @@ def test_file_level_errors(tmp_path: Path) -> None:
 def test_split_without_scenes_dir(tmp_path: Path) -> None:
     with pytest.raises(SceneFormatError, match="no scenes/ directory"):
         scene_paths(tmp_path)
+
+
+def test_a_split_listing_follows_the_files_added_removed_and_renamed(tmp_path: Path) -> None:
+    """The listing is kept between calls (a worker asks for every chunk and seed) only while the directory is
+    unchanged: every scene added, removed or renamed shows at once."""
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    (scenes / "a.json.gz").write_bytes(b"")
+    assert list(scene_paths(tmp_path)) == ["a"]
+    listing = scene_paths(tmp_path)
+    listing["x"] = scenes / "x.json"  # a caller's change stays its own
+    (scenes / "b.json").write_bytes(b"")
+    assert list(scene_paths(tmp_path)) == ["a", "b"]
+    (scenes / "a.json.gz").rename(scenes / "c.json.gz")
+    assert list(scene_paths(tmp_path)) == ["b", "c"]
+    (scenes / "b.json").unlink()
+    assert list(scene_paths(tmp_path)) == ["c"]
+
+    # Modified long ago, the listing is kept: a file slipped in under the same modification time stays unseen
+    # (what proves the cache), and any later change shows.
+    os.utime(scenes, ns=(10**18, 10**18))
+    assert list(scene_paths(tmp_path)) == ["c"]
+    (scenes / "d.json").write_bytes(b"")
+    os.utime(scenes, ns=(10**18, 10**18))
+    assert list(scene_paths(tmp_path)) == ["c"]
+    os.utime(scenes, ns=(10**18 + 1, 10**18 + 1))
+    assert list(scene_paths(tmp_path)) == ["c", "d"]
