@@ -555,7 +555,7 @@ def scene_paths(split_dir: Path | str) -> dict[str, Path]:
     scenes_dir = Path(split_dir) / "scenes"
     try:
         status = scenes_dir.stat()
-    except OSError:
+    except (FileNotFoundError, NotADirectoryError):  # other errors (a name too long) say what is wrong
         status = None
     if status is None or not stat.S_ISDIR(status.st_mode):
         raise SceneFormatError(f"{split_dir}: no scenes/ directory")
