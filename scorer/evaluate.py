@@ -293,15 +293,39 @@ def score_caches(
     Each token is scored alone: v2.2's EC, which pairs tokens, is left undefined (`join_two_frame_comfort`).
     """
     states, failed = _simulated([cache.token for cache in caches], caches, poses)
-    rows: list[TokenResult] = [
-        TokenResult(token, seed, False, error=error) for token, error in failed.items()
+    rows = [
+        item.result if isinstance(item, ScoredToken) else item
+        for item in _rows_of_simulated(caches, states, failed, version, seed)
     ]
-    kept = [cache for cache in caches if cache.token in states]
-    if kept:
-        scores = score_simulated(kept, np.stack([states[cache.token] for cache in kept]), version)
-        rows += [token_result(cache, seed, scores, index, version) for index, cache in enumerate(kept)]
     order = {cache.token: index for index, cache in enumerate(caches)}
     return sorted(rows, key=lambda row: order[row.token])
+
+
+def _rows_of_simulated(
+    caches: Sequence[MetricCache],
+    states: Mapping[str, FloatArray],
+    failed: Mapping[str, str],
+    version: MetricVersion,
+    seed: int | None,
+) -> list[TokenResult | ScoredToken]:
+    """Return the rows of `caches` under `version` from their tokens' simulated states (`_simulated`): an
+    invalid row where the simulation diverged, the others scored in one batch, in the order of `caches`."""
+    rows: list[TokenResult | ScoredToken] = [
+        TokenResult(cache.token, seed, False, error=failed[cache.token])
+        for cache in caches
+        if cache.token in failed
+    ]
+    kept = [cache for cache in caches if cache.token in states]
+    if not kept:
+        return rows
+    kept_states = np.stack([states[cache.token] for cache in kept])
+    scores = score_simulated(kept, kept_states, version)
+    return rows + [
+        ScoredToken(
+            token_result(cache, seed, scores, index, version), cache.log_name, cache.t0_us, kept_states[index]
+        )
+        for index, cache in enumerate(kept)
+    ]
 
 
 def _simulated(
@@ -409,10 +433,10 @@ def _score_chunk(
                 rows[version.name].append(TokenResult(token, seed, False, error=str(error)))
     caches: dict[str, dict[str, MetricCache]] = {version.name: {} for version in versions}
     unbuilt: list[str] = []
+    scene_hashes = {token: scene_file_hash(paths[token]) for token in poses}
     for token in poses:
-        scene_hash = scene_file_hash(paths[token])
         for version in versions:
-            cache = load_cache(cache_dir, version.name, token, scene_hash)
+            cache = load_cache(cache_dir, version.name, token, scene_hashes[token])
             if cache is not None:
                 caches[version.name][token] = cache
         if any(token not in caches[version.name] for version in versions):
@@ -426,7 +450,7 @@ def _score_chunk(
                 continue
             # Built here, or meanwhile by another process (then build_missing_caches found it and built nothing).
             cache = built.get(name, {}).get(version.name) or load_cache(
-                cache_dir, version.name, token, scene_file_hash(paths[token])
+                cache_dir, version.name, token, scene_hashes[token]
             )
             if cache is not None:
                 caches[version.name][token] = cache
@@ -441,23 +465,8 @@ def _score_chunk(
     states, failed = _simulated(simulated, first_cache, [poses[token] for token in simulated])
     for version in versions:
         held = caches[version.name]
-        rows[version.name] += [
-            TokenResult(token, seed, False, error=failed[token]) for token in failed if token in held
-        ]
-        kept = [held[token] for token in states if token in held]
-        if not kept:
-            continue
-        kept_states = np.stack([states[cache.token] for cache in kept])
-        scores = score_simulated(kept, kept_states, version)
-        rows[version.name] += [
-            ScoredToken(
-                token_result(cache, seed, scores, index, version),
-                cache.log_name,
-                cache.t0_us,
-                kept_states[index],
-            )
-            for index, cache in enumerate(kept)
-        ]
+        scored = [held[token] for token in simulated if token in held]
+        rows[version.name] += _rows_of_simulated(scored, states, failed, version, seed)
     return rows
 
 
@@ -481,22 +490,32 @@ def summarize(results: Sequence[TokenResult], columns: Sequence[str] = METRIC_CO
 ADJACENT_GAP_S = 0.55  # `infer_start_adjacent_mapping`'s time_gap_threshold
 
 
-def adjacent_pairs(scored: Sequence[ScoredToken]) -> dict[int, int]:
-    """Return, for each row that pairs with the row before it in its log, that row:
-    `infer_start_adjacent_mapping` over valid original rows, grouped by log and sorted by start time (seconds
-    as the devkit's float `timestamp_us * 1e-6`; ties by token, where pandas' sort is not stable)."""
-    start_s = [item.t0_us * 1e-6 for item in scored]
+def _in_log_order(frames: Sequence[tuple[str, str, int]]) -> list[list[int]]:
+    """Return the indices of `frames` (token, log name, t0 in us) per log, in the order the devkit gives a log's
+    frames for EC (`infer_start_adjacent_mapping`): original frames only (a 17-character token is synthetic),
+    by start time in float seconds (`timestamp_us * 1e-6`), ties by token (pandas' sort is not stable)."""
     by_log: dict[str, list[int]] = {}
-    for index, item in enumerate(scored):
-        if not is_synthetic(item.result.token):
-            by_log.setdefault(item.log_name, []).append(index)
+    for index, (token, log_name, _) in enumerate(frames):
+        if not is_synthetic(token):
+            by_log.setdefault(log_name, []).append(index)
     for members in by_log.values():
-        members.sort(key=lambda index: (start_s[index], scored[index].result.token))
+        members.sort(key=lambda index: (frames[index][2] * 1e-6, frames[index][0]))
+    return list(by_log.values())
+
+
+def _adjacent(earlier: tuple[str, str, int], later: tuple[str, str, int]) -> bool:
+    """Whether two frames of a log in that order are close enough in time for EC to pair them."""
+    return abs(later[2] * 1e-6 - earlier[2] * 1e-6) <= ADJACENT_GAP_S
+
+
+def adjacent_pairs(scored: Sequence[ScoredToken]) -> dict[int, int]:
+    """Return, for each row that pairs with the row before it in its log (`_in_log_order`), that row."""
+    frames = [(item.result.token, item.log_name, item.t0_us) for item in scored]
     return {
         current: previous
-        for members in by_log.values()
+        for members in _in_log_order(frames)
         for previous, current in itertools.pairwise(members)
-        if abs(start_s[current] - start_s[previous]) <= ADJACENT_GAP_S
+        if _adjacent(frames[previous], frames[current])
     }
 
 
@@ -510,24 +529,21 @@ def pairing_contexts(
     is scored at once: `adjacent_pairs` pairs a token with the latest valid frame before it in its log, and with
     none when that frame is further away. `starts` is token -> (log name, t0 in us), `scene_start`'s answer.
     """
-    by_log: dict[str, list[str]] = {}
-    for token, (log_name, _) in starts.items():
-        if not is_synthetic(token):
-            by_log.setdefault(log_name, []).append(token)
-    start_s = {token: t0_us * 1e-6 for token, (_, t0_us) in starts.items()}
-    position: dict[str, tuple[list[str], int]] = {}
-    for members in by_log.values():
-        members.sort(key=lambda token: (start_s[token], token))
-        position.update((token, (members, index)) for index, token in enumerate(members))
+    frames = [(token, log_name, t0_us) for token, (log_name, t0_us) in starts.items()]
+    position = {
+        frames[index][0]: (members, at)
+        for members in _in_log_order(frames)
+        for at, index in enumerate(members)
+    }
     contexts = []
     for group in groups:
         context: dict[str, None] = {}
         for token in group:
-            members, index = position.get(token, ([], 0))
-            earlier = index - 1
-            while earlier >= 0 and abs(start_s[token] - start_s[members[earlier]]) <= ADJACENT_GAP_S:
-                if members[earlier] not in group:
-                    context[members[earlier]] = None
+            members, at = position.get(token, ([], 0))
+            earlier = at - 1
+            while earlier >= 0 and _adjacent(frames[members[earlier]], frames[members[at]]):
+                if frames[members[earlier]][0] not in group:
+                    context[frames[members[earlier]][0]] = None
                 earlier -= 1
         contexts.append(list(context))
     return contexts
