@@ -22,7 +22,7 @@ import numpy as np
 from scorer.cache import MetricCache, build_cache_batch, load_cache, save_cache
 from scorer.geometry import FloatArray
 from scorer.human import filtered, is_synthetic
-from scorer.metrics.aggregation import aggregate
+from scorer.metrics.aggregation import aggregate, defined_mean
 from scorer.metrics.two_frame_comfort import FEATURES, overlap_steps, two_frame_extended_comfort
 from scorer.pdm_scorer import (
     RESULT_COLUMN_OF_ROW,
@@ -476,12 +476,7 @@ def summarize(results: Sequence[TokenResult], columns: Sequence[str] = METRIC_CO
     An undefined value (v2.2's EC without an adjacent frame) is left out of its column's mean, as the
     devkit's average row skips NaN; a column undefined everywhere is NaN.
     """
-
-    def mean(values: list[float]) -> float:
-        defined = [value for value in values if not math.isnan(value)]
-        return float(np.mean(defined)) if defined else float("nan")
-
-    summary = {column: mean([r.metrics.get(column, 0.0) for r in results]) for column in columns}
+    summary = {column: defined_mean([r.metrics.get(column, 0.0) for r in results]) for column in columns}
     summary["tokens"] = float(len(results))
     summary["failed"] = float(sum(not r.valid for r in results))
     return summary

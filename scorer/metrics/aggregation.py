@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
+import numpy.typing as npt
+
 from scorer.geometry import FloatArray
 
 
@@ -13,3 +18,11 @@ def aggregate(multipliers: FloatArray, weighted: FloatArray, weights: FloatArray
     row_weights = weights.reshape(-1, *[1] * (weighted.ndim - 1))
     weighted_mean = (weighted * row_weights).sum(axis=0) / weights.sum()
     return multipliers.prod(axis=0) * weighted_mean
+
+
+def defined_mean(values: npt.ArrayLike) -> float:
+    """Return the mean of the defined values, in their order, NaN if none is: a column's mean over tokens, which
+    leaves out v2.2's undefined EC as the devkit's average row skips NaN."""
+    array = np.asarray(values, dtype=np.float64)
+    defined = array[~np.isnan(array)]
+    return float(defined.mean()) if defined.size else math.nan

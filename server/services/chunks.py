@@ -17,7 +17,7 @@ queued chunk starts, so a duplicate drops, and only the reaper, which sees a bea
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from enum import StrEnum
@@ -56,11 +56,14 @@ def _current_run(session: Session, submission_id: int, run: int) -> bool:
     return submission is not None and submission.run == run and submission.status == Status.running
 
 
-def _with_contexts(session: Session, submission: Submission, groups: list[list[str]]) -> list[ScoringChunk]:
-    """Return queued chunks of the run for `groups` of tokens, each with the earlier frames it pairs with."""
+def _with_contexts(
+    submission: Submission, groups: list[list[str]], starts: Mapping[str, tuple[str, int]]
+) -> list[ScoringChunk]:
+    """Return queued chunks of the run for `groups` of tokens, each with the earlier frames it pairs with
+    (`starts`: the split's `scene_starts`)."""
     from scorer.evaluate import pairing_contexts  # the engine is heavy: imported only where chunks are made
 
-    contexts = pairing_contexts(scene_starts(session, submission.split), groups)
+    contexts = pairing_contexts(starts, groups)
     return [
         ScoringChunk(submission_id=submission.id, run=submission.run, tokens=group, context=context)
         for group, context in zip(groups, contexts, strict=True)
@@ -92,7 +95,7 @@ def plan_chunks(
         key=lambda token: (starts.get(token, ("", 0)), token),
     )
     chunks = _with_contexts(
-        session, submission, [todo[start : start + size] for start in range(0, len(todo), size)]
+        submission, [todo[start : start + size] for start in range(0, len(todo), size)], starts
     )
     for chunk in chunks:
         chunk.sent_at = now or utc_now()
@@ -104,7 +107,8 @@ def plan_chunks(
 def _split(session: Session, chunk: ScoringChunk, now: datetime) -> tuple[int, ...]:
     submission = session.get(Submission, chunk.submission_id)
     assert submission is not None  # start_chunk checked the run
-    children = _with_contexts(session, submission, [[token] for token in chunk.tokens])
+    starts = scene_starts(session, submission.split)
+    children = _with_contexts(submission, [[token] for token in chunk.tokens], starts)
     for child in children:
         child.deaths, child.sent_at = chunk.deaths, now
     session.add_all(children)

@@ -16,6 +16,7 @@ import numpy as np
 from sqlalchemy import Row, case, delete, func, or_, select
 from sqlalchemy.orm import Session
 
+from scorer.metrics.aggregation import defined_mean
 from scorer.versions import ALL_RESULT_COLUMNS, get_version
 from server.models import Phase, Result, Status, Submission, Summary, Team, TokenResultRow
 from server.services.errors import Invalid
@@ -109,9 +110,10 @@ def _seed_rows(session: Session, submission: Submission) -> dict[tuple[str, int]
     return {key: _SeedRows.of(rows) for key, rows in grouped.items()}
 
 
-def _column(value: float) -> float | None:
-    """Return a mean as a column holds it: undefined (NaN: no token defines it) as null."""
-    return None if math.isnan(value) else value
+def stored_value(value: float | None) -> float | None:
+    """Return a value as a result column holds it: undefined (NaN: v2.2's EC without a pair, or a mean no token
+    defines) or absent as null."""
+    return None if value is None or math.isnan(value) else value
 
 
 def aggregate_submission(
@@ -155,7 +157,10 @@ def aggregate_submission(
                         split_hash=submission.split.content_hash,
                         workers=",".join(sorted({rows.workers[index] for index in here})),
                         duration_s=float(sum(rows.durations[index] for index in here)),
-                        **{column: _column(_mean(values[:, at])) for at, column in enumerate(columns)},
+                        **{
+                            column: stored_value(defined_mean(values[:, at]))
+                            for at, column in enumerate(columns)
+                        },
                     )
                 )
             session.add(_summary(submission.id, version, subset, per_seed, bootstrap_samples, columns))
@@ -196,13 +201,8 @@ def _summary(
         ci_high=high,
         tokens=tokens,
         failed=int(np.count_nonzero(failed_anywhere)),
-        **{column: _column(_mean(values[column])) for column in columns},
+        **{column: stored_value(defined_mean(values[column])) for column in columns},
     )
-
-
-def _mean(values: np.ndarray) -> float:
-    defined = values[~np.isnan(values)]
-    return float(defined.mean()) if defined.size else math.nan
 
 
 def summary_figures(summary: Any, columns: tuple[str, ...]) -> dict[str, Any]:

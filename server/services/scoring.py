@@ -12,7 +12,6 @@ scoring only if it reads its own tokens' rows and the run's chunk records, never
 
 from __future__ import annotations
 
-import math
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -35,7 +34,7 @@ from server.models import (
 )
 from server.services.chunks import LIVE_STATES, finished_tokens, live_chunks
 from server.services.errors import Conflict, NotFound
-from server.services.leaderboard import aggregate_submission
+from server.services.leaderboard import aggregate_submission, stored_value
 from server.services.splits import subset_tokens
 
 MAX_ERROR_CHARS = 2000
@@ -162,11 +161,6 @@ def _insert(session: Session) -> Any:
     return inserts[dialect]
 
 
-def _stored(value: float | None) -> float | None:
-    """Return a result value as a column holds it: an undefined one (NaN, v2.2's EC without a pair) as null."""
-    return None if value is None or math.isnan(value) else value
-
-
 def write_chunk_results(
     session: Session,
     submission_id: int,
@@ -203,7 +197,7 @@ def write_chunk_results(
                 "scored_at": now,
                 "detail": result.detail or None,
                 **{
-                    column: _stored(result.metrics.get(column)) if result.valid else None
+                    column: stored_value(result.metrics.get(column)) if result.valid else None
                     for column in ALL_RESULT_COLUMNS
                 },
             }
