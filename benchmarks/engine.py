@@ -7,7 +7,13 @@ Prints, under a header that describes the host (benchmarks/host.py):
   costs against the two v1 versions' on the same scenes (target: at most 1.5x);
 - warm-cache scoring per version, with 1 process and with --workers: tokens/s and CPU-ms per token; then
   v2.2's cost per token against v1.1's (target: at most 2x);
-- apart from those, the start-up cost of `navsim-lb score` (a one-token split, warm cache), and peak RSS.
+- within both, the floor: the CPU time of the SVDs the devkit's bits require (pinv's, two per simulated
+  proposal: scorer/simulation.py), which no faster path may skip; the devkit's time divided by it bounds
+  the speed-up any bit-identical engine can reach on this host;
+- apart from those, the start-up of `navsim-lb score` (a one-token split, warm cache) and of `navsim-lb --help`
+  against bare `python -c "import numpy, shapely"` (target: at most 2x), and peak RSS.
+Every process runs one OpenBLAS thread (OPENBLAS_NUM_THREADS=1 unless set), as the workers do and as the
+devkit is timed.
 CPU time counts this process and its finished children (the process pool's), every thread of each. Cache
 building and scoring are first run, untimed, on a few scenes, so that no row pays the first calls' costs.
 Usage: .venv/bin/python benchmarks/engine.py [--scenes 1000] [--seed 1] [--workers 2]
@@ -15,8 +21,12 @@ Usage: .venv/bin/python benchmarks/engine.py [--scenes 1000] [--seed 1] [--worke
 
 from __future__ import annotations
 
-import argparse
 import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads: one BLAS thread, as the workers run
+
+import argparse
+import importlib
 import resource
 import shutil
 import statistics
@@ -27,7 +37,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import Self, TypeVar
 
 from host import host_header
 
@@ -38,11 +48,14 @@ from scorer.submission import Submission, SubmissionMetadata, dump_submission_js
 from scorer.synth import synthesize_split
 from scorer.versions import VERSIONS, VersionName
 
+linalg_module = importlib.import_module("numpy.linalg._linalg")
+
 DATA = Path(__file__).parent / ".data"
 ALL_VERSIONS = tuple(VERSIONS)
 V1_VERSIONS = (VersionName.V1_0, VersionName.V1_1)
 CACHE_TARGET = 1.5  # all three versions' cache against the two v1 versions'
 SCORE_TARGET = 2.0  # v2.2's scoring time per token against v1.1's
+STARTUP_TARGET = 2.0  # a one-token `navsim-lb score` against bare Python importing numpy and shapely
 WARM_UP_SCENES = 4
 T = TypeVar("T")
 
@@ -55,6 +68,7 @@ class Timing:
     seconds: float
     cpu_seconds: float  # this process and its finished children, all threads
     outcome: int  # failed scenes or valid tokens
+    svd_cpu_seconds: float | None = None  # in this process (1-process runs only)
 
     def row(self) -> str:
         return (
@@ -73,6 +87,41 @@ def _timed(call: Callable[[], T]) -> tuple[T, float, float]:
     start, cpu_start = time.perf_counter(), _cpu_seconds()
     result = call()
     return result, time.perf_counter() - start, _cpu_seconds() - cpu_start
+
+
+class SvdClock:
+    """While active, count the CPU time numpy's SVD takes: pinv's, the call whose bits the devkit's results
+    depend on (pinv looks `svd` up in its module, so wrapping that name catches every call)."""
+
+    def __init__(self) -> None:
+        self.cpu_seconds = 0.0
+
+    def __enter__(self) -> Self:
+        self._svd = linalg_module.svd
+
+        def timed_svd(*args: object, **kwargs: object) -> object:
+            start = time.process_time()
+            try:
+                return self._svd(*args, **kwargs)
+            finally:
+                self.cpu_seconds += time.process_time() - start
+
+        linalg_module.svd = timed_svd
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        linalg_module.svd = self._svd
+
+
+def _floor(timing: Timing, svd_cpu_seconds: float, unit: str) -> str:
+    """Say what share of `timing` the devkit's SVDs took, and which devkit time 100x would need."""
+    floor_ms = 1000 * svd_cpu_seconds / timing.count
+    share = svd_cpu_seconds / timing.cpu_seconds
+    return (
+        f"  {timing.label}: the SVDs pinv needs for the devkit's bits take {floor_ms:.2f} CPU-ms per {unit}"
+        f" ({share:.0%} of the time): 100x the devkit here needs a devkit slower than {100 * floor_ms:.0f} ms"
+        f" per {unit}, 50x one slower than {50 * floor_ms:.0f} ms"
+    )
 
 
 def _header(unit: str, outcome: str) -> str:
@@ -95,7 +144,18 @@ def _score_part(args: tuple[Path, Path, dict, str, list[str]]) -> int:
     return sum(r.valid for r in score_tokens(split, cache_dir, predictions, version, tokens))
 
 
-def _startup_seconds(split: Path, predictions: dict, cache_dir: Path, runs: int = 5) -> float:
+def _median_seconds(command: list[str], runs: int = 5) -> float:
+    """Return the median wall time of `command`, run once first untimed (the file system's caches)."""
+    subprocess.run(command, check=True, capture_output=True)
+    times = []
+    for _ in range(runs):
+        start = time.perf_counter()
+        subprocess.run(command, check=True, capture_output=True)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def _startup_seconds(split: Path, predictions: dict, cache_dir: Path) -> float:
     """Return the median wall time of `navsim-lb score` on a one-token split with a warm cache."""
     token, path = next(iter(scene_paths(split).items()))
     one = DATA / "split_one"
@@ -108,20 +168,18 @@ def _startup_seconds(split: Path, predictions: dict, cache_dir: Path, runs: int 
     )
     command = [str(Path(sys.executable).with_name("navsim-lb")), "score", str(one), str(submission)]
     command += ["--cache-dir", str(DATA / "cache_one")]
-    subprocess.run(command, check=True, capture_output=True)  # builds the one-token cache
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        subprocess.run(command, check=True, capture_output=True)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return _median_seconds(command)  # its first, untimed run builds the one-token cache
 
 
 def build_cache(split: Path, cache_dir: Path, versions: Sequence[str], workers: int, count: int) -> Timing:
     """Build the split's cache of `versions` in the fresh directory `cache_dir`; return how long it took."""
     shutil.rmtree(cache_dir, ignore_errors=True)
-    failures, seconds, cpu = _timed(lambda: build_split_cache(split, cache_dir, versions, workers=workers))
-    return Timing("+".join(versions), workers, count, seconds, cpu, len(failures))
+    with SvdClock() as svd:
+        failures, seconds, cpu = _timed(
+            lambda: build_split_cache(split, cache_dir, versions, workers=workers)
+        )
+    svd_cpu = svd.cpu_seconds if workers == 1 else None
+    return Timing("+".join(versions), workers, count, seconds, cpu, len(failures), svd_cpu)
 
 
 def score(
@@ -129,10 +187,11 @@ def score(
 ) -> Timing:
     """Score every token under `version` with `workers` processes on a warm cache; return how long it took."""
     if workers == 1:
-        valid, seconds, cpu = _timed(
-            lambda: sum(r.valid for r in score_tokens(split, cache_dir, predictions, version, tokens))
-        )
-    else:
+        with SvdClock() as svd:
+            valid, seconds, cpu = _timed(
+                lambda: sum(r.valid for r in score_tokens(split, cache_dir, predictions, version, tokens))
+            )
+        return Timing(version, workers, len(tokens), seconds, cpu, valid, svd.cpu_seconds)
         parts = [(split, cache_dir, predictions, version, tokens[i::workers]) for i in range(workers)]
 
         def in_pool() -> int:
@@ -169,8 +228,10 @@ def main() -> None:
 
     print("\ncache building, each in a fresh cache directory (CPU-ms per scene):")
     print(_header("scenes", "failed"), flush=True)
+    alone: list[Timing] = []
     for version in ALL_VERSIONS:
-        print(build_cache(split, Path(f"{stem}_{version}"), [version], 1, len(tokens)).row(), flush=True)
+        alone.append(build_cache(split, Path(f"{stem}_{version}"), [version], 1, len(tokens)))
+        print(alone[-1].row(), flush=True)
         shutil.rmtree(f"{stem}_{version}")
     v1 = build_cache(split, Path(f"{stem}_v1"), V1_VERSIONS, 1, len(tokens))
     print(v1.row(), flush=True)
@@ -182,6 +243,9 @@ def main() -> None:
         print(build_cache(split, Path(f"{stem}_w{workers}"), ALL_VERSIONS, workers, len(tokens)).row())
         shutil.rmtree(f"{stem}_w{workers}")
     print(_ratio("all three versions against the two v1 versions, 1 process", every, v1, CACHE_TARGET))
+    print("the floor of cache building, per version alone, 1 process:")
+    for timing in alone:
+        print(_floor(timing, timing.svd_cpu_seconds or 0.0, "scene"))
 
     for version in ALL_VERSIONS:
         score_tokens(split, cache_dir, predictions, version, tokens[:WARM_UP_SCENES])
@@ -195,9 +259,25 @@ def main() -> None:
             print(timing.row(), flush=True)
     v2_2, v1_1 = single[VersionName.V2_2], single[VersionName.V1_1]
     print(_ratio("v2.2 against v1.1 per token, 1 process", v2_2, v1_1, SCORE_TARGET))
+    print("the floor of scoring, 1 process:")
+    for timing in single.values():
+        print(_floor(timing, timing.svd_cpu_seconds or 0.0, "token"))
 
-    startup = _startup_seconds(split, predictions, cache_dir)
-    print(f"\nstart-up: navsim-lb score of a one-token split takes {startup:.2f} s (median of 5, warm cache)")
+    print("\nstart-up, median wall time of 5 runs:")
+    bare = _median_seconds([sys.executable, "-c", "import numpy, shapely"])
+    navsim_lb = str(Path(sys.executable).with_name("navsim-lb"))
+    for label, seconds in (
+        (
+            "navsim-lb score of a one-token split (warm cache)",
+            _startup_seconds(split, predictions, cache_dir),
+        ),
+        ("navsim-lb --help", _median_seconds([navsim_lb, "--help"])),
+    ):
+        verdict = "within" if seconds <= STARTUP_TARGET * bare else "OVER"
+        print(
+            f"  {label}: {seconds:.3f} s, {seconds / bare:.2f}x bare Python ({verdict} {STARTUP_TARGET:g}x)"
+        )
+    print(f"  bare Python: python -c 'import numpy, shapely' takes {bare:.3f} s")
     print(
         f"peak RSS: {_peak_rss_mib(resource.RUSAGE_SELF):.0f} MiB this process,"
         f" {_peak_rss_mib(resource.RUSAGE_CHILDREN):.0f} MiB its largest child (a pool process or navsim-lb)"

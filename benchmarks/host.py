@@ -1,8 +1,9 @@
 """The machine and software a benchmark ran on: the header of every benchmark's output, so that figures from
 two hosts (a developer's laptop, CI, the server) are never compared unknowingly.
 
-Call `host_header` in the main thread before any thread or process pool starts: it asks threadpoolctl about
-the loaded OpenBLAS libraries (`scorer.blas.blas_kernels` says why that must come first).
+Call `host_header` in the main thread before any thread or process pool starts: threadpoolctl walks the
+loaded libraries under the dynamic loader's lock and calls back into Python, so a thread loading an extension
+module meanwhile deadlocks with it.
 """
 
 from __future__ import annotations

@@ -11,13 +11,14 @@ from typing import IO, TYPE_CHECKING, Annotated, Any, cast
 
 import typer
 from rich.markup import escape
-from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TransferSpeedColumn
 from rich.table import Table
 
 from navsim_lb.terminal import console, fail
 
-if TYPE_CHECKING:  # httpx takes a third of `navsim-lb --help`: `submit` imports it when it runs
+if TYPE_CHECKING:  # httpx takes a third of `navsim-lb --help`, rich.progress a tenth of `score`'s start-up:
+    # the commands that need them import them when they run
     import httpx
+    from rich.progress import Progress
 
 API_PREFIX = "/api/v1"
 DEFAULT_SERVER = "http://127.0.0.1:8000"
@@ -119,6 +120,8 @@ def upload(
 
 def wait_until_done(client: httpx.Client, submission_id: int, poll_s: float = 1.0) -> dict[str, Any]:
     """Poll a submission, with a progress bar, until it is scored, failed or cancelled; return that state."""
+    from rich.progress import BarColumn, Progress, TextColumn
+
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"))
     with Progress(*columns, console=console) as progress:
         task = progress.add_task("queued", total=100)
@@ -171,6 +174,7 @@ def submit(
         raise fail(f"{file}: no such file")
     fields = {name: value for name, value in (("phase", phase), ("method", method)) if value}
     import httpx
+    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TransferSpeedColumn
 
     headers = {"Authorization": f"Bearer {token}"}
     # Retries cover failed connections only; the POST carries an idempotency key anyway.

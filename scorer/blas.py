@@ -19,7 +19,7 @@ import ctypes
 import importlib.util
 import os
 from collections.abc import Callable
-from functools import cache, lru_cache
+from functools import cache
 from pathlib import Path
 
 from scorer import ENGINE_VERSION
@@ -53,24 +53,30 @@ def select_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> None:
         os.environ["OPENBLAS_CORETYPE"] = DEVKIT_KERNELS
 
 
+def _bundled_openblas(package: str, pattern: str) -> ctypes.CDLL | None:
+    """Return the OpenBLAS a package's manylinux wheel bundles in `<package>.libs` (auditwheel's layout, the
+    file named after its hash), loaded without importing the package; None when there is not exactly one.
+
+    Loaded by path, it is the very object the package's extensions link: the dynamic loader matches it by its
+    soname, so the package shares it and it picks its kernels once, as `select_devkit_kernels` asked.
+    """
+    spec = importlib.util.find_spec(package)  # finds the package without importing it
+    packages = spec.submodule_search_locations if spec is not None else None
+    found = sorted(Path(packages[0]).parent.glob(f"{package}.libs/{pattern}")) if packages else []
+    return ctypes.CDLL(str(found[0])) if len(found) == 1 else None
+
+
 @cache
 def scipy_openblas() -> ctypes.CDLL:
     """Return SciPy's OpenBLAS, the library `scipy.linalg` calls, loaded without importing `scipy.linalg` (0.13 s
-    here, most of it scipy's array-API layer importing numpy.f2py, numpy.ma and numpy.testing).
-
-    SciPy's manylinux wheel ships it in `scipy.libs`, named after its hash (auditwheel's layout). Loaded by
-    path, it is the very object scipy's extensions link: the dynamic loader matches it by its soname, so a
-    later `import scipy.linalg` shares it, and it picks its kernels once, as `select_devkit_kernels` asked.
-    """
-    spec = importlib.util.find_spec("scipy")  # finds the package without importing it
-    packages = spec.submodule_search_locations if spec is not None else None
-    found = sorted(Path(packages[0]).parent.glob("scipy.libs/libscipy_openblas*.so")) if packages else []
-    if len(found) != 1:
+    of imports)."""
+    library = _bundled_openblas("scipy", "libscipy_openblas*.so")
+    if library is None:
         raise ImportError(
-            f"SciPy's OpenBLAS: expected one libscipy_openblas*.so in scipy.libs, found {found}; the engine "
-            "calls the LAPACK of SciPy's Linux wheel from PyPI, as the devkit did (`pip install scipy`)"
+            "SciPy's OpenBLAS: expected one libscipy_openblas*.so in scipy.libs; the engine calls the LAPACK of "
+            "SciPy's Linux wheel from PyPI, as the devkit did (`pip install scipy`)"
         )
-    return ctypes.CDLL(str(found[0]))
+    return library
 
 
 @cache
@@ -82,28 +88,31 @@ def scipy_lapack_function(name: str) -> Callable[..., None]:
     return function
 
 
-@lru_cache(maxsize=1)
+# The libraries the engine calls, each as its wheel bundles it, and its symbol naming OpenBLAS's kernels.
+_KERNEL_SOURCES = (
+    ("numpy", "libscipy_openblas64_*.so", "scipy_openblas_get_corename64_"),
+    ("scipy", "libscipy_openblas*.so", "scipy_openblas_get_corename"),
+)
+
+
+@cache
 def blas_kernels() -> tuple[str, ...]:
-    """Return the kernel sets the loaded OpenBLAS libraries run (numpy's and SciPy's, both loaded here).
+    """Return the kernel sets the OpenBLAS libraries the engine calls run (numpy's and SciPy's), "unknown"
+    for one that is not a wheel's bundled OpenBLAS (another BLAS: the kernels cannot be the devkit's).
 
-    Ask first in a process's main thread, before it starts threads or forks (the server and the worker do):
-    threadpoolctl walks the loaded libraries under the dynamic loader's lock and calls back into Python, so a
-    thread loading an extension module meanwhile (a first psycopg import) deadlocks with it. The answer is
-    cached, and forked processes inherit it.
+    Each library is asked by name (`openblas_get_corename`), in about a millisecond; loading it here, before
+    numpy does, is harmless (`_bundled_openblas`). Forked processes inherit the cached answer.
     """
-    import numpy  # noqa: F401 - load both libraries the engine calls before asking: numpy's,
-    from threadpoolctl import threadpool_info
-
-    scipy_openblas()  # and SciPy's
-    return tuple(
-        sorted(
-            {
-                str(library.get("architecture") or "unknown")
-                for library in threadpool_info()
-                if library.get("internal_api") == "openblas"
-            }
-        )
-    )
+    kernels = set()
+    for package, pattern, symbol in _KERNEL_SOURCES:
+        library = _bundled_openblas(package, pattern)
+        corename = getattr(library, symbol, None)
+        if corename is None:
+            kernels.add("unknown")
+            continue
+        corename.restype = ctypes.c_char_p
+        kernels.add(corename().decode())
+    return tuple(sorted(kernels))
 
 
 def kernel_warning() -> str | None:

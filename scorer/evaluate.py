@@ -12,7 +12,6 @@ import itertools
 import logging
 import math
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -162,6 +161,8 @@ def build_split_cache(
     failures: dict[str, str] = {}
     results: Iterator[tuple[int, dict[str, str]]]
     if workers > 1:
+        from concurrent.futures import ProcessPoolExecutor  # a one-process run never pays its import
+
         executor = ProcessPoolExecutor(max_workers=workers)
         results = executor.map(_build_split_part, tasks)
     else:

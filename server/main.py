@@ -16,7 +16,6 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError, InterfaceError, OperationalError
 
 from scorer import ENGINE_VERSION
-from scorer.blas import blas_kernels
 from server.body_limit import BodySizeLimit
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import require_migrated
@@ -82,7 +81,6 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     """Return the API and web app on a migrated database; raises NotMigratedError (with the fix) otherwise."""
     settings = settings or get_settings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    blas_kernels()  # now, before requests run in threads (scorer.blas says why)
     settings.storage_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.database_url)
     require_migrated(engine)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from scorer import ENGINE_VERSION
+from scorer import ENGINE_VERSION, blas
 from scorer import cache as scorer_cache
 from scorer.blas import (
     _SKYLAKEX_CPU_FLAGS,
@@ -117,24 +117,38 @@ def test_a_cache_built_under_other_kernels_is_rebuilt(
     assert load_cache(tmp_path, "v1.1", scene.token, scene_file_hash(path)) is None
 
 
-PROCESS_STARTS = {
-    "worker": "import worker.app",
-    "server": "from server.migrate import upgrade; from server.settings import get_settings; "
-    "upgrade(get_settings().database_url); from server.main import create_app; create_app()",
-}
+KERNELS_BY_THREADPOOLCTL = """
+import json
+import scorer
+import numpy
+from scorer.blas import blas_kernels, scipy_openblas
+scipy_openblas()
+from threadpoolctl import threadpool_info
+found = sorted({library["architecture"] for library in threadpool_info() if library["internal_api"] == "openblas"})
+print(json.dumps({"asked": list(blas_kernels()), "found": found, "libraries": len(threadpool_info())}))
+"""
 
 
-@pytest.mark.parametrize("process", PROCESS_STARTS)
-def test_the_server_and_the_worker_ask_for_the_kernels_before_they_start_threads(
-    process: str, tmp_path: Path
-) -> None:
-    """threadpoolctl's scan deadlocks with a thread loading an extension module: both processes ask at start,
-    in the main thread, so no request, heartbeat or forked pool process ever scans."""
-    probe = f"{PROCESS_STARTS[process]}\nfrom scorer.blas import blas_kernels\nprint(blas_kernels.cache_info().currsize)"
-    env = {**os.environ, "DATA_DIR": str(tmp_path)}
-    done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=False)
+@pytest.mark.parametrize("coretype", [DEVKIT_KERNELS, "Haswell", "Sandybridge"])
+def test_the_kernels_asked_by_name_are_those_threadpoolctl_finds(coretype: str) -> None:
+    """`blas_kernels` asks each bundled OpenBLAS for its core name instead of scanning every loaded library;
+    threadpoolctl's scan must find the same kernels (and no third OpenBLAS)."""
+    env = {**os.environ, "OPENBLAS_CORETYPE": coretype, KEEP_VARIABLE: "1"}
+    done = subprocess.run(
+        [sys.executable, "-c", KERNELS_BY_THREADPOOLCTL], env=env, capture_output=True, text=True, check=False
+    )
     assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.split()[-1] == "1"
+    probed = json.loads(done.stdout)
+    assert probed["asked"] == probed["found"] and probed["libraries"] == 2
+    if coretype != DEVKIT_KERNELS or AVX512_HOST:
+        assert probed["asked"] == [coretype]
+
+
+def test_a_library_that_is_not_a_bundled_openblas_counts_as_unknown_kernels(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(blas, "_KERNEL_SOURCES", (("numpy", "libnothing*.so", "openblas_get_corename"),))
+    assert blas.blas_kernels.__wrapped__() == ("unknown",)
 
 
 SHARED_LIBRARY = """

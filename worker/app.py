@@ -20,7 +20,6 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 from celery import Celery, bootsteps
 from celery.signals import worker_process_init
 
-from scorer.blas import blas_kernels
 from server.queue import celery_config, is_embedded_broker
 from server.settings import Settings, get_settings
 from worker import SCORING_NICENESS
@@ -57,7 +56,6 @@ def create_celery(settings: Settings) -> Celery:
     """Return the workers' Celery app for `settings`, with the periodic reaper scheduled for beat."""
     # The embedded broker's SQLite file and beat's schedule live there: neither creates the directory.
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    blas_kernels()  # now, before the heartbeat thread and the pool processes (scorer.blas says why)
     app = Celery("navsim-lb", include=["worker.tasks"])
     app.conf.update(
         celery_config(settings),
