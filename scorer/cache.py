@@ -107,7 +107,7 @@ def build_cache_batch(
     )
     count = len(versions) * len(scenes)
     states = simulated[:count].reshape(len(versions), len(scenes), 1, -1, initial.shape[-1])
-    keys = [_observation_key(version) for version in versions]
+    keys = [observation_key(version) for version in versions]
     # Versions that observe alike share the observation.
     observed = {key: [evaluation_observation(scene, *key) for scene in scenes] for key in dict.fromkeys(keys)}
     observations = [[observation for observation, _ in observed[key]] for key in keys]
@@ -149,7 +149,7 @@ def build_cache_batch(
     return caches
 
 
-def _observation_key(version: MetricVersion) -> tuple[int, bool, bool]:
+def observation_key(version: MetricVersion) -> tuple[int, bool, bool]:
     """Return how a version observes a scene: future frames, red lights read, tracks on the ego dropped."""
     reads_lights = "traffic_light_compliance" in version.evaluation.multiplier_rows
     return version.observation_frames, reads_lights, version.drops_tracks_on_ego
@@ -171,7 +171,7 @@ def _reference_measures(
     and route) is measured once.
     """
     measures: list[list[ProposalMeasures]] = [[] for _ in versions]
-    groups: dict[tuple[int, bool, bool], list[int]] = {}  # versions by how they observe (`_observation_key`)
+    groups: dict[tuple[int, bool, bool], list[int]] = {}  # versions by how they observe (`observation_key`)
     for column, key in enumerate(keys):
         groups.setdefault(key, []).append(column)
     for columns in groups.values():

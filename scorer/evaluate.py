@@ -18,16 +18,17 @@ from typing import Any
 
 import numpy as np
 
-from scorer.cache import MetricCache, build_cache_batch, load_cache, save_cache
+from scorer.cache import MetricCache, build_cache_batch, load_cache, observation_key, save_cache
 from scorer.geometry import FloatArray
 from scorer.human import filtered, is_synthetic
 from scorer.metrics.aggregation import aggregate, defined_mean
 from scorer.metrics.two_frame_comfort import FEATURES, overlap_steps, two_frame_extended_comfort
 from scorer.pdm_scorer import (
     RESULT_COLUMN_OF_ROW,
+    MeasureSettings,
     ProposalScores,
     join_measures,
-    measure_batch,
+    measure_alike,
     score_measures,
 )
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
@@ -262,17 +263,45 @@ def score_simulated(
 ) -> ProposalScores:
     """Return the scores (B, 2) of [PDM-Closed, agent] per token, as the devkit scores them: proposal 0 is the
     cached PDM-Closed reference (it sets the progress normaliser), proposal 1 the agent's simulated states."""
-    agent = measure_batch(
-        states[:, None],
-        [cache.observation for cache in caches],
-        [cache.drivable_map for cache in caches],
-        [cache.centerline[:, :2] for cache in caches],
-        [cache.route_lane_ids for cache in caches],
-        version.evaluation,
-    )
-    reference = join_measures([cache.reference_measures for cache in caches], axis=0)
-    pasts = [cache.past_states for cache in caches]
-    return score_measures(join_measures([reference, agent]), version.evaluation, pasts)
+    by_token = {cache.token: token_states for cache, token_states in zip(caches, states, strict=True)}
+    return score_simulated_versions({version.name: caches}, by_token, [version])[version.name]
+
+
+def score_simulated_versions(
+    caches: Mapping[str, Sequence[MetricCache]],
+    states: Mapping[str, FloatArray],
+    versions: Sequence[MetricVersion],
+) -> dict[str, ProposalScores]:
+    """Return per version the scores (`score_simulated`) of the tokens of `caches[version.name]`, whose agents'
+    simulated states (41, 11) `states` holds by token; each version's as it gets them alone.
+
+    Versions that read the same inputs for every token (they observe alike, `observation_key`, and hold the
+    same centerlines and routes) are measured in one `measure_alike` call: what no setting changes (the ego
+    boxes, their areas, NC, progress) once for all of them, as v1.0 and v1.1 are.
+    """
+    groups: dict[tuple[object, ...], list[MetricVersion]] = {}
+    for version in versions:
+        inputs = tuple((c.token, c.centerline.tobytes(), c.route_lane_ids) for c in caches[version.name])
+        groups.setdefault((observation_key(version), inputs), []).append(version)
+    scores: dict[str, ProposalScores] = {}
+    for group in groups.values():
+        held = caches[group[0].name]  # alike inputs: any version of the group's caches gives them
+        measured = measure_alike(
+            np.stack([states[cache.token] for cache in held])[:, None],
+            [cache.observation for cache in held],
+            [cache.drivable_map for cache in held],
+            [cache.centerline[:, :2] for cache in held],
+            [cache.route_lane_ids for cache in held],
+            [MeasureSettings.of(version.evaluation) for version in group],
+        )
+        for version, agent in zip(group, measured, strict=True):
+            version_caches = caches[version.name]
+            reference = join_measures([cache.reference_measures for cache in version_caches], axis=0)
+            pasts = [cache.past_states for cache in version_caches]
+            scores[version.name] = score_measures(
+                join_measures([reference, agent]), version.evaluation, pasts
+            )
+    return scores
 
 
 def score_against_references(
@@ -296,37 +325,44 @@ def score_caches(
     states, failed = _simulated([cache.token for cache in caches], caches, poses)
     rows = [
         item.result if isinstance(item, ScoredToken) else item
-        for item in _rows_of_simulated(caches, states, failed, version, seed)
+        for item in _rows_of_simulated({version.name: caches}, states, failed, [version], seed)[version.name]
     ]
     order = {cache.token: index for index, cache in enumerate(caches)}
     return sorted(rows, key=lambda row: order[row.token])
 
 
 def _rows_of_simulated(
-    caches: Sequence[MetricCache],
+    caches: Mapping[str, Sequence[MetricCache]],
     states: Mapping[str, FloatArray],
     failed: Mapping[str, str],
-    version: MetricVersion,
+    versions: Sequence[MetricVersion],
     seed: int | None,
-) -> list[TokenResult | ScoredToken]:
-    """Return the rows of `caches` under `version` from their tokens' simulated states (`_simulated`): an
-    invalid row where the simulation diverged, the others scored in one batch, in the order of `caches`."""
-    rows: list[TokenResult | ScoredToken] = [
-        TokenResult(cache.token, seed, False, error=failed[cache.token])
-        for cache in caches
-        if cache.token in failed
-    ]
-    kept = [cache for cache in caches if cache.token in states]
-    if not kept:
-        return rows
-    kept_states = np.stack([states[cache.token] for cache in kept])
-    scores = score_simulated(kept, kept_states, version)
-    return rows + [
-        ScoredToken(
-            token_result(cache, seed, scores, index, version), cache.log_name, cache.t0_us, kept_states[index]
-        )
-        for index, cache in enumerate(kept)
-    ]
+) -> dict[str, list[TokenResult | ScoredToken]]:
+    """Return per version the rows of `caches[version.name]` from their tokens' simulated states (`_simulated`):
+    an invalid row where the simulation diverged, the others scored in one batch, in the order of the caches."""
+    rows: dict[str, list[TokenResult | ScoredToken]] = {}
+    kept: dict[str, list[MetricCache]] = {}
+    for version in versions:
+        held = caches[version.name]
+        rows[version.name] = [
+            TokenResult(cache.token, seed, False, error=failed[cache.token])
+            for cache in held
+            if cache.token in failed
+        ]
+        kept[version.name] = [cache for cache in held if cache.token in states]
+    measured = [version for version in versions if kept[version.name]]
+    scores = score_simulated_versions(kept, states, measured)
+    for version in measured:
+        rows[version.name] += [
+            ScoredToken(
+                token_result(cache, seed, scores[version.name], index, version),
+                cache.log_name,
+                cache.t0_us,
+                states[cache.token],
+            )
+            for index, cache in enumerate(kept[version.name])
+        ]
+    return rows
 
 
 def _simulated(
@@ -464,10 +500,12 @@ def _score_chunk(
         next(caches[v.name][token] for v in versions if token in caches[v.name]) for token in simulated
     ]
     states, failed = _simulated(simulated, first_cache, [poses[token] for token in simulated])
-    for version in versions:
-        held = caches[version.name]
-        scored = [held[token] for token in simulated if token in held]
-        rows[version.name] += _rows_of_simulated(scored, states, failed, version, seed)
+    held: dict[str, list[MetricCache]] = {
+        version.name: [caches[version.name][token] for token in simulated if token in caches[version.name]]
+        for version in versions
+    }
+    for name, version_rows in _rows_of_simulated(held, states, failed, versions, seed).items():
+        rows[name] += version_rows
     return rows
 
 

@@ -1,6 +1,6 @@
-"""One simulation per token serves every metric version (`score_versions`): each version's rows are the bits
-`score_tokens` gives it alone, a trajectory that diverges fails in every version alone, and a scene one version
-cannot cache fails in that version only."""
+"""One simulation per token serves every metric version (`score_versions`), and one measurement the versions
+that read the same inputs: each version's rows are the bits `score_tokens` gives it alone, a trajectory that
+diverges fails in every version alone, and a scene one version cannot cache fails in that version only."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import json
 import math
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -51,6 +52,27 @@ def test_every_versions_rows_are_those_it_gets_alone(family: str, tmp_path: Path
         assert all(_same(ours, theirs) for ours, theirs in zip(together[version], alone, strict=True))
         failed = {row.token: row.error for row in together[version] if not row.valid}
         assert list(failed) == [diverging] and "scoring failed" in (failed[diverging] or "")
+
+
+def test_versions_that_observe_alike_are_measured_in_one_call(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """v1.0 and v1.1 observe alike and share the PDM-Closed centerline: one `measure_alike` call measures both
+    (their TTC and DDC settings apart, inside it); v2.2, which drops tracks on the ego, is measured apart."""
+    path = REFERENCE / "submissions" / "cv_decel.json"
+    poses = load_submission(path.read_bytes(), path.name).seeds[0]
+    settings_per_call: list[int] = []
+    measure_alike = evaluate.measure_alike
+
+    def counted(*args: Any) -> Any:
+        settings_per_call.append(len(args[-1]))
+        return measure_alike(*args)
+
+    monkeypatch.setattr(evaluate, "measure_alike", counted)
+    score_versions(REFERENCE, tmp_path, poses, list(VERSIONS))  # builds the caches (not through evaluate's name)
+    settings_per_call.clear()
+    score_versions(REFERENCE, tmp_path, poses, list(VERSIONS))
+    assert sorted(settings_per_call) == [1, 2]
 
 
 def test_a_scene_one_version_cannot_cache_fails_in_that_version_only(tmp_path: Path) -> None:
