@@ -6,12 +6,12 @@ PORT ?= 8000
 
 .PHONY: demo test install services browser lowest
 
+# An editable install leaves our modules uncompiled; where PYTHONDONTWRITEBYTECODE is set (many containers)
+# every command would compile them again, a fifth of `navsim-lb score`'s start-up: compile them here.
 $(BIN)/navsim-lb: pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -c constraints.txt -e ".[dev]"
-	# An editable install leaves our modules uncompiled; where PYTHONDONTWRITEBYTECODE is set (many containers)
-	# every command would compile them again, a fifth of `navsim-lb score`'s start-up.
 	$(BIN)/python -m compileall -q navsim_lb scorer server worker web > /dev/null
 	touch $(BIN)/navsim-lb
 

@@ -69,7 +69,8 @@ def test_versions_that_observe_alike_are_measured_in_one_call(
         return measure_alike(*args)
 
     monkeypatch.setattr(evaluate, "measure_alike", counted)
-    score_versions(REFERENCE, tmp_path, poses, list(VERSIONS))  # builds the caches (not through evaluate's name)
+    # The first run builds the caches (their measures do not go through evaluate's name).
+    score_versions(REFERENCE, tmp_path, poses, list(VERSIONS))
     settings_per_call.clear()
     score_versions(REFERENCE, tmp_path, poses, list(VERSIONS))
     assert sorted(settings_per_call) == [1, 2]
