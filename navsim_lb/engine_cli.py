@@ -8,11 +8,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from navsim_lb.terminal import console, fail, progress_bar, warn, warn_about_kernels
+from navsim_lb.terminal import console, fail, output, progress_bar, warn, warn_about_kernels
 from scorer.versions import DEFAULT_VERSION, VERSIONS, VersionName
 
 if TYPE_CHECKING:
@@ -130,7 +129,7 @@ def score(
     if out is not None:
         results_table(results, VERSIONS[version]).to_csv(out)
         console.print(f"wrote {out}")
-    Console().print(summary_table(results, VERSIONS[version], f"{loaded.metadata.method} on {split.name}"))
+    output.print(summary_table(results, VERSIONS[version], f"{loaded.metadata.method} on {split.name}"))
 
 
 def plot(
@@ -196,7 +195,7 @@ def regress(
         table.add_column(column)
     for change in changes:
         table.add_row(*(str(value) for value in change))
-    Console().print(table)
+    output.print(table)
     raise typer.Exit(code=1)
 
 

@@ -8,12 +8,11 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
 from navsim_lb.engine_cli import default_cache_dir
-from navsim_lb.terminal import console, fail, progress_bar
+from navsim_lb.terminal import console, fail, output, progress_bar
 from scorer.versions import DEFAULT_VERSION, VersionName
 
 SHOWN_REASONS = 10
@@ -68,8 +67,8 @@ def import_openscene(
         table.add_column("tokens", justify="right")
         table.add_column("reason")
         for reason, count in reasons.most_common(SHOWN_REASONS):
-            table.add_row(str(count), reason)
-        Console().print(table)
+            table.add_row(str(count), escape(reason))
+        output.print(table)
     if report["command_mismatches"]:
         console.print(
             f"[yellow]{len(report['command_mismatches'])} stored driving commands differ from the route's[/yellow]"
@@ -102,7 +101,7 @@ def curate(
         table.add_column(column)
     for row in rows[1:]:
         table.add_row(*row)
-    Console().print(table)
+    output.print(table)
     console.print(
         f"kept {len(result.kept)} of {len(result.kept) + len(result.dropped)} scenes in {out / 'scenes'}"
     )

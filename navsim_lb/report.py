@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from rich import box
+from rich.markup import escape
 from rich.table import Table
 
 from scorer.evaluate import TokenResult, summarize
@@ -82,7 +83,7 @@ def summary_table(results: Sequence[TokenResult], version: MetricVersion, title:
     """Return the summary as a table that fits an 80-column terminal (no vertical rules, numbers right)."""
     header, *rows = summary_rows(results, version)
     table = Table(
-        title=f"{title} ({version.score_label} {version.name})",
+        title=escape(f"{title} ({version.score_label} {version.name})"),  # plain text: it quotes the method
         caption=f"scores in %; unscored tokens count 0; DDC: {version.ddc_role}"
         + (
             "; EC only between adjacent frames of a log (- where none)"
@@ -90,8 +91,11 @@ def summary_table(results: Sequence[TokenResult], version: MetricVersion, title:
             else ""
         ),
         box=box.SIMPLE_HEAD,
+        show_edge=False,
         pad_edge=False,
-        padding=(0, 1) if len(header) < 12 else 0,  # v2.2 has ten columns: the box's own space separates them
+        # Columns are a space apart (the box's own) and, below 12 columns, one more: "100.0" in every column
+        # still fits 80 (v2.2 has thirteen).
+        padding=(0, 1, 0, 0) if len(header) < 12 else 0,
     )
     for index, column in enumerate(header):
         table.add_column(column, justify="left" if index == 0 else "right", no_wrap=True)

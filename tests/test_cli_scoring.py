@@ -80,6 +80,22 @@ def test_score_explains_a_broken_submission(split: Path, tmp_path: Path) -> None
     )
 
 
+def test_score_prints_a_method_name_as_written(split: Path, tmp_path: Path) -> None:
+    """A method name is the team's text: markup or emoji codes in it are printed literally, never rendered
+    (an unmatched closing tag crashed the summary)."""
+    submission = tmp_path / "cv.json"
+    assert (
+        runner.invoke(app, ["baseline", "constant-velocity", str(split), "--out", str(submission)]).exit_code
+        == 0
+    )
+    document = json.loads(submission.read_text())
+    document["method"] = "[/bold] :thumbs_up: [red]x"
+    submission.write_text(json.dumps(document))
+    result = runner.invoke(app, ["score", str(split), str(submission), "--cache-dir", str(tmp_path / "c")])
+    assert result.exit_code == 0, result.output
+    assert "[/bold] :thumbs_up: [red]x on split" in result.output
+
+
 def test_multi_seed_summary_has_per_seed_rows_and_mean_std_max() -> None:
     def rows(seed: int, score: float, valid: bool = True) -> list[TokenResult]:
         metrics = dict.fromkeys(VERSIONS["v1.1"].result_columns, score)
@@ -97,10 +113,11 @@ def test_multi_seed_summary_has_per_seed_rows_and_mean_std_max() -> None:
     assert body[2][score] == "47.5" and body[3][score] == "2.5" and body[4][score] == "50.0"
 
 
+@pytest.mark.parametrize("value", [0.987654, 1.0])  # "100.0" everywhere is the widest table
 @pytest.mark.parametrize("version", list(VERSIONS))
-def test_summary_table_reads_in_80_columns(version: str) -> None:
+def test_summary_table_reads_in_80_columns(version: str, value: float) -> None:
     results = [
-        TokenResult(f"token{index}", seed, True, dict.fromkeys(VERSIONS[version].result_columns, 0.987654))
+        TokenResult(f"token{index}", seed, True, dict.fromkeys(VERSIONS[version].result_columns, value))
         for seed in range(3)
         for index in range(12000)
     ]
@@ -113,7 +130,9 @@ def test_summary_table_reads_in_80_columns(version: str) -> None:
     columns = VERSIONS[version].result_columns
     labels = [METRIC_LABELS[column] for column in columns[:-1]]
     assert header == ["seed", *labels, VERSIONS[version].score_label, "tokens", "unscored"]
-    assert next(line.split() for line in lines if line.split()[:1] == ["mean"])[1:] == ["98.8"] * len(columns)
+    assert next(line.split() for line in lines if line.split()[:1] == ["mean"])[1:] == [
+        f"{100 * value:.1f}"
+    ] * len(columns)
     assert f"DDC: {VERSIONS[version].ddc_role}" in " ".join(text.split())
 
 
