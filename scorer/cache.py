@@ -1,10 +1,11 @@
 """The per-scene metric cache: what scoring needs from a scene, built once and kept on disk.
 
-One `.nlc` file per (metric version, token) holds a JSON header (metadata, and the dtype, shape and
-offset of each array) followed by the arrays' raw bytes: numbers only, so a cache file can never
-execute code, and read in one call (npz spent more time parsing its per-array headers than scoring). A file is
-reused only while its key (scene file hash, engine version, metric version) matches; otherwise it is
-rebuilt. Every scene is built in isolation: PDM-Closed's collided-track list starts empty for each
+One `.nlc` file per token holds every metric version's cache: a JSON header (the file's key, then per
+version its metadata and the dtype, shape and offset of each array) followed by the arrays' raw bytes,
+each distinct content once (the versions share the map and, where they observe alike, the observation:
+v1.0 and v1.1's files were identical but for the header). Numbers only, so a cache file can never execute
+code, read in one call (npz spent more time parsing its per-array headers than scoring). A file is reused
+only while its key (scene file hash, engine version) matches; otherwise it is rebuilt. Every scene is built in isolation: PDM-Closed's collided-track list starts empty for each
 scene, unlike the devkit, whose planner instance carries it across the scenes of a worker batch.
 """
 
@@ -12,7 +13,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,7 @@ from scorer.trajectory import agent_references, initial_state, pdm_references
 from scorer.versions import MetricVersion
 
 _MEASURES_PREFIX = "reference_"
+_PREFIX = 16  # a cache file's first bytes: its index's length and its own, 8 bytes each
 
 
 @dataclass(frozen=True)
@@ -262,9 +264,9 @@ def score_humans(
     return humans
 
 
-def cache_path(cache_dir: Path, version: str, token: str) -> Path:
-    """Return where the cache of `token` under `version` is stored."""
-    return Path(cache_dir) / version / f"{token}.nlc"
+def cache_path(cache_dir: Path, token: str) -> Path:
+    """Return where the caches of `token`, every version's, are stored."""
+    return Path(cache_dir) / f"{token}.nlc"
 
 
 def _pack_polygons(polygons: Iterable[shapely.Polygon]) -> tuple[FloatArray, np.ndarray]:
@@ -283,14 +285,39 @@ def _unpack_polygons(coords: FloatArray, counts: np.ndarray) -> np.ndarray:
     return shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_offsets, polygon_offsets))
 
 
-def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
-    """Write `cache` atomically (temporary file, then rename) and return its path."""
+def save_caches(caches: Mapping[str, MetricCache], cache_dir: Path) -> Path:
+    """Write the caches of one token (by version) atomically (temporary file, then rename), beside the versions
+    its file already holds for the same scene and engine, and return the file's path."""
+    first = next(iter(caches.values()))
+    path = cache_path(cache_dir, first.token)
+    key = {"scene_hash": first.key.scene_hash, "engine_version": first.key.engine_version}
+    sections = _read_sections(path, key)
+    sections |= {version: _cache_section(cache) for version, cache in caches.items()}
+    write_atomically(path, _pack(key, sections), durable=False)  # a lost cache file is rebuilt
+    return path
+
+
+def _read_sections(
+    path: Path, key: dict[str, str]
+) -> dict[str, tuple[dict[str, Any], dict[str, np.ndarray]]]:
+    """Return the versions a cache file holds under `key`: none when it is missing, damaged or from other
+    inputs."""
+    try:
+        stored_key, sections = _unpack(path.read_bytes())
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+    if stored_key != key:
+        return {}
+    return {version: (meta, arrays) for version, (meta, arrays, _) in sections.items()}
+
+
+def _cache_section(cache: MetricCache) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Return one version's metadata and arrays, as its section of a cache file holds them."""
     observation, drivable_map = cache.observation, cache.drivable_map
     map_coords, map_counts = _pack_polygons(drivable_map.polygons)
     red_lights = observation.red_lights
     meta = {
         "token": cache.token,
-        "key": asdict(cache.key),
         "log_name": cache.log_name,
         "t0_us": cache.t0_us,
         "ego": asdict(cache.ego),
@@ -321,9 +348,7 @@ def save_cache(cache: MetricCache, cache_dir: Path) -> Path:
             for f in fields(ProposalMeasures)
         },
     }
-    path = cache_path(cache_dir, cache.key.metric_version, cache.token)
-    write_atomically(path, _pack(meta, arrays), durable=False)  # a lost cache file is rebuilt
-    return path
+    return meta, arrays
 
 
 def _red_light_arrays(red_lights: RedLights | None) -> dict[str, np.ndarray]:
@@ -333,43 +358,117 @@ def _red_light_arrays(red_lights: RedLights | None) -> dict[str, np.ndarray]:
     return {"red_light_coords": coords, "red_light_counts": counts, "red_light_present": red_lights.present}
 
 
-def _pack(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> bytes:
-    """Return header length (8 bytes, little endian), JSON header, then each array's C-order bytes."""
-    layout, blobs, offset = {}, [], 0
-    for name, array in arrays.items():
-        blob = np.ascontiguousarray(array).tobytes()
-        layout[name] = [np.asarray(array).dtype.str, list(np.shape(array)), offset]
-        blobs.append(blob)
-        offset += len(blob)
-    header = json.dumps({"meta": meta, "arrays": layout}).encode()
-    return len(header).to_bytes(8, "little") + header + b"".join(blobs)
+def _pack(key: dict[str, str], sections: Mapping[str, tuple[dict[str, Any], dict[str, np.ndarray]]]) -> bytes:
+    """Return a cache file: the index's length and the file's (8 bytes each, little endian), the index (JSON: the
+    key and where each version's header lies), each version's header (JSON: its metadata and each array's
+    dtype, shape and offset), then the arrays' C-order bytes, each distinct content once (arrays of equal
+    bytes share it, whatever their names and versions). A reader of one version parses its header only."""
+    offsets: dict[bytes, int] = {}
+    blobs: list[bytes] = []
+    size = 0
+    headers: dict[str, bytes] = {}
+    for version, (meta, arrays) in sections.items():
+        layout = {}
+        for name, array in arrays.items():
+            blob = np.ascontiguousarray(array).tobytes()
+            if blob not in offsets:
+                offsets[blob] = size
+                blobs.append(blob)
+                size += len(blob)
+            layout[name] = [np.asarray(array).dtype.str, list(np.shape(array)), offsets[blob]]
+        headers[version] = json.dumps({"meta": meta, "arrays": layout}).encode()
+    places, start = {}, 0
+    for version, header in headers.items():
+        places[version] = [start, start + len(header)]
+        start += len(header)
+    index = json.dumps({"key": key, "versions": places}).encode()
+    file_size = _PREFIX + len(index) + start + size
+    prefix = len(index).to_bytes(8, "little") + file_size.to_bytes(8, "little")
+    return prefix + index + b"".join(headers.values()) + b"".join(blobs)
 
 
-def _unpack(data: bytes | bytearray) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Invert `_pack`; raise ValueError on anything malformed."""
-    size = int.from_bytes(data[:8], "little")
-    header = json.loads(data[8 : 8 + size])
-    body = memoryview(data)[8 + size :]
-    arrays = {}
-    for name, (dtype, shape, offset) in header["arrays"].items():
-        dtype = np.dtype(dtype)
-        if dtype.hasobject:
-            raise ValueError(f"{name}: object arrays are not allowed")
-        count = math.prod(shape)  # the header's integers (numpy's prod costs more than reading the array)
-        arrays[name] = np.frombuffer(body, dtype=dtype, count=count, offset=offset).reshape(shape)
-    return header["meta"], arrays
+def _index(data: bytes) -> tuple[dict[str, Any], int]:
+    """Return a cache file's index and where its version headers start; raise ValueError if the file is not
+    the size its prefix states (cut short)."""
+    length, stated = int.from_bytes(data[:8], "little"), int.from_bytes(data[8:_PREFIX], "little")
+    if stated != len(data):
+        raise ValueError(f"a cache file of {stated} bytes holds {len(data)}")
+    return json.loads(data[_PREFIX : _PREFIX + length]), _PREFIX + length
+
+
+Section = tuple[dict[str, Any], dict[str, np.ndarray], dict[str, int]]  # metadata, arrays, their offsets
+
+
+def _unpack(
+    data: bytes, versions: Collection[str] | None = None
+) -> tuple[dict[str, str], dict[str, Section]]:
+    """Invert `_pack` for `versions` (all by default): the file's key and each version's section, its arrays
+    read-only views of `data` (versions share what they share on disk; nothing writes a cache's arrays).
+    Raise ValueError on anything malformed, a file cut short included."""
+    index, headers_start = _index(data)
+    places = index["versions"]
+    body = memoryview(data)[headers_start + max((end for _, end in places.values()), default=0) :]
+    sections = {}
+    for version, (start, end) in places.items():
+        if versions is not None and version not in versions:
+            continue
+        section = json.loads(data[headers_start + start : headers_start + end])
+        arrays, offsets = {}, {}
+        for name, (dtype, shape, offset) in section["arrays"].items():
+            dtype = np.dtype(dtype)
+            if dtype.hasobject:
+                raise ValueError(f"{name}: object arrays are not allowed")
+            count = math.prod(shape)  # the header's integers (numpy's prod costs more than reading the array)
+            arrays[name] = np.frombuffer(body, dtype=dtype, count=count, offset=offset).reshape(shape)
+            offsets[name] = offset
+        sections[version] = (section["meta"], arrays, offsets)
+    return index["key"], sections
+
+
+def load_caches(
+    cache_dir: Path, versions: Collection[str], token: str, scene_hash: str
+) -> dict[str, MetricCache]:
+    """Return the stored caches of `token` under `versions`, by version; a version is missing when its cache is
+    missing, damaged or was built from other inputs. The versions share their map's polygons."""
+    key = {"scene_hash": scene_hash, "engine_version": engine_provenance()}
+    try:
+        stored_key, sections = _unpack(cache_path(cache_dir, token).read_bytes(), versions)
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}  # missing, truncated or foreign: rebuild
+    if stored_key != key:
+        return {}
+    polygons: dict[tuple[int, int], np.ndarray] = {}  # by their arrays' offsets: one map serves every version
+    caches = {}
+    for version, (meta, arrays, offsets) in sections.items():
+        try:
+            caches[version] = _cache_of(
+                CacheKey(scene_hash, key["engine_version"], version), meta, arrays, offsets, polygons
+            )
+        except (ValueError, KeyError, TypeError):
+            continue  # a damaged section: that version is rebuilt
+    return caches
 
 
 def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> MetricCache | None:
-    """Return the stored cache of `token`, or None when it is missing or was built from other inputs."""
-    path = cache_path(cache_dir, version, token)
-    try:
-        meta, arrays = _unpack(bytearray(path.read_bytes()))  # writable arrays, as np.load gave
-        key = CacheKey(**meta["key"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return None  # missing, truncated or foreign: rebuild
-    if key != CacheKey(scene_hash, engine_provenance(), version):
-        return None
+    """Return the stored cache of `token` under `version` (`load_caches`), or None."""
+    return load_caches(cache_dir, [version], token, scene_hash).get(version)
+
+
+def _cache_of(
+    key: CacheKey,
+    meta: dict[str, Any],
+    arrays: dict[str, np.ndarray],
+    offsets: dict[str, int],
+    polygons: dict[tuple[int, int], np.ndarray],
+) -> MetricCache:
+    """Return the cache a file's section holds; `polygons` keeps the polygons unpacked from the same bytes."""
+
+    def unpacked(coords: str, counts: str) -> np.ndarray:
+        where = (offsets[coords], offsets[counts])
+        if where not in polygons:
+            polygons[where] = _unpack_polygons(arrays[coords], arrays[counts])
+        return polygons[where]
+
     present = arrays["object_present"]
     corners = np.full((*present.shape, 4, 2), np.nan)
     corners[present] = arrays["object_corners"]
@@ -377,7 +476,7 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
     if meta["red_light_lanes"] is not None:
         red_lights = RedLights(
             lane_ids=tuple(meta["red_light_lanes"]),
-            polygons=_unpack_polygons(arrays["red_light_coords"], arrays["red_light_counts"]),
+            polygons=unpacked("red_light_coords", "red_light_counts"),
             present=arrays["red_light_present"],
         )
     return MetricCache(
@@ -394,7 +493,7 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
         drivable_map=DrivableMap(
             tokens=tuple(meta["map_tokens"]),
             types=tuple(meta["map_types"]),
-            polygons=_unpack_polygons(arrays["map_coords"], arrays["map_counts"]),
+            polygons=unpacked("map_coords", "map_counts"),
         ),
         observation=Observation(
             tokens=tuple(meta["object_tokens"]),

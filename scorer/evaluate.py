@@ -18,7 +18,14 @@ from typing import Any
 
 import numpy as np
 
-from scorer.cache import MetricCache, build_cache_batch, load_cache, observation_key, save_cache
+from scorer.cache import (
+    MetricCache,
+    build_cache_batch,
+    load_cache,
+    load_caches,
+    observation_key,
+    save_caches,
+)
 from scorer.geometry import FloatArray
 from scorer.human import filtered, is_synthetic
 from scorer.metrics.aggregation import aggregate, defined_mean
@@ -82,8 +89,7 @@ def _build_and_save(
 ) -> list[dict[str, MetricCache]]:
     caches = build_cache_batch(scenes, [get_version(name) for name in versions])
     for scene_caches in caches:
-        for cache in scene_caches.values():
-            save_cache(cache, cache_dir)
+        save_caches(scene_caches, cache_dir)
     return caches
 
 
@@ -101,7 +107,9 @@ def build_missing_caches(
     for path in paths:
         try:
             token, scene_hash = path.name.split(".")[0], scene_file_hash(path)
-            missing = tuple(v for v in versions if load_cache(cache_dir, v, token, scene_hash) is None)
+            # Read whole, not judged by the index: a damaged file is rebuilt.
+            stored = load_caches(cache_dir, versions, token, scene_hash)
+            missing = tuple(version for version in versions if version not in stored)
             if missing:
                 lacking.setdefault(missing, []).append((path.name, load_scene(path)))
         except (SceneFormatError, OSError) as error:  # unreadable or invalid: this scene only
@@ -472,11 +480,10 @@ def _score_chunk(
     unbuilt: list[str] = []
     scene_hashes = {token: scene_file_hash(paths[token]) for token in poses}
     for token in poses:
-        for version in versions:
-            cache = load_cache(cache_dir, version.name, token, scene_hashes[token])
-            if cache is not None:
-                caches[version.name][token] = cache
-        if any(token not in caches[version.name] for version in versions):
+        loaded = load_caches(cache_dir, [version.name for version in versions], token, scene_hashes[token])
+        for name in loaded:
+            caches[name][token] = loaded[name]
+        if len(loaded) < len(versions):
             unbuilt.append(token)
     # Every version at once: one PDM-Closed unroll serves them all.
     built, errors = build_missing_caches([paths[token] for token in unbuilt], cache_dir, list(VERSIONS))

@@ -22,7 +22,7 @@ from scorer.blas import (
     engine_provenance,
     select_devkit_kernels,
 )
-from scorer.cache import build_caches, load_cache, save_cache
+from scorer.cache import build_caches, load_cache, save_caches
 from scorer.scene import load_scene, scene_file_hash, scene_paths
 from scorer.versions import VERSIONS
 
@@ -110,7 +110,7 @@ def test_a_cache_built_under_other_kernels_is_rebuilt(
     path = next(iter(scene_paths(REFERENCE).values()))
     scene = load_scene(path)
     cache = build_caches(scene, [VERSIONS["v1.1"]])["v1.1"]
-    save_cache(cache, tmp_path)
+    save_caches({"v1.1": cache}, tmp_path)
     assert load_cache(tmp_path, "v1.1", scene.token, scene_file_hash(path)) is not None
     other = "SkylakeX" if "Haswell" in scorer_cache.engine_provenance() else "Haswell"
     monkeypatch.setattr(scorer_cache, "engine_provenance", lambda: f"{ENGINE_VERSION} OpenBLAS {other}")

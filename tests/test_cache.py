@@ -3,6 +3,7 @@ rebuilt when its key changes or the file is damaged."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import fields
 from itertools import islice
 from pathlib import Path
@@ -12,7 +13,15 @@ import pytest
 import shapely
 
 from scorer import evaluate
-from scorer.cache import MetricCache, build_cache_batch, build_caches, cache_path, load_cache, save_cache
+from scorer.cache import (
+    MetricCache,
+    build_cache_batch,
+    build_caches,
+    cache_path,
+    load_cache,
+    load_caches,
+    save_caches,
+)
 from scorer.evaluate import score_tokens
 from scorer.pdm_scorer import ProposalMeasures
 from scorer.scene import Scene, iter_scenes, scene_file_hash, scene_paths
@@ -46,13 +55,35 @@ def assert_same_cache(loaded: MetricCache, cache: MetricCache) -> None:
 
 
 def test_round_trip_is_exact(tmp_path: Path, built: tuple[str, dict[str, MetricCache]]) -> None:
+    """Versions saved one at a time join the token's file: each reads back exact, the earlier ones kept."""
     token, caches = built
     path = scene_paths(REFERENCE)[token]
     for version, cache in caches.items():
-        save_cache(cache, tmp_path)
+        save_caches({version: cache}, tmp_path)
         loaded = load_cache(tmp_path, version, token, scene_file_hash(path))
         assert loaded is not None
         assert_same_cache(loaded, cache)
+    together = load_caches(tmp_path, list(caches), token, scene_file_hash(path))
+    for version, cache in caches.items():
+        assert_same_cache(together[version], cache)
+
+
+def test_the_versions_share_what_they_share_on_disk(
+    tmp_path: Path, built: tuple[str, dict[str, MetricCache]]
+) -> None:
+    """v1.0 and v1.1 observe alike: their observation and every version's map are stored once, and read back
+    as one set of map polygons."""
+    token, caches = built
+    alone = {}
+    for version, cache in caches.items():
+        alone[version] = save_caches({version: cache}, tmp_path / version).stat().st_size
+    together = save_caches(caches, tmp_path / "all").stat().st_size
+    assert together < sum(alone.values()) - alone["v1.0"] * 0.9
+    loaded = load_caches(
+        tmp_path / "all", list(caches), token, scene_file_hash(scene_paths(REFERENCE)[token])
+    )
+    assert len({id(cache.drivable_map.polygons) for cache in loaded.values()}) == 1
+    assert not loaded["v1.1"].observation.present.flags.writeable  # shared bytes: nothing may write them
 
 
 def test_scenes_built_together_get_the_caches_each_gets_alone() -> None:
@@ -96,8 +127,8 @@ def test_stale_or_damaged_files_are_rebuilt(
 ) -> None:
     token, caches = built
     path = scene_paths(REFERENCE)[token]
-    written = save_cache(caches["v1.1"], tmp_path)
-    assert written == cache_path(tmp_path, "v1.1", token)
+    written = save_caches({"v1.1": caches["v1.1"]}, tmp_path)
+    assert written == cache_path(tmp_path, token)
     assert load_cache(tmp_path, "v1.1", token, "another scene hash") is None
     written.write_bytes(written.read_bytes()[:-100])
     assert load_cache(tmp_path, "v1.1", token, scene_file_hash(path)) is None
@@ -105,6 +136,14 @@ def test_stale_or_damaged_files_are_rebuilt(
     (result,) = score_tokens(REFERENCE, tmp_path, poses, "v1.1", [token])
     assert result.valid
     assert load_cache(tmp_path, "v1.1", token, scene_file_hash(path)) is not None
+    # Damaged in place, its size kept: the version's header no longer parses, and it is rebuilt too.
+    data = bytearray(written.read_bytes())
+    headers = 16 + int.from_bytes(data[:8], "little")
+    data[headers + json.loads(data[16:headers])["versions"]["v1.1"][0]] = ord("x")
+    written.write_bytes(bytes(data))
+    assert load_cache(tmp_path, "v1.1", token, scene_file_hash(path)) is None
+    (result,) = score_tokens(REFERENCE, tmp_path, poses, "v1.1", [token])
+    assert result.valid and load_cache(tmp_path, "v1.1", token, scene_file_hash(path)) is not None
 
 
 def test_an_unreadable_scene_file_fails_alone(tmp_path: Path) -> None:
@@ -115,7 +154,7 @@ def test_an_unreadable_scene_file_fails_alone(tmp_path: Path) -> None:
     (split / "scenes" / "broken.json").mkdir()  # listed as a scene, cannot be read as one
     failures = evaluate.build_split_cache(split, tmp_path / "cache", list(VERSIONS))
     assert list(failures) == ["broken.json"] and failures["broken.json"].startswith("IsADirectoryError")
-    assert len(list((tmp_path / "cache" / "v1.0").iterdir())) == 3
+    assert len(list((tmp_path / "cache").glob("*.nlc"))) == 3
 
 
 def test_a_team_never_reads_the_servers_path_of_an_unreadable_hidden_scene(
