@@ -1,12 +1,13 @@
 """The per-scene metric cache: what scoring needs from a scene, built once and kept on disk.
 
-One `.nlc` file per token holds every metric version's cache: a JSON header (the file's key, then per
-version its metadata and the dtype, shape and offset of each array) followed by the arrays' raw bytes,
-each distinct content once (the versions share the map and, where they observe alike, the observation:
-v1.0 and v1.1's files were identical but for the header). Numbers only, so a cache file can never execute
-code, read in one call (npz spent more time parsing its per-array headers than scoring). A file is reused
-only while its key (scene file hash, engine version) matches; otherwise it is rebuilt. Every scene is built in isolation: PDM-Closed's collided-track list starts empty for each
-scene, unlike the devkit, whose planner instance carries it across the scenes of a worker batch.
+One `.nlc` file per token holds every metric version's cache (`_pack` gives the layout): a small index,
+each version's JSON header (metadata, and the dtype, shape and offset of each array), then the arrays' raw
+bytes, each distinct content once, so the versions share the map and, where they observe alike, the
+observation (v1.0 and v1.1's were identical). Numbers only, so a cache file can never execute code; read
+in one call (npz spent more time parsing its per-array headers than scoring), one version's header parsed
+only for that version. A file is reused only while its key (scene file hash, engine version) matches;
+otherwise it is rebuilt. Every scene is built in isolation: PDM-Closed's collided-track list starts empty
+for each scene, unlike the devkit, whose planner instance carries it across the scenes of a worker batch.
 """
 
 from __future__ import annotations

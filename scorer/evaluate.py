@@ -289,7 +289,9 @@ def score_simulated_versions(
     """
     groups: dict[tuple[object, ...], list[MetricVersion]] = {}
     for version in versions:
-        inputs = tuple((c.token, c.centerline.tobytes(), c.route_lane_ids) for c in caches[version.name])
+        inputs = tuple(
+            (cache.token, cache.centerline.tobytes(), cache.route_lane_ids) for cache in caches[version.name]
+        )
         groups.setdefault((observation_key(version), inputs), []).append(version)
     scores: dict[str, ProposalScores] = {}
     for group in groups.values():
