@@ -192,13 +192,13 @@ def score(
                 lambda: sum(r.valid for r in score_tokens(split, cache_dir, predictions, version, tokens))
             )
         return Timing(version, workers, len(tokens), seconds, cpu, valid, svd.cpu_seconds)
-        parts = [(split, cache_dir, predictions, version, tokens[i::workers]) for i in range(workers)]
+    parts = [(split, cache_dir, predictions, version, tokens[i::workers]) for i in range(workers)]
 
-        def in_pool() -> int:
-            with ProcessPoolExecutor(workers) as pool:
-                return sum(pool.map(_score_part, parts))
+    def in_pool() -> int:
+        with ProcessPoolExecutor(workers) as pool:
+            return sum(pool.map(_score_part, parts))
 
-        valid, seconds, cpu = _timed(in_pool)
+    valid, seconds, cpu = _timed(in_pool)
     return Timing(version, workers, len(tokens), seconds, cpu, valid)
 
 
