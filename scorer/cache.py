@@ -196,7 +196,7 @@ def _reference_measures(
                 token[column, index] = token_of[inputs]
         measured = measure_alike(
             np.stack([states[column, index] for column, index in tokens]),
-            [observations[column][index] for column, index in tokens],
+            [[observations[column][index] for column, index in tokens]] * len(columns),
             [drivable_maps[index] for _, index in tokens],
             [plans[index][column].centerline[:, :2] for column, index in tokens],
             [plans[index][column].route_lane_ids for column, index in tokens],

@@ -30,6 +30,7 @@ from scorer.geometry import FloatArray
 from scorer.human import filtered, is_synthetic
 from scorer.metrics.aggregation import aggregate, defined_mean
 from scorer.metrics.two_frame_comfort import FEATURES, overlap_steps, two_frame_extended_comfort
+from scorer.observation import Observation
 from scorer.pdm_scorer import (
     RESULT_COLUMN_OF_ROW,
     MeasureSettings,
@@ -283,22 +284,28 @@ def score_simulated_versions(
     """Return per version the scores (`score_simulated`) of the tokens of `caches[version.name]`, whose agents'
     simulated states (41, 11) `states` holds by token; each version's as it gets them alone.
 
-    Versions that read the same inputs for every token (they observe alike, `observation_key`, and hold the
-    same centerlines and routes) are measured in one `measure_alike` call: what no setting changes (the ego
-    boxes, their areas, NC, progress) once for all of them, as v1.0 and v1.1 are.
+    Versions that hold the same centerlines and routes for every token (PDM-Closed's, which every version
+    shares) are measured in one `measure_alike` call: what reads the map and the ego alone (the ego boxes,
+    their areas, DAC, progress) once for all of them, and what reads the observation once per way of
+    observing (`observation_key`: v1.0 and v1.1 observe alike, v2.2 drops tracks on the ego).
     """
     groups: dict[tuple[object, ...], list[MetricVersion]] = {}
     for version in versions:
         inputs = tuple(
             (cache.token, cache.centerline.tobytes(), cache.route_lane_ids) for cache in caches[version.name]
         )
-        groups.setdefault((observation_key(version), inputs), []).append(version)
+        groups.setdefault(inputs, []).append(version)
     scores: dict[str, ProposalScores] = {}
     for group in groups.values():
-        held = caches[group[0].name]  # alike inputs: any version of the group's caches gives them
+        held = caches[group[0].name]  # alike maps, centerlines and routes: any version's caches give them
+        # One list per way of observing, so that the versions observing alike pass the same objects.
+        observed: dict[tuple[int, bool, bool], list[Observation]] = {}
+        for version in group:
+            if observation_key(version) not in observed:
+                observed[observation_key(version)] = [cache.observation for cache in caches[version.name]]
         measured = measure_alike(
             np.stack([states[cache.token] for cache in held])[:, None],
-            [cache.observation for cache in held],
+            [observed[observation_key(version)] for version in group],
             [cache.drivable_map for cache in held],
             [cache.centerline[:, :2] for cache in held],
             [cache.route_lane_ids for cache in held],

@@ -439,8 +439,9 @@ def best_proposals(
     A token's measures do not depend on the tokens measured with it, so the scenes are measured together, and
     once for all configs (`measure_alike`): only what a config's `MeasureSettings` change is measured apart.
     """
+    observations = [scoring_observation(plan.observation) for plan in plans]
     inputs = (
-        [scoring_observation(plan.observation) for plan in plans],
+        [observations] * len(configs),
         drivable_maps,
         [plan.centerline[:, :2] for plan in plans],
         [plan.route.lane_ids for plan in plans],

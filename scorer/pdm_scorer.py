@@ -220,21 +220,45 @@ def measure_batch(
 ) -> ProposalMeasures:
     """Return the per-proposal measures (B, P) of B tokens' simulated proposals (B, P, 41, 11); of `config`,
     only its `MeasureSettings` count."""
-    inputs = (observations, drivable_maps, centerlines, route_lane_ids)
+    inputs = ([observations], drivable_maps, centerlines, route_lane_ids)
     return measure_alike(states, *inputs, [MeasureSettings.of(config)])[0]
+
+
+class _Observed:
+    """What one observation (per token) decides of a batch's measures: the batch of its objects and NC."""
+
+    def __init__(
+        self,
+        observations: Sequence[Observation],
+        rows: FloatArray,
+        points: FloatArray,
+        areas: BoolArray,
+        row_token: IntArray,
+    ) -> None:
+        self.batch = ObservationBatch.of(observations)
+        self.row_token = row_token
+        self.collisions, self.collision = no_at_fault_collisions(rows, points, areas, row_token, self.batch)
+
+    def local_object(self, batch_column: IntArray) -> IntArray:
+        """Return object columns of the batch as indices in each row's own observation (-1 stays -1)."""
+        return np.where(batch_column >= 0, batch_column - self.batch.start[self.row_token], -1)
 
 
 def measure_alike(
     states: FloatArray,
-    observations: Sequence[Observation],
+    observations: Sequence[Sequence[Observation]],
     drivable_maps: Sequence[DrivableMap],
     centerlines: Sequence[FloatArray],
     route_lane_ids: Sequence[Collection[str]],
     settings: Sequence[MeasureSettings],
 ) -> list[ProposalMeasures]:
     """Return the per-proposal measures (B, P) of B tokens' simulated proposals (B, P, 41, 11) under each of
-    `settings`, each as measured alone: what no setting changes (the ego boxes, their areas, NC, progress) is
-    measured once, every other measure once per value of the settings it reads."""
+    `settings`, `observations[k]` (one per token) being what `settings[k]` observes; each as measured alone.
+
+    What reads the map and the ego alone (the ego boxes, their areas, DAC, progress) is measured once; what
+    reads the observation too (NC, TTC, TLC) once per observation (settings given the same Observation objects
+    share it); every other measure once per value of the settings it reads.
+    """
     states = np.asarray(states, dtype=np.float64)
     if states.ndim != 4 or states.shape[2:] != (SCORING_POSES + 1, STATE_SIZE):
         raise ValueError(
@@ -243,15 +267,10 @@ def measure_alike(
     num_tokens, num_proposals = states.shape[:2]
     rows = states.reshape(-1, *states.shape[2:])
     row_token = np.repeat(np.arange(num_tokens), num_proposals)
-    batch_observations = ObservationBatch.of(observations)
     maps = MapBatch.of(drivable_maps, route_lane_ids)
 
     def per_token(values: np.ndarray) -> np.ndarray:
         return values.reshape(num_tokens, num_proposals, *values.shape[1:])
-
-    def local_object(batch_column: IntArray) -> IntArray:
-        """Return object columns of the batch as indices in each row's own observation (-1 stays -1)."""
-        return np.where(batch_column >= 0, batch_column - batch_observations.start[row_token], -1)
 
     points = ego_box_points(rows)
     areas = ego_areas(points, row_token, maps)
@@ -260,15 +279,27 @@ def measure_alike(
     centerline_lines = centerline_strings(list(centerlines))
     no_index = np.full(len(rows), -1, dtype=np.intp)
 
+    # An observation is named by its Observation objects: settings given the same objects share its measures.
+    observation_keys = [tuple(map(id, token_observations)) for token_observations in observations]
+    observation_of = dict(zip(observation_keys, observations, strict=True))
+
     @cache
-    def ttc(stopped_speed_threshold: float) -> dict[int, tuple[FloatArray, FirstInfraction]]:
-        horizons = sorted({setting.ttc_evaluated_steps for setting in settings})
+    def observed(key: tuple[int, ...]) -> _Observed:
+        return _Observed(observation_of[key], rows, points, areas, row_token)
+
+    @cache
+    def ttc(
+        key: tuple[int, ...], stopped_speed_threshold: float
+    ) -> dict[int, tuple[FloatArray, FirstInfraction]]:
+        # The horizons of the settings reading this observation only: another may hold fewer time steps.
+        reading = zip(settings, observation_keys, strict=True)
+        horizons = sorted({setting.ttc_evaluated_steps for setting, seen in reading if seen == key})
         measured = time_to_collision(
             rows,
             points,
             areas,
             row_token,
-            batch_observations,
+            observed(key).batch,
             maps,
             stopped_speed_threshold,
             SCORING_INTERVAL_S,
@@ -283,10 +314,9 @@ def measure_alike(
         ).reshape(len(rows), num_steps)
 
     @cache
-    def traffic_light() -> tuple[FloatArray, IntArray, IntArray]:
-        return traffic_light_compliance(
-            ego_corners(points), row_token, [observation.red_lights for observation in observations]
-        )
+    def traffic_light(key: tuple[int, ...]) -> tuple[FloatArray, IntArray, IntArray]:
+        red_lights = [observation.red_lights for observation in observation_of[key]]
+        return traffic_light_compliance(ego_corners(points), row_token, red_lights)
 
     @cache
     def keeping(limits: tuple[float, float]) -> tuple[FloatArray, IntArray, IntArray]:
@@ -302,23 +332,20 @@ def measure_alike(
         excluded = centre_in_intersection() if excludes_intersections else None
         return per_token(off_route_steps(points, areas, excluded))
 
-    collisions, collision = no_at_fault_collisions(rows, points, areas, row_token, batch_observations)
     shared = {
-        "no_at_fault_collisions": per_token(collisions),
-        "collision_index": per_token(collision.index),
-        "collision_object": per_token(local_object(collision.obj)),
         "drivable_area_compliance": per_token(drivable_area_compliance(areas)),
         "progress_raw": per_token(raw_progress(points, centerline_lines, row_token)),
         "ego_areas": per_token(areas),
     }
     measures = []
-    for setting in settings:
-        time_to_collision_within_bound, ttc_infraction = ttc(setting.stopped_speed_threshold)[
+    for setting, key in zip(settings, observation_keys, strict=True):
+        seen = observed(key)
+        time_to_collision_within_bound, ttc_infraction = ttc(key, setting.stopped_speed_threshold)[
             setting.ttc_evaluated_steps
         ]
         light: tuple[FloatArray, IntArray, IntArray] = (np.ones(len(rows)), no_index, no_index)
         if setting.traffic_light_compliance:
-            light = traffic_light()
+            light = traffic_light(key)
         lane: tuple[FloatArray, IntArray, IntArray] = (
             np.ones(len(rows)),
             no_index,
@@ -329,9 +356,12 @@ def measure_alike(
         measures.append(
             ProposalMeasures(
                 **shared,
+                no_at_fault_collisions=per_token(seen.collisions),
+                collision_index=per_token(seen.collision.index),
+                collision_object=per_token(seen.local_object(seen.collision.obj)),
                 time_to_collision_within_bound=per_token(time_to_collision_within_bound),
                 ttc_index=per_token(ttc_infraction.index),
-                ttc_object=per_token(local_object(ttc_infraction.obj)),
+                ttc_object=per_token(seen.local_object(ttc_infraction.obj)),
                 comfort_series=comfort(setting.comfort_at_centre),
                 off_route_steps=off_route(setting.ddc_excludes_intersections),
                 traffic_light_compliance=per_token(light[0]),

@@ -100,11 +100,11 @@ def test_proposals_measured_apart_and_joined_score_as_together(version: str) -> 
 
 
 def test_configs_measured_together_get_what_each_gets_alone() -> None:
-    """`measure_alike` shares what no setting changes (areas, NC, progress) and TTC's contacts over the longest
-    horizon; every setting's measures are still those it gets measured alone, bit for bit."""
+    """`measure_alike` shares what no setting changes (areas, progress), NC and TTC's contacts over the longest
+    horizon per observation; every setting's measures, whichever observation it reads, are still those it gets
+    measured alone, bit for bit."""
     cases = _tokens("v1.1")
     states, observations, maps, centerlines, routes = (list(column) for column in zip(*cases, strict=True))
-    inputs = (np.stack(states), observations, maps, centerlines, routes)
     v1 = MeasureSettings.of(get_version("v1.1").evaluation)
     settings = [
         v1,
@@ -112,10 +112,29 @@ def test_configs_measured_together_get_what_each_gets_alone() -> None:
         replace(v1, ttc_evaluated_steps=12, stopped_speed_threshold=1.0),
         replace(v1, ddc_excludes_intersections=True, comfort_at_centre=True, lane_keeping=(0.5, 2.0)),
         v1,
+        v1,  # the last two observe no object
+        replace(v1, ttc_evaluated_steps=32),
     ]
-    together = measure_alike(*inputs, settings)
-    for setting, measures in zip(settings, together, strict=True):
-        (alone,) = measure_alike(*inputs, [setting])
+    # Another way of observing (as v2.2 drops the tracks on the ego): each token's observation emptied.
+    empty = [
+        replace(
+            observation,
+            tokens=(),
+            object_types=(),
+            is_agent=observation.is_agent[:0],
+            first_speed=observation.first_speed[:0],
+            present=observation.present[:, :0],
+            corners=observation.corners[:, :0],
+        )
+        for observation in observations
+    ]
+    observed = [observations] * 5 + [empty] * 2
+    rest = (maps, centerlines, routes)
+    together = measure_alike(np.stack(states), observed, *rest, settings)
+    for setting, seen, measures in zip(settings, observed, together, strict=True):
+        (alone,) = measure_alike(np.stack(states), [seen], *rest, [setting])
         for name in (field.name for field in fields(ProposalMeasures)):
             assert np.array_equal(getattr(measures, name), getattr(alone, name)), (setting, name)
     assert any(0.0 in measures.time_to_collision_within_bound for measures in together)  # TTC is exercised
+    # Without objects TTC finds nothing: the two observations were measured apart.
+    assert (together[5].time_to_collision_within_bound == 1.0).all()

@@ -58,8 +58,8 @@ def test_every_versions_rows_are_those_it_gets_alone(family: str, tmp_path: Path
 def test_versions_that_observe_alike_are_measured_in_one_call(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """v1.0 and v1.1 observe alike and share the PDM-Closed centerline: one `measure_alike` call measures both
-    (their TTC and DDC settings apart, inside it); v2.2, which drops tracks on the ego, is measured apart."""
+    """Every version holds the PDM-Closed centerline and route: one `measure_alike` call measures all three
+    (v2.2's observation, without the tracks on the ego, and the settings apart, inside it)."""
     path = REFERENCE / "submissions" / "cv_decel.json"
     poses = load_submission(path.read_bytes(), path.name).seeds[0]
     settings_per_call: list[int] = []
@@ -74,7 +74,7 @@ def test_versions_that_observe_alike_are_measured_in_one_call(
     score_versions(REFERENCE, tmp_path, poses, list(VERSIONS))
     settings_per_call.clear()
     score_versions(REFERENCE, tmp_path, poses, list(VERSIONS))
-    assert sorted(settings_per_call) == [1, 2]
+    assert settings_per_call == [3]
 
 
 def test_a_scene_one_version_cannot_cache_fails_in_that_version_only(tmp_path: Path) -> None:
