@@ -5,8 +5,8 @@ For each backend (embedded: SQLite + SQLite broker; services: PostgreSQL + Redis
 - POST one submission of every token with --seeds seeds (every metric version is always scored), then time
   until it is scored (GET /submissions/{id}) and until its row is on the leaderboard (GET /leaderboard, whose
   2 s cache is on as in production), against the engine alone scoring the same tokens, seeds and versions
-  with as many processes (`score_versions`, warm, one BLAS thread each and at the workers' niceness, as
-  the workers run): the service's target is at most SERVICE_TARGET times that;
+  with as many processes (`score_seeds`, as the workers call it; warm, one BLAS thread each and at the
+  workers' niceness, as the workers run): the service's target is at most SERVICE_TARGET times that;
 - with the workers idle, GET /leaderboard at a fixed rate from one open-loop client on loopback and report
   p50/p99 latency, measured from each request's scheduled start (a slow answer delays no later request).
 
@@ -55,7 +55,7 @@ from threadpoolctl import threadpool_limits
 from navsim_lb.processes import api_command, child_process
 from navsim_lb.scratch import scratch_postgres_database, scratch_redis_queue
 from scorer.baselines import baseline_submission
-from scorer.evaluate import build_split_cache, score_versions
+from scorer.evaluate import build_split_cache, score_seeds, score_versions
 from scorer.geometry import FloatArray
 from scorer.scene import scene_paths
 from scorer.submission import Submission, SubmissionMetadata, dump_submission_json, load_submission
@@ -132,10 +132,8 @@ def _engine_part(tokens: list[str]) -> tuple[int, float]:
     assert _engine_work is not None, "run by a pool whose initializer is _warm_engine_process"
     split, cache, predictions = _engine_work
     started = time.process_time()
-    scored = 0
-    for seed, poses in enumerate(predictions.seeds):
-        rows = score_versions(split, cache, poses, list(VERSIONS), tokens, seed)
-        scored += sum(row.valid for version_rows in rows.values() for row in version_rows)
+    rows = score_seeds(split, cache, dict(enumerate(predictions.seeds)), list(VERSIONS), tokens)
+    scored = sum(row.valid for version_rows in rows.values() for row in version_rows)
     return scored, time.process_time() - started
 
 

@@ -14,7 +14,7 @@ import math
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -49,6 +49,7 @@ CHUNK_SIZE = 256  # tokens per batched simulation; bounds memory on large splits
 CACHE_BATCH_SIZE = 16  # scenes whose caches are built together (a wider batch gains little)
 
 log = logging.getLogger(__name__)
+Key = TypeVar("Key", str, tuple[int | None, str])
 
 
 @dataclass(frozen=True)
@@ -383,21 +384,22 @@ def _rows_of_simulated(
 
 
 def _simulated(
-    tokens: Sequence[str], caches: Sequence[MetricCache], poses: Sequence[FloatArray]
-) -> tuple[dict[str, FloatArray], dict[str, str]]:
-    """Return each token's simulated states, and the error of each token whose simulation diverged: one
-    diverging trajectory must not fail its neighbours, so a batch that diverges is simulated token by token."""
-    if not tokens:
+    keys: Sequence[Key], caches: Sequence[MetricCache], poses: Sequence[FloatArray]
+) -> tuple[dict[Key, FloatArray], dict[Key, str]]:
+    """Return the simulated states of each trajectory (named by its key: a token, or a token and seed), and the
+    error of each one that diverged: one diverging trajectory must not fail its neighbours, so a batch that
+    diverges is simulated trajectory by trajectory."""
+    if not keys:
         return {}, {}
     try:
-        return dict(zip(tokens, simulate_agents(caches, poses), strict=True)), {}
+        return dict(zip(keys, simulate_agents(caches, poses), strict=True)), {}
     except ValueError as error:
-        if len(tokens) == 1:
-            return {}, {tokens[0]: f"scoring failed: {error}"}
-    states: dict[str, FloatArray] = {}
-    failed: dict[str, str] = {}
-    for token, cache, pose in zip(tokens, caches, poses, strict=True):
-        one, error_of_one = _simulated([token], [cache], [pose])
+        if len(keys) == 1:
+            return {}, {keys[0]: f"scoring failed: {error}"}
+    states: dict[Key, FloatArray] = {}
+    failed: dict[Key, str] = {}
+    for key, cache, pose in zip(keys, caches, poses, strict=True):
+        one, error_of_one = _simulated([key], [cache], [pose])
         states |= one
         failed |= error_of_one
     return states, failed
@@ -429,11 +431,26 @@ def score_versions(
     progress: Callable[[int], None] | None = None,
     context: Sequence[str] = (),
 ) -> dict[str, list[TokenResult]]:
-    """Return, per metric version, one result per token (all tokens of the split by default), building whatever
-    the cache lacks. Each token is simulated once for every version.
+    """Return, per metric version, one result per token of one seed's `predictions` (`score_seeds`)."""
+    return score_seeds(split_dir, cache_dir, {seed: predictions}, versions, tokens, progress, context)
+
+
+def score_seeds(
+    split_dir: Path,
+    cache_dir: Path,
+    seeds: Mapping[int | None, Mapping[str, object]],
+    versions: Sequence[str],
+    tokens: Sequence[str] | None = None,
+    progress: Callable[[int], None] | None = None,
+    context: Sequence[str] = (),
+) -> dict[str, list[TokenResult]]:
+    """Return, per metric version, one result per token (all tokens of the split by default) and seed, seed by
+    seed in the order of `seeds` (seed -> predictions), building whatever the cache lacks. A token's caches are
+    read once for every seed, and each trajectory is simulated once for every version; a chunk's trajectories
+    of every seed go through one simulation.
 
     `context` tokens are scored too, under a version with two-frame comfort, for their rows to pair with
-    `tokens` (`pairing_contexts`), and are not returned.
+    `tokens` of the same seed (`pairing_contexts`), and are not returned.
     """
     metric_versions = [get_version(version) for version in versions]
     paths = scene_paths(split_dir)
@@ -442,53 +459,59 @@ def score_versions(
         context = ()
     requested = set(tokens)
     scored_tokens = tokens + [token for token in dict.fromkeys(context) if token not in requested]
-    results: dict[str, list[TokenResult | ScoredToken]] = {version.name: [] for version in metric_versions}
+    results: dict[tuple[int | None, str], list[TokenResult | ScoredToken]] = {
+        (seed, version.name): [] for seed in seeds for version in metric_versions
+    }
     for start in range(0, len(scored_tokens), CHUNK_SIZE):
         chunk = scored_tokens[start : start + CHUNK_SIZE]
-        for name, scored_rows in _score_chunk(
-            paths, Path(cache_dir), predictions, metric_versions, chunk, seed
-        ).items():
-            results[name] += scored_rows
+        for key, scored_rows in _score_chunk(paths, Path(cache_dir), seeds, metric_versions, chunk).items():
+            results[key] += scored_rows
         if progress is not None:
-            progress(len(chunk))
+            progress(len(chunk) * len(seeds))
     order = {token: index for index, token in enumerate(tokens)}
-    joined: dict[str, list[TokenResult]] = {}
-    for version in metric_versions:
-        scored = [item for item in results[version.name] if isinstance(item, ScoredToken)]
-        rows = [item for item in results[version.name] if isinstance(item, TokenResult)]
-        rows += join_two_frame_comfort(scored, version) if scored else []
-        joined[version.name] = sorted(
-            (row for row in rows if row.token in order), key=lambda row: order[row.token]
-        )
+    joined: dict[str, list[TokenResult]] = {version.name: [] for version in metric_versions}
+    for seed in seeds:
+        for version in metric_versions:
+            seed_results = results[seed, version.name]
+            scored = [item for item in seed_results if isinstance(item, ScoredToken)]
+            rows = [item for item in seed_results if isinstance(item, TokenResult)]
+            rows += join_two_frame_comfort(scored, version) if scored else []
+            joined[version.name] += sorted(
+                (row for row in rows if row.token in order), key=lambda row: order[row.token]
+            )
     return joined
 
 
 def _score_chunk(
     paths: Mapping[str, Path],
     cache_dir: Path,
-    predictions: Mapping[str, object],
+    seeds: Mapping[int | None, Mapping[str, object]],
     versions: Sequence[MetricVersion],
     tokens: Sequence[str],
-    seed: int | None,
-) -> dict[str, list[TokenResult | ScoredToken]]:
-    """Score a chunk of tokens under `versions`: each token's caches loaded (or built, every version at once),
-    its trajectory simulated once, then measured and scored per version."""
-    rows: dict[str, list[TokenResult | ScoredToken]] = {version.name: [] for version in versions}
-    poses: dict[str, FloatArray] = {}
-    for token in tokens:
-        try:
-            if token not in paths:
-                raise TokenError("token is not part of the split")
-            if token not in predictions:
-                raise TokenError("no prediction for this token")
-            poses[token] = _checked_poses(predictions[token])
-        except TokenError as error:
-            for version in versions:
-                rows[version.name].append(TokenResult(token, seed, False, error=str(error)))
+) -> dict[tuple[int | None, str], list[TokenResult | ScoredToken]]:
+    """Score a chunk of tokens under `versions` and `seeds`, by (seed, version): each token's caches loaded once
+    (or built, every version at once), every seed's trajectories simulated together, then measured and scored
+    per seed and version."""
+    rows: dict[tuple[int | None, str], list[TokenResult | ScoredToken]] = {
+        (seed, version.name): [] for seed in seeds for version in versions
+    }
+    poses: dict[tuple[int | None, str], FloatArray] = {}
+    for seed, predictions in seeds.items():
+        for token in tokens:
+            try:
+                if token not in paths:
+                    raise TokenError("token is not part of the split")
+                if token not in predictions:
+                    raise TokenError("no prediction for this token")
+                poses[seed, token] = _checked_poses(predictions[token])
+            except TokenError as error:
+                for version in versions:
+                    rows[seed, version.name].append(TokenResult(token, seed, False, error=str(error)))
+    needed = list(dict.fromkeys(token for _, token in poses))
     caches: dict[str, dict[str, MetricCache]] = {version.name: {} for version in versions}
     unbuilt: list[str] = []
-    scene_hashes = {token: scene_file_hash(paths[token]) for token in poses}
-    for token in poses:
+    scene_hashes = {token: scene_file_hash(paths[token]) for token in needed}
+    for token in needed:
         loaded = load_caches(cache_dir, [version.name for version in versions], token, scene_hashes[token])
         for name in loaded:
             caches[name][token] = loaded[name]
@@ -509,19 +532,32 @@ def _score_chunk(
                 caches[version.name][token] = cache
                 continue
             cause = errors.get(name, RuntimeError("the cache file was not written"))
-            rows[version.name].append(TokenResult(token, seed, False, error=_build_error_text(token, cause)))
+            text = _build_error_text(token, cause)
+            for seed in seeds:
+                if (seed, token) in poses:
+                    rows[seed, version.name].append(TokenResult(token, seed, False, error=text))
     # Any version's cache holds the token's ego and start time for its simulation.
-    simulated = [token for token in poses if any(token in caches[version.name] for version in versions)]
-    first_cache = [
-        next(caches[v.name][token] for v in versions if token in caches[v.name]) for token in simulated
-    ]
-    states, failed = _simulated(simulated, first_cache, [poses[token] for token in simulated])
-    held: dict[str, list[MetricCache]] = {
-        version.name: [caches[version.name][token] for token in simulated if token in caches[version.name]]
-        for version in versions
+    first_cache = {
+        token: next(caches[v.name][token] for v in versions if token in caches[v.name])
+        for token in needed
+        if any(token in caches[v.name] for v in versions)
     }
-    for name, version_rows in _rows_of_simulated(held, states, failed, versions, seed).items():
-        rows[name] += version_rows
+    simulated = [key for key in poses if key[1] in first_cache]
+    states, failed = _simulated(
+        simulated, [first_cache[token] for _, token in simulated], [poses[key] for key in simulated]
+    )
+    for seed in seeds:
+        seed_tokens = [token for key_seed, token in simulated if key_seed == seed]
+        held: dict[str, list[MetricCache]] = {
+            version.name: [
+                caches[version.name][token] for token in seed_tokens if token in caches[version.name]
+            ]
+            for version in versions
+        }
+        seed_states = {token: states[seed, token] for token in seed_tokens if (seed, token) in states}
+        seed_failed = {token: failed[seed, token] for token in seed_tokens if (seed, token) in failed}
+        for name, version_rows in _rows_of_simulated(held, seed_states, seed_failed, versions, seed).items():
+            rows[seed, name] += version_rows
     return rows
 
 

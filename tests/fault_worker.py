@@ -19,16 +19,15 @@ import worker.tasks
 from worker.app import app
 
 __all__ = ["app"]
-_score_versions = worker.tasks.score_versions
+_score_seeds = worker.tasks.score_seeds
 
 
-def _faulty_score_versions(
+def _faulty_score_seeds(
     split_dir: Any,
     cache_dir: Any,
-    predictions: Any,
+    seeds: Any,
     versions: Sequence[str],
     tokens: Sequence[str],
-    seed: int | None = None,
     context: Sequence[str] = (),
 ) -> Any:
     if os.environ.get("FAULT_POISON_TOKEN") in tokens:
@@ -38,7 +37,7 @@ def _faulty_score_versions(
         while True:
             time.sleep(1)
     time.sleep(float(os.environ.get("FAULT_CHUNK_SECONDS", "0")))
-    return _score_versions(split_dir, cache_dir, predictions, versions, tokens, seed, context=context)
+    return _score_seeds(split_dir, cache_dir, seeds, versions, tokens, context=context)
 
 
-worker.tasks.score_versions = _faulty_score_versions
+worker.tasks.score_seeds = _faulty_score_seeds

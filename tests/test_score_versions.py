@@ -17,11 +17,12 @@ import pytest
 
 from scorer import evaluate
 from scorer.cache import MetricCache, load_caches
-from scorer.evaluate import TokenResult, score_tokens, score_versions
+from scorer.evaluate import TokenResult, score_seeds, score_tokens, score_versions
 from scorer.submission import load_submission
 from scorer.versions import VERSIONS
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
+PROBES = Path(__file__).parent / "fixtures" / "epdms" / "probes"
 
 
 def _same(ours: TokenResult, alone: TokenResult) -> bool:
@@ -53,6 +54,37 @@ def test_every_versions_rows_are_those_it_gets_alone(family: str, tmp_path: Path
         assert all(_same(ours, theirs) for ours, theirs in zip(together[version], alone, strict=True))
         failed = {row.token: row.error for row in together[version] if not row.valid}
         assert list(failed) == [diverging] and "scoring failed" in (failed[diverging] or "")
+
+
+def test_every_seeds_rows_are_those_it_gets_alone(tmp_path: Path) -> None:
+    """`score_seeds` reads a token's caches once and simulates every seed's trajectories together: each seed's
+    rows are the bits `score_versions` gives it alone, v2.2's EC paired within the seed, and a trajectory that
+    diverges fails in its seed only."""
+    path = PROBES / "submissions" / "cv_decel.json"  # twins 0.5 s apart in one log: EC pairs them
+    poses = dict(load_submission(path.read_bytes(), path.name).seeds[0])
+    rng = np.random.default_rng(3)
+    seeds: dict[int | None, dict[str, np.ndarray]] = {
+        seed: {token: value + rng.normal(0.0, 0.3, value.shape) for token, value in poses.items()}
+        for seed in range(3)
+    }
+    diverging = sorted(poses)[5]
+    seeds[1][diverging] = np.full((8, 3), 1e200)
+    with np.errstate(over="ignore", invalid="ignore"):
+        together = score_seeds(PROBES, tmp_path, seeds, list(VERSIONS))
+        for version in VERSIONS:
+            alone = [
+                row
+                for seed, predictions in seeds.items()
+                for row in score_versions(PROBES, tmp_path, predictions, [version], seed=seed)[version]
+            ]
+            assert [(row.token, row.seed) for row in together[version]] == [
+                (row.token, row.seed) for row in alone
+            ]
+            assert all(_same(ours, theirs) for ours, theirs in zip(together[version], alone, strict=True))
+            failed = {(row.seed, row.token) for row in together[version] if not row.valid}
+            assert failed == {(1, diverging)}
+    ec = [row.metrics["two_frame_extended_comfort"] for row in together["v2.2"] if row.valid]
+    assert any(not math.isnan(value) for value in ec)  # pairs were found within the seeds
 
 
 def test_versions_that_observe_alike_are_measured_in_one_call(

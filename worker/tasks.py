@@ -23,7 +23,7 @@ from __future__ import annotations
 import hashlib
 import os
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from datetime import timedelta
 from functools import lru_cache
 from pathlib import Path
@@ -39,7 +39,7 @@ from celery.utils.log import get_task_logger
 from sqlalchemy.orm import Session, sessionmaker
 
 from scorer.blas import engine_provenance, kernel_warning
-from scorer.evaluate import TokenResult, score_versions
+from scorer.evaluate import TokenResult, score_seeds
 from scorer.scene import scene_paths
 from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionError, load_submission, validate_submission
@@ -290,13 +290,11 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
             context = [*start.context, *(token for token in start.tokens if token not in todo)]
             with beating(sessions, chunk_id, worker):
                 started = perf_counter()
-                rows: dict[str, list[TokenResult]] = {version: [] for version in job.versions}
-                for seed, poses in enumerate(predictions.seeds):  # one simulation serves every version
-                    scored = score_versions(
-                        job.split_dir, settings.cache_dir, poses, job.versions, todo, seed, context=context
-                    )
-                    for version, version_rows in scored.items():
-                        rows[version] += version_rows
+                # Every seed and version at once: a token's caches read once, each trajectory simulated once.
+                seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(predictions.seeds))
+                rows = score_seeds(
+                    job.split_dir, settings.cache_dir, seeds, job.versions, todo, context=context
+                )
                 share = (perf_counter() - started) / len(job.versions)
                 timed = {version: (version_rows, share) for version, version_rows in rows.items()}
 
