@@ -25,7 +25,7 @@ from scorer.evaluate import TokenResult
 from scorer.versions import EPDMS_COLUMNS, VERSIONS
 from server.db import transaction
 from server.models import Submission, utc_now
-from server.services.leaderboard import bootstrap_ci, rank_change_report
+from server.services.leaderboard import bootstrap_ci, bootstrap_cis, rank_change_report
 from server.services.scoring import claim_submission, mark_scored, write_chunk_results
 from server.services.submissions import add_baselines, create_submission
 
@@ -129,6 +129,20 @@ def test_bootstrap_interval_properties() -> None:
     assert small_ci[0] < small.mean() < small_ci[1]
     assert large_ci[1] - large_ci[0] < small_ci[1] - small_ci[0]
     assert bootstrap_ci(small, 500) == small_ci
+
+
+def test_bootstrap_intervals_of_stacked_series_are_each_alone() -> None:
+    """The versions of a subset share one resampling: each gets the bits of its interval computed alone, the
+    bits one series at a time gave before they were stacked (golden, from that code)."""
+    rng = np.random.default_rng(3)
+    series = rng.uniform(size=(3, 700))
+    assert bootstrap_cis(series, 600) == [
+        (0.4690682899643758, 0.51190087371109),
+        (0.491400506911528, 0.5349596595318092),
+        (0.4612729304561877, 0.5061724079008281),
+    ]
+    assert bootstrap_cis(series, 600) == [bootstrap_ci(row, 600) for row in series]
+    assert bootstrap_cis(series[:, :0], 600)[0] != bootstrap_cis(series[:, :0], 600)[0]  # NaN: no tokens
 
 
 def test_baselines_are_marked_and_take_no_rank(world: World) -> None:

@@ -3,7 +3,7 @@ chunk records, scored/failed, stalled runs."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 
@@ -14,6 +14,7 @@ from server_testing import (
     add_phase,
     add_team,
     factory_for,
+    fresh_postgres_database,
     phase_row,
     reference_tokens,
     score_run,
@@ -25,6 +26,7 @@ from server_testing import (
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from scorer.evaluate import TokenResult
 from server.db import transaction
 from server.migrate import upgrade
 from server.models import ChunkState, Result, ScoringChunk, Status, Submission, TokenResultRow, utc_now
@@ -103,23 +105,66 @@ def _check_idempotent_chunks(factory: sessionmaker[Session], submission_id: int)
     assert (scores, workers, _rows(factory, submission_id)) == ({0.25}, {"w2"}, 20)
 
 
-def test_redelivered_chunks_overwrite_instead_of_duplicating(world: World) -> None:
-    _check_idempotent_chunks(world.factory, _new(world.factory, world.team_id, world.settings.storage_dir))
+def test_redelivered_chunks_overwrite_instead_of_duplicating(
+    new_submission: tuple[sessionmaker[Session], int],
+) -> None:
+    _check_idempotent_chunks(*new_submission)
 
 
-def _on_postgresql(url: str, storage: Path, check: Callable[[sessionmaker[Session], int], None]) -> None:
-    """Run `check` on a new submission in the migrated PostgreSQL database at `url`."""
-    upgrade(url)
-    factory = factory_for(url)
-    team_id, _ = add_team(factory, "alpha")
-    add_phase(factory, "test")
-    check(factory, _new(factory, team_id, storage))
-    factory.kw["bind"].dispose()
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.services)])
+def new_submission(
+    request: pytest.FixtureRequest, tmp_path: Path
+) -> Iterator[tuple[sessionmaker[Session], int]]:
+    """A session factory and a new submission of team "alpha" in phase "test": on the test's own SQLite database,
+    and on a fresh, migrated PostgreSQL database (dialect-specific writes)."""
+    if request.param == "sqlite":
+        world: World = request.getfixturevalue("world")
+        yield world.factory, _new(world.factory, world.team_id, world.settings.storage_dir)
+        return
+    with fresh_postgres_database() as url:
+        upgrade(url)
+        factory = factory_for(url)
+        team_id, _ = add_team(factory, "alpha")
+        add_phase(factory, "test")
+        yield factory, _new(factory, team_id, tmp_path)
+        factory.kw["bind"].dispose()
 
 
-@pytest.mark.services
-def test_redelivered_chunks_overwrite_on_postgresql(postgres_url: str, tmp_path: Path) -> None:
-    _on_postgresql(postgres_url, tmp_path, _check_idempotent_chunks)
+def _check_rows_read_back_as_written(factory: sessionmaker[Session], submission_id: int) -> None:
+    """Every column of a row reads back as the chunk wrote it: values, nulls, details, errors, the time."""
+    with transaction(factory) as session:
+        run = claim_submission(session, submission_id, "w1")
+    assert run is not None
+    nan = float("nan")
+    written = [
+        TokenResult(
+            TOKENS[0], 1, True, {"score": 0.75, "ego_progress": 0.5, "comfort": nan}, None, {"pair": "x"}
+        ),
+        TokenResult(TOKENS[1], None, True, {"score": 1.0, "ego_progress": 1.0}),
+        TokenResult(TOKENS[2], 2, False, {"score": 0.9}, "no trajectory for this token"),
+    ]
+    now = utc_now() - timedelta(days=3, microseconds=17)
+    with transaction(factory) as session:
+        assert write_chunk_results(session, submission_id, run, "v2.2", written, "host/7", 0.3, now=now)
+    with factory() as session:
+        rows = {
+            row.token: row
+            for row in session.scalars(
+                select(TokenResultRow).where(TokenResultRow.submission_id == submission_id)
+            )
+        }
+    first, second, failed = (rows[token] for token in TOKENS[:3])
+    assert (first.seed, first.valid, first.error, first.detail) == (1, True, None, {"pair": "x"})
+    assert (first.score, first.ego_progress, first.comfort, first.lane_keeping) == (0.75, 0.5, None, None)
+    assert (second.seed, second.detail, second.score, second.ego_progress) == (0, None, 1.0, 1.0)
+    assert (failed.valid, failed.error, failed.score) == (False, "no trajectory for this token", None)
+    assert {row.metric_version for row in rows.values()} == {"v2.2"}
+    assert {(row.run, row.worker, row.scored_at) for row in rows.values()} == {(run, "host/7", now)}
+    assert [row.duration_s for row in rows.values()] == pytest.approx([0.1] * 3)
+
+
+def test_rows_read_back_as_written(new_submission: tuple[sessionmaker[Session], int]) -> None:
+    _check_rows_read_back_as_written(*new_submission)
 
 
 def _write_rows(session: Session, submission_id: int, tokens: list[str]) -> None:
@@ -161,15 +206,10 @@ def _check_finished_by_the_last_chunk(factory: sessionmaker[Session], submission
     assert _rows(factory, submission_id) == 40 * len(BOARD_VERSIONS)
 
 
-def test_the_last_chunk_finishes_the_run_and_finished_chunks_give_the_progress(world: World) -> None:
-    _check_finished_by_the_last_chunk(
-        world.factory, _new(world.factory, world.team_id, world.settings.storage_dir)
-    )
-
-
-@pytest.mark.services
-def test_the_last_chunk_finishes_the_run_on_postgresql(postgres_url: str, tmp_path: Path) -> None:
-    _on_postgresql(postgres_url, tmp_path, _check_finished_by_the_last_chunk)
+def test_the_last_chunk_finishes_the_run_and_finished_chunks_give_the_progress(
+    new_submission: tuple[sessionmaker[Session], int],
+) -> None:
+    _check_finished_by_the_last_chunk(*new_submission)
 
 
 def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:

@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import func, select
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
 from scorer.versions import ALL_RESULT_COLUMNS, VERSIONS
@@ -36,10 +35,10 @@ from server.services.chunks import LIVE_STATES, finished_tokens, live_chunks
 from server.services.errors import Conflict, NotFound
 from server.services.leaderboard import aggregate_submission, stored_value
 from server.services.splits import subset_tokens
+from server.services.token_rows import upsert_token_rows
 
 MAX_ERROR_CHARS = 2000
 MAX_DETAIL_CHARS = 20000
-UPSERT_KEY = ("submission_id", "metric_version", "seed", "token")
 
 
 @dataclass(frozen=True)
@@ -153,14 +152,6 @@ def completed_tokens(
     return set(session.scalars(grouped).all())
 
 
-def _insert(session: Session) -> Any:
-    dialect = session.get_bind().dialect.name
-    inserts = {"postgresql": postgresql.insert, "sqlite": sqlite.insert}
-    if dialect not in inserts:
-        raise NotImplementedError(f"per-token upsert is not implemented for {dialect}")
-    return inserts[dialect]
-
-
 def write_chunk_results(
     session: Session,
     submission_id: int,
@@ -183,32 +174,20 @@ def write_chunk_results(
         return False
     if results:
         share = duration_s / len(results)
-        rows = [
-            {
-                "submission_id": submission_id,
-                "metric_version": metric_version,
-                "seed": result.seed or 0,
-                "token": result.token,
-                "valid": result.valid,
-                "error": result.error,
-                "run": run,
-                "worker": worker,
-                "duration_s": share,
-                "scored_at": now,
-                "detail": result.detail or None,
-                **{
-                    column: stored_value(result.metrics.get(column)) if result.valid else None
-                    for column in ALL_RESULT_COLUMNS
-                },
-            }
-            for result in results
-        ]
-        # One statement, its rows as parameters: compiled once per process, not once per chunk with every
-        # value in its text.
-        statement = _insert(session)(TokenResultRow.__table__)
-        updated = {name: statement.excluded[name] for name in rows[0] if name not in UPSERT_KEY}
-        upsert = statement.on_conflict_do_update(index_elements=list(UPSERT_KEY), set_=updated)
-        session.connection().execute(upsert, rows)
+        upsert_token_rows(
+            session,
+            [
+                (
+                    *(submission_id, metric_version, result.seed or 0, result.token),
+                    *(result.valid, result.error, run, worker, share, now, result.detail or None),
+                    *(
+                        stored_value(result.metrics.get(column)) if result.valid else None
+                        for column in ALL_RESULT_COLUMNS
+                    ),
+                )
+                for result in results
+            ],
+        )
     return True
 
 
