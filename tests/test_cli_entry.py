@@ -1,0 +1,59 @@
+"""The console script's entry point: only the command named is built, and the whole application otherwise."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from typer.main import get_command
+from typer.testing import CliRunner
+
+from navsim_lb.cli import app, application
+from scorer import ENGINE_VERSION
+
+runner = CliRunner()
+NAVSIM_LB = str(Path(sys.executable).with_name("navsim-lb"))
+
+
+def _commands(arguments: list[str]) -> list[str]:
+    return sorted(get_command(application(arguments)).commands)  # type: ignore[attr-defined]
+
+
+def test_a_command_or_group_named_first_is_built_alone() -> None:
+    assert _commands(["score", "split", "entry.json"]) == ["score"]
+    assert _commands(["import-openscene", "--help"]) == ["import-openscene"]
+    assert _commands(["worker"]) == ["worker"]
+    assert _commands(["db", "upgrade"]) == ["db"]
+    assert sorted(get_command(application(["db"])).commands["db"].commands) == [
+        "current",
+        "downgrade",
+        "upgrade",
+    ]  # type: ignore[attr-defined]
+
+
+def test_anything_else_gets_every_command() -> None:
+    everything = sorted(get_command(app).commands)  # type: ignore[attr-defined]
+    assert {"score", "submit", "serve", "db", "admin"} <= set(everything)
+    for arguments in ([], ["--help"], ["--version"], ["scor"], ["split", "score"]):
+        assert application(arguments) is app, arguments
+
+
+def test_the_command_alone_runs_as_in_the_whole_application() -> None:
+    alone = runner.invoke(application(["score"]), ["score", "--help"])
+    whole = runner.invoke(app, ["score", "--help"])
+    assert alone.exit_code == whole.exit_code == 0
+    assert alone.output == whole.output and "submission file" in alone.output
+    unknown = runner.invoke(application(["scor"]), ["scor"])
+    assert unknown.exit_code == 2 and "No such command" in unknown.output
+
+
+def test_the_installed_script_runs_a_command_and_says_its_version() -> None:
+    version = subprocess.run([NAVSIM_LB, "--version"], capture_output=True, text=True, check=True)
+    assert version.stdout.startswith("navsim-lb ") and f"(engine {ENGINE_VERSION})" in version.stdout
+    listing = subprocess.run([NAVSIM_LB, "--help"], capture_output=True, text=True, check=True)
+    assert "PDM Score engine" in listing.stdout and "score" in listing.stdout and "admin" in listing.stdout
+    failing = subprocess.run(
+        [NAVSIM_LB, "score", "/no/such/split", "x.json"], check=False, capture_output=True, text=True
+    )
+    assert failing.returncode == 2 and "/no/such/split" in failing.stderr
