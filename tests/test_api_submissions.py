@@ -4,11 +4,15 @@ never stores or changes anything."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from pathlib import Path
 
 from server_testing import REFERENCE_SUBMISSIONS, World, add_phase
+
+from scorer.submission import load_submission
+from server.storage import read_trajectories, stored_name
 
 HUMAN = (REFERENCE_SUBMISSIONS / "human.json").read_bytes()
 
@@ -49,6 +53,12 @@ def test_upload_is_accepted_queued_and_shown(world: World) -> None:
         1,
     )
     assert detail["authors"] == "reference run"  # from the file when no form field overrides it
+    # Beside the file, the trajectories its check parsed, for the workers and the pictures.
+    stored = hashlib.sha256(HUMAN).hexdigest()
+    parsed = read_trajectories(world.settings.storage_dir, stored_name(stored), stored)
+    human = load_submission(HUMAN).seeds
+    assert parsed is not None and list(parsed[0]) == list(human[0])
+    assert all(parsed[0][token].tobytes() == poses.tobytes() for token, poses in human[0].items())
 
 
 def test_every_problem_is_listed_and_nothing_is_stored(world: World) -> None:

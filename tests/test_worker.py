@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 
+import numpy as np
 import pytest
 from server_testing import fresh_postgres_database
 from sqlalchemy import select
@@ -42,7 +43,7 @@ from server.services.leaderboard import subscore_columns
 from server.services.scoring import BOARD_VERSIONS as VERSIONS
 from server.services.scoring import ScoringJob, claim_submission
 from server.services.splits import create_phase, register_split
-from server.storage import store_file
+from server.storage import store_file, store_trajectories
 from worker.app import CHUNK_TASK
 from worker.tasks import ENGINE_FAILURE, Rejected, _predictions
 
@@ -303,11 +304,18 @@ def test_a_process_reads_the_file_of_a_run_once_and_of_a_new_run_again(
         versions=VERSIONS,
     )
     parsed = _predictions(job, tmp_path)
-    assert len(parsed.seeds) == 2
+    assert len(parsed) == 2
     (tmp_path / job.stored_name).unlink()
     assert _predictions(job, tmp_path) is parsed  # the run's next chunk
     with pytest.raises(Rejected, match="missing"):
         _predictions(dataclasses.replace(job, run=2), tmp_path)
+    # With the trajectories its upload's check parsed, a run reads those instead of parsing the file (which
+    # must still be there, intact).
+    store_file(tmp_path, sha256, data)
+    store_trajectories(tmp_path, job.stored_name, sha256, parsed[:1])  # one seed: told apart from the file
+    copied = _predictions(dataclasses.replace(job, run=3), tmp_path)
+    assert len(copied) == 1 and list(copied[0]) == list(parsed[0])  # the copy's one seed, not the file's two
+    assert all(np.array_equal(copied[0][t], parsed[0][t]) for t in parsed[0])
 
 
 def test_health_reports_database_broker_and_the_running_worker(service: Service) -> None:

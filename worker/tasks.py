@@ -9,8 +9,9 @@ backend and, on a broker without native chord support (the embedded SQLite one),
 polling it every second; this works the same on every broker, and a lost or repeated chunk cannot produce
 a wrong count (rows are keyed by submission, version, seed and token).
 
-A process keeps the files it parsed last (`_predictions`): every chunk of a run scores the same file, and
-parsing a navtest-size one (12,000 tokens x 3 seeds) costs as much as scoring a chunk.
+A process keeps the trajectories it read last (`_predictions`): every chunk of a run scores the same file. It
+reads them from the copy the upload's check parsed (server.storage): parsing a navtest-size file again
+(12,000 tokens x 3 seeds) costs as much as scoring a chunk.
 
 `reap_lost_work` (beat) holds the broker to the SQL record: it re-sends the chunks of processes that
 stopped beating (splitting, then failing, a token that kills its workers), what the broker lost, and runs
@@ -40,9 +41,9 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from scorer.blas import engine_provenance, kernel_warning
 from scorer.evaluate import TokenResult, score_seeds
+from scorer.geometry import FloatArray
 from scorer.scene import scene_paths
-from scorer.submission import Submission as Predictions
-from scorer.submission import SubmissionError, load_submission, validate_submission
+from scorer.submission import SubmissionError, coverage_problems, load_submission
 from server.db import make_engine, make_session_factory, transaction
 from server.models import ChunkState, FailureKind, Submission, utc_now
 from server.queue import SCORE_TASK, prune_embedded_broker, waiting_tasks
@@ -72,7 +73,7 @@ from server.services.scoring import (
 )
 from server.services.splits import split_tokens
 from server.settings import get_settings
-from server.storage import read_file
+from server.storage import read_file, read_trajectories
 from worker.app import CHUNK_TASK, REAP_TASK, app
 from worker.heartbeat import beating
 
@@ -139,10 +140,8 @@ def _unscored(
     return job, [token for token in tokens if token not in done]
 
 
-@lru_cache(maxsize=PARSED_FILES_KEPT)
-def _predictions(job: ScoringJob, storage_dir: Path) -> Predictions:
-    """Return the stored file of the run parsed, or raise Rejected when it is missing, damaged or no longer
-    fits the split. A run's file is read and checked once per process; an error is raised again each time."""
+def _stored_file(job: ScoringJob, storage_dir: Path) -> bytes:
+    """Return the stored bytes of the run's file, or raise Rejected when they are missing or damaged."""
     try:
         data = read_file(storage_dir, job.stored_name)
     except FileNotFoundError as error:
@@ -155,12 +154,27 @@ def _predictions(job: ScoringJob, storage_dir: Path) -> Predictions:
             "the stored copy of this file is damaged (its sha256 differs from the upload)",
             f"stored bytes of submission {job.submission_id} do not hash to {job.sha256}",
         )
-    try:
-        predictions = load_submission(data, job.filename)
-    except SubmissionError as error:
-        listed = "; ".join(str(problem) for problem in error.problems[:MAX_LISTED_PROBLEMS])
-        raise Rejected(FailureKind.submission, f"the file cannot be read: {listed}") from None
-    problems = validate_submission(predictions, scene_paths(job.split_dir))
+    return data
+
+
+@lru_cache(maxsize=PARSED_FILES_KEPT)
+def _predictions(job: ScoringJob, storage_dir: Path) -> tuple[dict[str, FloatArray], ...]:
+    """Return each seed's trajectories of the run, or raise Rejected when its stored file is missing, damaged or
+    no longer fits the split. A run's file is checked and read once per process; an error is raised again each
+    time.
+
+    The trajectories come from the copy its upload's check parsed; without one (an upload stored before those
+    copies, or a copy lost) the file is parsed again.
+    """
+    data = _stored_file(job, storage_dir)
+    seeds = read_trajectories(storage_dir, job.stored_name, job.sha256)
+    if seeds is None:
+        try:
+            seeds = load_submission(data, job.filename).seeds
+        except SubmissionError as error:
+            listed = "; ".join(str(problem) for problem in error.problems[:MAX_LISTED_PROBLEMS])
+            raise Rejected(FailureKind.submission, f"the file cannot be read: {listed}") from None
+    problems = coverage_problems([list(seed) for seed in seeds], scene_paths(job.split_dir))
     if problems:
         # The file was checked against the split at upload: the split's tokens changed since.
         raise Rejected(
@@ -168,7 +182,7 @@ def _predictions(job: ScoringJob, storage_dir: Path) -> Predictions:
             f"split {job.split_name} changed after the upload; the file no longer matches it",
             "; ".join(str(problem) for problem in problems[:MAX_LISTED_PROBLEMS]),
         )
-    return predictions
+    return seeds
 
 
 def _through_database_outages(write: Callable[[], str]) -> str:
@@ -291,7 +305,7 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
             with beating(sessions, chunk_id, worker):
                 started = perf_counter()
                 # Every seed and version at once: a token's caches read once, each trajectory simulated once.
-                seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(predictions.seeds))
+                seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(predictions))
                 rows = score_seeds(
                     job.split_dir, settings.cache_dir, seeds, job.versions, todo, context=context
                 )

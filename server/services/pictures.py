@@ -15,7 +15,7 @@ from server.models import Status, Submission
 from server.services.errors import Conflict, Forbidden, NotFound
 from server.services.splits import ALL_SUBSET, visible_subsets
 from server.settings import Settings
-from server.storage import read_file
+from server.storage import read_file, read_trajectories
 
 
 def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path:
@@ -69,10 +69,12 @@ def scene_picture(
     )
     if path.exists():
         return path.read_bytes()
-    predictions = load_submission(
-        read_file(settings.storage_dir, submission.stored_name), submission.filename
-    )
-    explanation = explain_token(scene, settings.cache_dir, token, predictions.seeds[seed][token], version)
+    seeds = read_trajectories(settings.storage_dir, submission.stored_name, submission.sha256)
+    if seeds is None:  # an upload stored before the parsed copies, or a copy lost
+        seeds = load_submission(
+            read_file(settings.storage_dir, submission.stored_name), submission.filename
+        ).seeds
+    explanation = explain_token(scene, settings.cache_dir, token, seeds[seed][token], version)
     picture = render(explanation, "png")
     write_atomically(path, picture, durable=False)  # rendered again when missing
     return picture

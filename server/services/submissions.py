@@ -16,12 +16,20 @@ from server.services.quota import check_quota, lock_team
 from server.services.splits import has_closed, is_open
 from server.services.teams import baseline_team
 from server.services.validation import ValidUpload
-from server.storage import store_file
+from server.storage import store_file, store_trajectories
 
 # Statuses after which the same file may be uploaded again (it was never scored to the end).
 RETRYABLE_STATUSES = (Status.failed, Status.cancelled)
 BASELINES = (("constant-velocity", "Constant Velocity"), ("human", "Human"))
 EDITABLE_FIELDS = ("method", "authors", "institution", "country", "tech_report_url", "code_url", "hidden")
+
+
+def _store(storage_dir: Path, upload: ValidUpload) -> str:
+    """Store the uploaded file and the trajectories its check parsed; return the file's stored name."""
+    name = store_file(storage_dir, upload.sha256, upload.data)
+    if upload.trajectories:
+        store_trajectories(storage_dir, name, upload.sha256, upload.trajectories)
+    return name
 
 
 def _new_submission(
@@ -90,9 +98,7 @@ def create_submission(
             submission_id=duplicate.id,
         )
     check_quota(session, team.id, phase, now)
-    submission = _new_submission(
-        team, phase.split, phase, upload, store_file(storage_dir, upload.sha256, upload.data)
-    )
+    submission = _new_submission(team, phase.split, phase, upload, _store(storage_dir, upload))
     submission.idempotency_key = idempotency_key or None
     submission.created_at = submission.queued_at = now
     session.add(submission)
@@ -113,7 +119,7 @@ def add_baselines(session: Session, split: Split, storage_dir: Path) -> list[Sub
     for kind, method in BASELINES:
         data = dump_submission_json(baseline_submission(Path(split.directory), kind, method))
         upload = validate_upload(data, f"{kind}.json", tokens, {"method": method})
-        submission = _new_submission(team, split, None, upload, store_file(storage_dir, upload.sha256, data))
+        submission = _new_submission(team, split, None, upload, _store(storage_dir, upload))
         submission.is_baseline = True
         submission.charged = False
         session.add(submission)

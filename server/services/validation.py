@@ -26,6 +26,8 @@ class ValidUpload:
     seed_count: int
     token_count: int
     metadata: dict[str, str]
+    # Per seed, token -> poses, as the check parsed them (stored beside the file: server.storage).
+    trajectories: tuple[dict[str, Any], ...] = ()
 
 
 def _problem(problem: Any) -> dict[str, str | None]:
@@ -78,4 +80,5 @@ def validate_upload(
         seed_count=len(submission.seeds),
         token_count=len(split_tokens),
         metadata=metadata,
+        trajectories=submission.seeds,
     )
