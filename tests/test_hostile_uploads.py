@@ -5,6 +5,7 @@ extra and duplicate tokens, invalid UTF-8, deeply nested or huge JSON; hostile f
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import io
 import json
@@ -195,8 +196,9 @@ def test_hostile_file_names_and_metadata_are_labels_only(world: World) -> None:
         data={"phase": world.phase, "method": "../../etc/passwd", "authors": "<script>alert(1)</script>"},
     )
     assert response.status_code == 202, response.text
-    stored = [p for p in Path(world.settings.storage_dir).rglob("*") if p.is_file()]
-    assert len(stored) == 1 and ".." not in stored[0].name
+    stored = sorted(p.name for p in Path(world.settings.storage_dir).rglob("*") if p.is_file())
+    sha256 = hashlib.sha256(HUMAN).hexdigest()
+    assert stored == [sha256, f"{sha256}.npz"]  # the file and its parsed trajectories, named by its content
     assert not Path("/tmp/navsim-lb-traversal.json").exists()
     detail = world.client.get(response.headers["Location"], headers=world.team_headers()).json()
     assert (detail["method"], detail["authors"]) == ("../../etc/passwd", "<script>alert(1)</script>")
