@@ -35,8 +35,9 @@ class Settings(BaseSettings):
     # Workers: the broker queue shared by API and workers, and how a submission is cut into tasks.
     queue_name: str = Field("navsim-lb", validation_alias="QUEUE_NAME")
     # (token, seed) pairs per chunk task. Fewer make each scoring call less efficient (a navtest-size run with 3
-    # seeds took 1.39x the engine's time at 128, 1.25x at 384: benchmarks/service.py); more cost memory
-    # (about 265 MiB per pool process at 384) and work lost with a killed process.
+    # seeds took 1.39x the engine's time at 128, 1.25x at 384: benchmarks/service.py; since, 1.18x at 384 and
+    # 1.17x at 768); more cost memory (about 270-360 MiB per pool process at 384, 390-420 at 768) and work lost
+    # with a killed process.
     chunk_size: int = Field(384, ge=1, validation_alias="CHUNK_SIZE")
     # Hard limit of one task; the soft limit (the task's own clean failure) comes 30 s earlier.
     task_time_limit: float = Field(600.0, gt=30, validation_alias="TASK_TIME_LIMIT")
