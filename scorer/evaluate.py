@@ -21,7 +21,6 @@ import numpy as np
 from scorer.cache import (
     MetricCache,
     build_cache_batch,
-    load_cache,
     load_caches,
     observation_key,
     save_caches,
@@ -521,15 +520,16 @@ def _score_chunk(
     built, errors = build_missing_caches([paths[token] for token in unbuilt], cache_dir, list(VERSIONS))
     for token in unbuilt:
         name = paths[token].name
-        for version in versions:
-            if token in caches[version.name]:
-                continue
-            # Built here, or meanwhile by another process (then build_missing_caches found it and built nothing).
-            cache = built.get(name, {}).get(version.name) or load_cache(
-                cache_dir, version.name, token, scene_hashes[token]
-            )
-            if cache is not None:
-                caches[version.name][token] = cache
+        missing = [version for version in versions if token not in caches[version.name]]
+        # Built here, or meanwhile by another process (then build_missing_caches found it and built nothing):
+        # the file is read once for whatever was not built here.
+        found = dict(built.get(name, {}))
+        unfound = [version.name for version in missing if version.name not in found]
+        if unfound:
+            found |= load_caches(cache_dir, unfound, token, scene_hashes[token])
+        for version in missing:
+            if version.name in found:
+                caches[version.name][token] = found[version.name]
                 continue
             cause = errors.get(name, RuntimeError("the cache file was not written"))
             text = _build_error_text(token, cause)
@@ -537,11 +537,11 @@ def _score_chunk(
                 if (seed, token) in poses:
                     rows[seed, version.name].append(TokenResult(token, seed, False, error=text))
     # Any version's cache holds the token's ego and start time for its simulation.
-    first_cache = {
-        token: next(caches[v.name][token] for v in versions if token in caches[v.name])
-        for token in needed
-        if any(token in caches[v.name] for v in versions)
-    }
+    first_cache: dict[str, MetricCache] = {}
+    for token in needed:
+        holding = [caches[version.name][token] for version in versions if token in caches[version.name]]
+        if holding:
+            first_cache[token] = holding[0]
     simulated = [key for key in poses if key[1] in first_cache]
     states, failed = _simulated(
         simulated, [first_cache[token] for _, token in simulated], [poses[key] for key in simulated]
