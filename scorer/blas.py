@@ -18,7 +18,8 @@ from __future__ import annotations
 import ctypes
 import importlib.util
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 
@@ -53,24 +54,57 @@ def select_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> None:
         os.environ["OPENBLAS_CORETYPE"] = DEVKIT_KERNELS
 
 
-def _bundled_openblas(package: str, pattern: str) -> ctypes.CDLL | None:
-    """Return the OpenBLAS a package's manylinux wheel bundles in `<package>.libs` (auditwheel's layout, the
-    file named after its hash), loaded without importing the package; None when there is not exactly one.
+def _bundled_openblas(package: str, prefix: str) -> ctypes.CDLL | None:
+    """Return the OpenBLAS a package's manylinux wheel bundles in `<package>.libs` as `<prefix><hash>.so`
+    (auditwheel's layout), loaded without importing the package; None when there is not exactly one.
 
     Loaded by path, it is the very object the package's extensions link: the dynamic loader matches it by its
-    soname, so the package shares it and it picks its kernels once, as `select_devkit_kernels` asked.
+    soname, so the package shares it and it picks its kernels once, as `select_devkit_kernels` asked. The
+    names are matched by hand: a glob pattern compiles regular expressions, milliseconds of every start-up.
+    SciPy's loads with one thread (`_one_blas_thread`); numpy's as numpy would load it.
     """
     spec = importlib.util.find_spec(package)  # finds the package without importing it
     packages = spec.submodule_search_locations if spec is not None else None
-    found = sorted(Path(packages[0]).parent.glob(f"{package}.libs/{pattern}")) if packages else []
-    return ctypes.CDLL(str(found[0])) if len(found) == 1 else None
+    if not packages:
+        return None
+    libraries = Path(packages[0]).parent / f"{package}.libs"
+    try:
+        found = [name for name in os.listdir(libraries) if name.startswith(prefix) and name.endswith(".so")]
+    except OSError:
+        return None
+    if len(found) != 1:
+        return None
+    if package != "scipy":
+        return ctypes.CDLL(str(libraries / found[0]))
+    with _one_blas_thread():
+        return ctypes.CDLL(str(libraries / found[0]))
+
+
+@contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """Have an OpenBLAS that loads meanwhile start one thread, whatever the environment asks.
+
+    OpenBLAS reads OPENBLAS_NUM_THREADS once, when it loads, and starts that many threads, which the
+    process joins when it exits: 15-25 ms of every `navsim-lb score` for SciPy's, whose only work in the
+    engine is `dgelsd` on systems of at most 41 rows, too small for OpenBLAS to split between threads (so
+    the bits are the same). numpy's OpenBLAS keeps the environment's choice.
+    """
+    previous = os.environ.get("OPENBLAS_NUM_THREADS")
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    try:
+        yield
+    finally:
+        if previous is None:
+            del os.environ["OPENBLAS_NUM_THREADS"]
+        else:
+            os.environ["OPENBLAS_NUM_THREADS"] = previous
 
 
 @cache
 def scipy_openblas() -> ctypes.CDLL:
     """Return SciPy's OpenBLAS, the library `scipy.linalg` calls, loaded without importing `scipy.linalg` (0.13 s
     of imports)."""
-    library = _bundled_openblas("scipy", "libscipy_openblas*.so")
+    library = _bundled_openblas("scipy", "libscipy_openblas")
     if library is None:
         raise ImportError(
             "SciPy's OpenBLAS: expected one libscipy_openblas*.so in scipy.libs; the engine calls the LAPACK of "
@@ -90,8 +124,8 @@ def scipy_lapack_function(name: str) -> Callable[..., None]:
 
 # The libraries the engine calls, each as its wheel bundles it, and its symbol naming OpenBLAS's kernels.
 _KERNEL_SOURCES = (
-    ("numpy", "libscipy_openblas64_*.so", "scipy_openblas_get_corename64_"),
-    ("scipy", "libscipy_openblas*.so", "scipy_openblas_get_corename"),
+    ("numpy", "libscipy_openblas64_", "scipy_openblas_get_corename64_"),
+    ("scipy", "libscipy_openblas", "scipy_openblas_get_corename"),
 )
 
 
@@ -104,8 +138,8 @@ def blas_kernels() -> tuple[str, ...]:
     numpy does, is harmless (`_bundled_openblas`). Forked processes inherit the cached answer.
     """
     kernels = set()
-    for package, pattern, symbol in _KERNEL_SOURCES:
-        library = _bundled_openblas(package, pattern)
+    for package, prefix, symbol in _KERNEL_SOURCES:
+        library = _bundled_openblas(package, prefix)
         corename = getattr(library, symbol, None)
         if corename is None:
             kernels.add("unknown")

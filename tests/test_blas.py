@@ -147,7 +147,7 @@ def test_the_kernels_asked_by_name_are_those_threadpoolctl_finds(coretype: str) 
 def test_a_library_that_is_not_a_bundled_openblas_counts_as_unknown_kernels(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    monkeypatch.setattr(blas, "_KERNEL_SOURCES", (("numpy", "libnothing*.so", "openblas_get_corename"),))
+    monkeypatch.setattr(blas, "_KERNEL_SOURCES", (("numpy", "libnothing", "openblas_get_corename"),))
     assert blas.blas_kernels.__wrapped__() == ("unknown",)
 
 
@@ -170,6 +170,46 @@ def test_scipys_openblas_is_the_library_scipy_linalg_then_uses() -> None:
     probed = json.loads(done.stdout)
     scipys = [path for path in probed["openblas"] if "scipy.libs" in path]
     assert len(probed["openblas"]) == 2 and scipys == [probed["loaded"]]
+
+
+THREADS = """
+import ctypes, json, os
+import scorer
+from scorer.blas import blas_kernels
+blas_kernels()  # loads both libraries, SciPy's first through the kernel check
+import numpy
+from threadpoolctl import threadpool_info
+threads = {library["internal_api"] + ("-numpy" if "numpy.libs" in library["filepath"] else "-scipy"):
+           library["num_threads"] for library in threadpool_info()}
+print(json.dumps({"threads": threads, "variable": os.environ.get("OPENBLAS_NUM_THREADS")}))
+"""
+NUMPY_ALONE = """
+import json, numpy
+from threadpoolctl import threadpool_info
+print(json.dumps([library["num_threads"] for library in threadpool_info()]))
+"""
+
+
+@pytest.mark.parametrize("variable", [None, "2"])
+def test_scipys_openblas_starts_one_thread_and_numpys_keeps_the_environments(variable: str | None) -> None:
+    """SciPy's threads would only cost start-up and exit time (its systems are too small to split); numpy's
+    OpenBLAS, and the environment a later library reads, are left as they were."""
+    environment = {key: value for key, value in os.environ.items() if key != "OPENBLAS_NUM_THREADS"}
+    if variable is not None:
+        environment["OPENBLAS_NUM_THREADS"] = variable
+    probed, alone = (
+        json.loads(
+            subprocess.run(
+                [sys.executable, "-c", probe], capture_output=True, text=True, check=True, env=environment
+            ).stdout
+        )
+        for probe in (THREADS, NUMPY_ALONE)
+    )
+    assert probed["variable"] == variable
+    assert probed["threads"]["openblas-scipy"] == 1
+    assert [probed["threads"]["openblas-numpy"]] == alone
+    if variable is not None:
+        assert alone == [int(variable)]
 
 
 SCORE_WITHOUT_SCIPY = """
