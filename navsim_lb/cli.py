@@ -8,6 +8,7 @@ what to install rather than "no such command".
 from __future__ import annotations
 
 import copy
+import gc
 import sys
 from collections.abc import Callable, Sequence
 from importlib.util import find_spec
@@ -115,4 +116,11 @@ def application(arguments: Sequence[str]) -> typer.Typer:
 
 def main() -> None:
     """Run `navsim-lb` (the console script)."""
-    application(sys.argv[1:])()
+    try:
+        application(sys.argv[1:])()
+    finally:
+        # On its way out Python runs the cycle collector over every object still alive, more than once: with
+        # numpy's, typer's and rich's that is 25 ms of a one-token `navsim-lb score`. Frozen objects are out of
+        # its sight. Exit still runs atexit handlers, flushes the streams and frees what is not in a cycle;
+        # what is, the OS reclaims with the process.
+        gc.freeze()

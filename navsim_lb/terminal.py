@@ -28,7 +28,10 @@ def progress_bar(description: str, total: int) -> Iterator[Callable[[int], None]
             done += count
 
         yield advance
-        console.print(escape(f"{description}: {done}/{total} in {time.perf_counter() - start:.1f} s"))
+        # Not highlighted: where no bar can redraw there are no colours either, and rich's highlighter would
+        # compile its regular expressions (milliseconds of a one-token `navsim-lb score`) to colour nothing.
+        line = escape(f"{description}: {done}/{total} in {time.perf_counter() - start:.1f} s")
+        console.print(line, highlight=False)
         return
     from rich.progress import (
         BarColumn,
