@@ -12,10 +12,14 @@ from hypothesis import strategies as st
 from scipy.interpolate import interp1d
 
 from scorer.geometry import (
+    _MAIN_PATH_HIGH,
+    _MAIN_PATH_LOW,
     _SVML_PROBE_ARCTAN2,
     _SVML_PROBE_X,
     _SVML_PROBE_Y,
     _fused_multiply_add,
+    _fused_multiply_add_float,
+    _svml_arctan2_float,
     normalize_angle,
     svml_arctan2_emulated,
 )
@@ -120,6 +124,75 @@ def test_parallel_poses_move_left_for_positive_offsets() -> None:
 def test_emulated_fma_rounds_once(a: float, b: float, c: float) -> None:
     exact = Fraction(a) * Fraction(b) + Fraction(c)
     assert _fused_multiply_add(np.array([a]), np.array([b]), np.array([c]))[0] == float(exact)
+
+
+@settings(max_examples=300, deadline=None)
+@given(a=normal, b=normal, c=normal)
+def test_emulated_fma_of_floats_rounds_once(a: float, b: float, c: float) -> None:
+    assert _fused_multiply_add_float(a, b, c) == float(Fraction(a) * Fraction(b) + Fraction(c))
+
+
+def test_both_emulated_fmas_round_to_odd_where_rounding_twice_would_tie() -> None:
+    """a * b = 2^-53 + e (0 < e < 2^-106) and c = 1: the exact sum lies just above the midpoint between 1 and
+    the next double, but its low part rounds to 2^-53, which ties back to 1 unless rounded to odd first."""
+    a, b, c = 1 + 2**-52, 2**-53 * (1 - 2**-53), 1.0
+    assert float(Fraction(a) * Fraction(b) + Fraction(c)) == 1 + 2**-52 and a * b + c == 1.0
+    for sign in (1.0, -1.0):
+        expected = sign * (1 + 2**-52)
+        assert _fused_multiply_add(np.array([sign * a]), np.array([b]), np.array([sign * c]))[0] == expected
+        assert _fused_multiply_add_float(sign * a, b, sign * c) == expected
+
+
+def test_the_float_replays_main_path_is_svmls_high_word_test() -> None:
+    """SVML takes its main path for 0x00300000 <= high word of |x| and |y| < 0x7E000000; the float replay
+    compares values. On an AVX-512 host both paths give SVML's value, so only the bounds can be compared."""
+    bounds = np.array([2.0**-1020, 2.0**993, 1.0, 5e-324, np.inf])
+    values = np.concatenate([np.nextafter(bounds, 0.0), bounds, np.nextafter(bounds, np.inf), [np.nan]])
+    high_word = values.view(np.uint64) >> np.uint64(32)
+    svml = (high_word >= 0x00300000) & (high_word < 0x7E000000)
+    ours = [bool(_MAIN_PATH_LOW <= value < _MAIN_PATH_HIGH) for value in values.tolist()]
+    assert ours == svml.tolist() and 2 < sum(ours) < len(ours) - 2
+
+
+def _hard_pairs() -> tuple[np.ndarray, np.ndarray]:
+    """Return (y, x) pairs where the two replays could part: random over 12 orders of magnitude, on and one
+    ulp beside every band limit, at the main path's bounds, and SVML's special values."""
+    rng = np.random.default_rng(7)
+    scale = 10.0 ** rng.uniform(-6, 6, size=(2, 100_000))
+    y, x = rng.standard_normal((2, 100_000)) * scale
+    limits = np.array([0.4375, 0.6875, 1.1875, 2.4375])
+    along = rng.uniform(0.1, 100.0, size=(limits.size, 50))
+    on_limits = (along * limits[:, None]).ravel()
+    beside = np.concatenate([np.nextafter(on_limits, -np.inf), on_limits, np.nextafter(on_limits, np.inf)])
+    bounds = np.array([2.0**-1020, 2.0**993])
+    bound_values = np.concatenate([np.nextafter(bounds, 0.0), bounds, np.nextafter(bounds, np.inf)])
+    special = np.array([0.0, -0.0, 1.0, -1.0, np.inf, -np.inf, np.nan, 5e-324, 1e300, -2.5])
+    edge_y = np.concatenate(
+        [beside, np.tile(along.ravel(), 3), bound_values, np.repeat(special, special.size)]
+    )
+    edge_x = np.concatenate(
+        [np.tile(along.ravel(), 3), beside, bound_values[::-1], np.tile(special, special.size)]
+    )
+    signs = rng.choice([-1.0, 1.0], size=(2, edge_y.size))
+    return np.concatenate([y, edge_y * signs[0]]), np.concatenate([x, edge_x * signs[1]])
+
+
+def test_the_float_replay_gives_the_numpy_replays_bits() -> None:
+    y, x = _hard_pairs()
+    with np.errstate(over="ignore"):
+        replayed = svml_arctan2_emulated(y, x)  # more pairs than the float replay takes: numpy's
+    floats = np.array([_svml_arctan2_float(a, b) for a, b in zip(y.tolist(), x.tolist(), strict=True)])
+    assert np.array_equal(floats.view(np.int64), replayed.view(np.int64))
+
+
+def test_a_few_pairs_take_the_float_replay_in_any_shape() -> None:
+    y, x = _hard_pairs()
+    replayed = svml_arctan2_emulated(y[:48], x[:48])
+    for shape in [(), (1,), (2, 3), (16,)]:
+        size = math.prod(shape)
+        few = svml_arctan2_emulated(y[:size].reshape(shape), x[:size].reshape(shape))
+        assert few.shape == shape and few.dtype == np.float64
+        assert np.array_equal(few.ravel().view(np.int64), replayed[:size].view(np.int64))
 
 
 # numpy's own arctan2 is SVML on AVX-512 hosts and libm elsewhere, so libm is read through `math`.
