@@ -17,7 +17,7 @@ import math
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import shapely
@@ -29,13 +29,15 @@ from scorer.geometry import FloatArray
 from scorer.human import FILTERED_COLUMNS, human_future_poses, is_synthetic
 from scorer.metrics.history_comfort import past_states
 from scorer.observation import Observation, drop_tracks_on_ego, observe_scene
-from scorer.pdm_closed import PlannerOutput, ego_polygons, plan_references_batch
 from scorer.pdm_scorer import MeasureSettings, ProposalMeasures, measure_alike, measure_batch, score_measures
 from scorer.red_lights import RedLights, observe_red_lights
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state, pdm_references
 from scorer.versions import MetricVersion
+
+if TYPE_CHECKING:
+    from scorer.pdm_closed import PlannerOutput
 
 _MEASURES_PREFIX = "reference_"
 _PREFIX = 16  # a cache file's first bytes: its index's length and its own, 8 bytes each
@@ -88,6 +90,9 @@ def build_cache_batch(
     The scenes share the array calls of the PDM-Closed unroll, the simulations and the measures (numpy's
     per-call cost is most of a scene's), nothing else: every scene is planned and measured on its own.
     """
+    # PDM-Closed is imported where a cache is built: scoring from a warm cache never plans (3 ms of start-up).
+    from scorer.pdm_closed import plan_references_batch
+
     drivable_maps = [build_drivable_map(scene) for scene in scenes]
     frames = [scene.current_frame for scene in scenes]
     # One PDM-Closed unroll serves every version; only the proposal selection differs.
@@ -216,6 +221,8 @@ def evaluation_observation(
         observation = replace(observation, red_lights=observe_red_lights(scene, future_frames))
     if not drops_tracks_on_ego:
         return observation, ()
+    from scorer.pdm_closed import ego_polygons  # see build_cache_batch
+
     ego = scene.current_frame.ego
     return drop_tracks_on_ego(observation, ego_polygons(np.array([[ego.x, ego.y, ego.heading]]))[0])
 

@@ -13,7 +13,6 @@ import json
 import lzma
 import math
 import pickle
-import pickletools
 import re
 import zlib
 from collections.abc import Iterable, Sequence
@@ -428,6 +427,8 @@ def _check_opcodes(data: bytes) -> None:
     """Walk the opcodes before unpickling: a damaged stream can declare an argument longer than the file or a
     memo index far beyond its size, which the C unpickler would allocate memory for before failing
     (pickletools only reads the bytes that are there). A pickler numbers its memo entries in sequence."""
+    import pickletools  # only pickles need it: JSON submissions and the scoring path start without it
+
     memo_size = 0
     for opcode, argument, _ in pickletools.genops(data):
         if opcode.name == "MEMOIZE":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +12,9 @@ from typer.testing import CliRunner
 
 from navsim_lb.cli import app, application
 from scorer import ENGINE_VERSION
+from scorer.scene import scene_paths
+
+REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 
 runner = CliRunner()
 NAVSIM_LB = str(Path(sys.executable).with_name("navsim-lb"))
@@ -76,3 +80,39 @@ def test_the_script_leaves_its_objects_to_the_os_at_exit() -> None:
     assert lines[0].startswith("navsim-lb ")
     frozen = int(lines[1].removeprefix("frozen at exit: "))
     assert frozen > 10_000  # numpy's, typer's and rich's objects and ours
+
+
+WARM_SCORE_PROBE = """
+import sys
+from navsim_lb.cli import main
+sys.argv = ["navsim-lb", "score", *sys.argv[1:]]
+try:
+    main()
+finally:
+    print("planner imported:", "scorer.pdm_closed" in sys.modules)
+"""
+
+
+def test_scoring_from_a_warm_cache_does_not_import_the_planner(tmp_path: Path) -> None:
+    """PDM-Closed only builds caches: a `navsim-lb score` that finds its cache never loads it (start-up)."""
+    token, path = next(iter(scene_paths(REFERENCE).items()))
+    (tmp_path / "split" / "scenes").mkdir(parents=True)
+    (tmp_path / "split" / "scenes" / path.name).write_bytes(path.read_bytes())
+    submission = json.loads((REFERENCE / "submissions" / "human_noise.json").read_text())
+    submission["predictions"] = {token: submission["predictions"][token]}
+    (tmp_path / "submission.json").write_text(json.dumps(submission))
+    arguments = [
+        str(tmp_path / "split"),
+        str(tmp_path / "submission.json"),
+        "--cache-dir",
+        str(tmp_path / "c"),
+    ]
+    cold, warm = (
+        subprocess.run(
+            [sys.executable, "-c", WARM_SCORE_PROBE, *arguments], check=False, capture_output=True, text=True
+        )
+        for _ in range(2)
+    )
+    assert cold.returncode == warm.returncode == 0, cold.stderr + warm.stderr
+    assert cold.stdout.splitlines()[-1] == "planner imported: True"  # it built the cache
+    assert warm.stdout.splitlines()[-1] == "planner imported: False"
