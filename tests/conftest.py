@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import os
+from pathlib import Path
 
+import pytest
 from hypothesis import settings
 
 import scorer  # noqa: F401 - before the test modules load numpy: the official results' OpenBLAS kernels
+from scorer.scene import scene_paths
 
 # The shared fixtures, registered here (before any test module imports them) so their asserts are rewritten.
 pytest_plugins = ["server_testing", "worker_testing"]
@@ -14,3 +18,16 @@ pytest_plugins = ["server_testing", "worker_testing"]
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+
+@pytest.fixture
+def one_token_split(tmp_path: Path) -> tuple[Path, Path]:
+    """Return a split holding the first reference scene and a submission (JSON) predicting its token alone."""
+    reference = Path(__file__).parent / "fixtures" / "reference"
+    token, path = next(iter(scene_paths(reference).items()))
+    (tmp_path / "split" / "scenes").mkdir(parents=True)
+    (tmp_path / "split" / "scenes" / path.name).write_bytes(path.read_bytes())
+    submission = json.loads((reference / "submissions" / "human_noise.json").read_text())
+    submission["predictions"] = {token: submission["predictions"][token]}
+    (tmp_path / "submission.json").write_text(json.dumps(submission))
+    return tmp_path / "split", tmp_path / "submission.json"

@@ -225,17 +225,11 @@ print("scipy modules:", json.dumps(sorted(name for name in sys.modules if name.s
 """
 
 
-def test_scoring_a_token_imports_no_scipy_module(tmp_path: Path) -> None:
+def test_scoring_a_token_imports_no_scipy_module(tmp_path: Path, one_token_split: tuple[Path, Path]) -> None:
     """`navsim-lb score` starts without scipy (docs/engine.md, "Start-up"): the comfort filters reproduce
     ndimage's convolution in numpy and call dgelsd in SciPy's OpenBLAS directly. Caching and scoring every
     version of a token, as the command does on a fresh split, must not import a scipy module."""
-    token, path = next(iter(scene_paths(REFERENCE).items()))
-    (tmp_path / "split" / "scenes").mkdir(parents=True)
-    (tmp_path / "split" / "scenes" / path.name).write_bytes(path.read_bytes())
-    submission = json.loads((REFERENCE / "submissions" / "human_noise.json").read_text())
-    submission["predictions"] = {token: submission["predictions"][token]}
-    (tmp_path / "submission.json").write_text(json.dumps(submission))
-    arguments = [str(tmp_path / name) for name in ("split", "submission.json", "cache")]
+    arguments = [*(str(path) for path in one_token_split), str(tmp_path / "cache")]
     done = subprocess.run(
         [sys.executable, "-c", SCORE_WITHOUT_SCIPY, *arguments], capture_output=True, text=True, check=False
     )

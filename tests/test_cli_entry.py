@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -12,9 +11,6 @@ from typer.testing import CliRunner
 
 from navsim_lb.cli import app, application
 from scorer import ENGINE_VERSION
-from scorer.scene import scene_paths
-
-REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 
 runner = CliRunner()
 NAVSIM_LB = str(Path(sys.executable).with_name("navsim-lb"))
@@ -93,20 +89,11 @@ finally:
 """
 
 
-def test_scoring_from_a_warm_cache_does_not_import_the_planner(tmp_path: Path) -> None:
+def test_scoring_from_a_warm_cache_does_not_import_the_planner(
+    tmp_path: Path, one_token_split: tuple[Path, Path]
+) -> None:
     """PDM-Closed only builds caches: a `navsim-lb score` that finds its cache never loads it (start-up)."""
-    token, path = next(iter(scene_paths(REFERENCE).items()))
-    (tmp_path / "split" / "scenes").mkdir(parents=True)
-    (tmp_path / "split" / "scenes" / path.name).write_bytes(path.read_bytes())
-    submission = json.loads((REFERENCE / "submissions" / "human_noise.json").read_text())
-    submission["predictions"] = {token: submission["predictions"][token]}
-    (tmp_path / "submission.json").write_text(json.dumps(submission))
-    arguments = [
-        str(tmp_path / "split"),
-        str(tmp_path / "submission.json"),
-        "--cache-dir",
-        str(tmp_path / "c"),
-    ]
+    arguments = [*(str(path) for path in one_token_split), "--cache-dir", str(tmp_path / "cache")]
     cold, warm = (
         subprocess.run(
             [sys.executable, "-c", WARM_SCORE_PROBE, *arguments], check=False, capture_output=True, text=True
