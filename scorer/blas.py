@@ -18,6 +18,7 @@ from __future__ import annotations
 import ctypes
 import importlib.util
 import os
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from functools import cache
@@ -88,8 +89,16 @@ def _one_blas_thread() -> Iterator[None]:
     process joins when it exits: 15-25 ms of every `navsim-lb score` for SciPy's, whose only work in the
     engine is `dgelsd` on systems of at most 41 rows, too small for OpenBLAS to split between threads (so
     the bits are the same). numpy's OpenBLAS keeps the environment's choice.
+
+    Only the main thread changes the environment: C's getenv is not synchronised with setenv, and a server's
+    other threads may read it meanwhile (libpq does as it connects). A library loaded from another thread,
+    an API thread drawing a picture, starts the threads the environment asks for; a server's exit time does
+    not matter.
     """
     previous = os.environ.get("OPENBLAS_NUM_THREADS")
+    if previous == "1" or threading.current_thread() is not threading.main_thread():
+        yield
+        return
     os.environ["OPENBLAS_NUM_THREADS"] = "1"
     try:
         yield

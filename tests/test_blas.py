@@ -173,10 +173,15 @@ def test_scipys_openblas_is_the_library_scipy_linalg_then_uses() -> None:
 
 
 THREADS = """
-import ctypes, json, os
+import ctypes, json, os, sys, threading
 import scorer
 from scorer.blas import blas_kernels
-blas_kernels()  # loads both libraries, SciPy's first through the kernel check
+if sys.argv[1] == "main":
+    blas_kernels()  # loads both libraries, SciPy's first through the kernel check
+else:
+    loading = threading.Thread(target=blas_kernels)
+    loading.start()
+    loading.join()
 import numpy
 from threadpoolctl import threadpool_info
 threads = {library["internal_api"] + ("-numpy" if "numpy.libs" in library["filepath"] else "-scipy"):
@@ -191,22 +196,27 @@ print(json.dumps([library["num_threads"] for library in threadpool_info()]))
 
 
 @pytest.mark.parametrize("variable", [None, "2"])
-def test_scipys_openblas_starts_one_thread_and_numpys_keeps_the_environments(variable: str | None) -> None:
+@pytest.mark.parametrize("thread", ["main", "other"])
+def test_scipys_openblas_starts_one_thread_and_numpys_keeps_the_environments(
+    variable: str | None, thread: str
+) -> None:
     """SciPy's threads would only cost start-up and exit time (its systems are too small to split); numpy's
-    OpenBLAS, and the environment a later library reads, are left as they were."""
+    OpenBLAS, and the environment a later library reads, are left as they were. Another thread than the main
+    one never changes the environment (C's getenv is not synchronised with it): its SciPy takes the
+    environment's threads."""
     environment = {key: value for key, value in os.environ.items() if key != "OPENBLAS_NUM_THREADS"}
     if variable is not None:
         environment["OPENBLAS_NUM_THREADS"] = variable
     probed, alone = (
         json.loads(
             subprocess.run(
-                [sys.executable, "-c", probe], capture_output=True, text=True, check=True, env=environment
+                [sys.executable, "-c", *probe], capture_output=True, text=True, check=True, env=environment
             ).stdout
         )
-        for probe in (THREADS, NUMPY_ALONE)
+        for probe in ((THREADS, thread), (NUMPY_ALONE,))
     )
     assert probed["variable"] == variable
-    assert probed["threads"]["openblas-scipy"] == 1
+    assert [probed["threads"]["openblas-scipy"]] == ([1] if thread == "main" else alone)
     assert [probed["threads"]["openblas-numpy"]] == alone
     if variable is not None:
         assert alone == [int(variable)]
