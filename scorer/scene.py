@@ -507,8 +507,28 @@ def _decompress(data: bytes, path: Path) -> bytes:
 
 
 def scene_file_hash(path: Path) -> str:
-    """Return the sha256 of a scene file as stored: the cache key, cheap enough to check on every scoring."""
+    """Return the sha256 of a scene file as stored: the cache key, checked on every scoring.
+
+    A process remembers a file's hash while the file's status (device, inode, size, modification and change
+    times) stays the same, as git's index does: a worker scores the same split chunk after chunk and entry
+    after entry, and reading and hashing each scene was 4% of scoring a token. A file changed in the last
+    RACY_LISTING_S is hashed afresh, as `scene_paths` lists such a directory afresh.
+    """
+    status = path.stat()
+    if time.time_ns() - max(status.st_mtime_ns, status.st_ctime_ns) < RACY_LISTING_S * 1e9:
+        return _file_hash(path)
+    signature = (status.st_dev, status.st_ino, status.st_size, status.st_mtime_ns, status.st_ctime_ns)
+    return _remembered_hash(path, signature)
+
+
+def _file_hash(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@lru_cache(maxsize=1 << 16)  # a navtest-size split is 12,000 scenes
+def _remembered_hash(path: Path, signature: tuple[int, ...]) -> str:
+    """Return `_file_hash(path)`, remembered for the path while its file's status is `signature`."""
+    return _file_hash(path)
 
 
 def load_scene(path: Path | str) -> Scene:

@@ -177,3 +177,26 @@ def test_a_split_listing_follows_the_files_added_removed_and_renamed(tmp_path: P
     assert list(scene_paths(tmp_path)) == ["c"]
     os.utime(scenes, ns=(10**18 + 1, 10**18 + 1))
     assert list(scene_paths(tmp_path)) == ["c", "d"]
+
+
+def test_a_scene_hash_is_remembered_only_while_its_file_is_unchanged(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A worker hashes each scene once per process, and any change to the file, even one that keeps its size
+    and modification time, gives its new hash at once; a file changed in the last seconds is read every time."""
+    reads: list[Path] = []
+    file_hash = scene_module._file_hash
+    monkeypatch.setattr(scene_module, "_file_hash", lambda path: reads.append(path) or file_hash(path))
+    scene_module._remembered_hash.cache_clear()
+    path = tmp_path / "a.json"
+    path.write_bytes(b'{"token": "a"}')
+    first = scene_module.scene_file_hash(path)
+    assert scene_module.scene_file_hash(path) == first and len(reads) == 2  # changed just now: read again
+
+    monkeypatch.setattr(scene_module, "RACY_LISTING_S", -1.0)  # as if changed long ago
+    assert [scene_module.scene_file_hash(path) for _ in range(3)] == [first] * 3 and len(reads) == 3
+    modified = path.stat().st_mtime_ns
+    path.write_bytes(b'{"token": "b"}')  # the same size
+    os.utime(path, ns=(modified, modified))  # and modification time; the change time moves
+    second = scene_module.scene_file_hash(path)
+    assert second != first and second == file_hash(path) and len(reads) == 4
