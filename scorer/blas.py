@@ -20,7 +20,7 @@ import importlib.util
 import os
 import threading
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from functools import cache
 from pathlib import Path
 
@@ -62,7 +62,7 @@ def _bundled_openblas(package: str, prefix: str) -> ctypes.CDLL | None:
     Loaded by path, it is the very object the package's extensions link: the dynamic loader matches it by its
     soname, so the package shares it and it picks its kernels once, as `select_devkit_kernels` asked. The
     names are matched by hand: a glob pattern compiles regular expressions, milliseconds of every start-up.
-    SciPy's loads with one thread (`_one_blas_thread`); numpy's as numpy would load it.
+    SciPy's loads with one thread (`_one_blas_thread`), numpy's as numpy would load it.
     """
     spec = importlib.util.find_spec(package)  # finds the package without importing it
     packages = spec.submodule_search_locations if spec is not None else None
@@ -75,10 +75,11 @@ def _bundled_openblas(package: str, prefix: str) -> ctypes.CDLL | None:
         return None
     if len(found) != 1:
         return None
-    if package != "scipy":
+    with _one_blas_thread() if package in _ONE_THREAD_PACKAGES else nullcontext():
         return ctypes.CDLL(str(libraries / found[0]))
-    with _one_blas_thread():
-        return ctypes.CDLL(str(libraries / found[0]))
+
+
+_ONE_THREAD_PACKAGES = frozenset({"scipy"})  # whose OpenBLAS the engine loads with one thread
 
 
 @contextmanager
