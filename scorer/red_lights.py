@@ -24,7 +24,6 @@ import numpy.typing as npt
 import shapely
 
 from scorer.geometry import BoolArray, FloatArray
-from scorer.route import build_road_graph, load_route
 from scorer.scene import Lane, Scene
 
 RED_LIGHT_TOKEN = "red_light"  # the devkit recognises red lights by this token prefix
@@ -72,6 +71,8 @@ def red_lanes(lights: Sequence[tuple[str, bool]], route_lanes: Mapping[str, Lane
 
 def observe_red_lights(scene: Scene, future_frames: int) -> RedLights:
     """Return the red lights of the current frame and `future_frames` frames after it, at 10 Hz steps."""
+    from scorer.route import build_road_graph, load_route  # caches only: warm scoring starts without it
+
     graph = build_road_graph(scene.map)
     route = load_route(graph, scene.current_frame.route_roadblocks, scene.token)
     route_lanes = {lane.id: lane for lane in route.lanes}

@@ -85,14 +85,16 @@ sys.argv = ["navsim-lb", "score", *sys.argv[1:]]
 try:
     main()
 finally:
-    print("planner imported:", "scorer.pdm_closed" in sys.modules)
+    builders = ("scorer.pdm_closed", "scorer.planner_observation", "scorer.route")
+    print("cache builders imported:", [name for name in builders if name in sys.modules])
 """
 
 
-def test_scoring_from_a_warm_cache_does_not_import_the_planner(
+def test_scoring_from_a_warm_cache_does_not_import_the_cache_builders(
     tmp_path: Path, one_token_split: tuple[Path, Path]
 ) -> None:
-    """PDM-Closed only builds caches: a `navsim-lb score` that finds its cache never loads it (start-up)."""
+    """PDM-Closed and the route search only build caches: a `navsim-lb score` that finds its cache never loads
+    them (start-up)."""
     arguments = [*(str(path) for path in one_token_split), "--cache-dir", str(tmp_path / "cache")]
     cold, warm = (
         subprocess.run(
@@ -101,5 +103,6 @@ def test_scoring_from_a_warm_cache_does_not_import_the_planner(
         for _ in range(2)
     )
     assert cold.returncode == warm.returncode == 0, cold.stderr + warm.stderr
-    assert cold.stdout.splitlines()[-1] == "planner imported: True"  # it built the cache
-    assert warm.stdout.splitlines()[-1] == "planner imported: False"
+    builders = "['scorer.pdm_closed', 'scorer.planner_observation', 'scorer.route']"
+    assert cold.stdout.splitlines()[-1] == f"cache builders imported: {builders}"  # it built the cache
+    assert warm.stdout.splitlines()[-1] == "cache builders imported: []"
