@@ -34,7 +34,7 @@ from scorer.red_lights import RedLights, observe_red_lights
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state, pdm_references
-from scorer.versions import MetricVersion
+from scorer.versions import VERSIONS, MetricVersion
 
 if TYPE_CHECKING:
     from scorer.pdm_closed import PlannerOutput
@@ -295,11 +295,14 @@ def _unpack_polygons(coords: FloatArray, counts: np.ndarray) -> np.ndarray:
 
 def save_caches(caches: Mapping[str, MetricCache], cache_dir: Path) -> Path:
     """Write the caches of one token (by version) atomically (temporary file, then rename), beside the versions
-    its file already holds for the same scene and engine, and return the file's path."""
+    its file already holds for the same scene and engine, and return the file's path.
+
+    The file is not read when `caches` holds every version: a file under the same key, written by this
+    engine, holds no other (a stale cache rebuilt whole, the common case, reads nothing)."""
     first = next(iter(caches.values()))
     path = cache_path(cache_dir, first.token)
     key = {"scene_hash": first.key.scene_hash, "engine_version": first.key.engine_version}
-    sections = _read_sections(path, key)
+    sections = {} if VERSIONS.keys() <= caches.keys() else _read_sections(path, key)
     sections |= {version: _cache_section(cache) for version, cache in caches.items()}
     write_atomically(path, _pack(key, sections), durable=False)  # a lost cache file is rebuilt
     return path

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import shapely
 
+from scorer import cache as scorer_cache
 from scorer import evaluate
 from scorer.cache import (
     MetricCache,
@@ -66,6 +67,23 @@ def test_round_trip_is_exact(tmp_path: Path, built: tuple[str, dict[str, MetricC
     together = load_caches(tmp_path, list(caches), token, scene_file_hash(path))
     for version, cache in caches.items():
         assert_same_cache(together[version], cache)
+
+
+def test_a_file_is_read_before_it_is_written_only_to_keep_versions_not_rewritten(
+    tmp_path: Path, built: tuple[str, dict[str, MetricCache]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    token, caches = built
+    reads: list[Path] = []
+    read_sections = scorer_cache._read_sections
+    monkeypatch.setattr(
+        scorer_cache, "_read_sections", lambda path, key: reads.append(path) or read_sections(path, key)
+    )
+    save_caches(caches, tmp_path)  # every version: the file's old content cannot survive
+    assert reads == [] and set(caches) == set(VERSIONS)
+    save_caches({"v1.1": caches["v1.1"]}, tmp_path)  # the other versions are kept
+    assert reads == [cache_path(tmp_path, token)]
+    path = scene_paths(REFERENCE)[token]
+    assert set(load_caches(tmp_path, list(caches), token, scene_file_hash(path))) == set(caches)
 
 
 def test_the_versions_share_what_they_share_on_disk(
