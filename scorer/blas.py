@@ -55,6 +55,9 @@ def select_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> None:
         os.environ["OPENBLAS_CORETYPE"] = DEVKIT_KERNELS
 
 
+_ONE_THREAD_PACKAGES = frozenset({"scipy"})  # whose OpenBLAS the engine loads with one thread
+
+
 def _bundled_openblas(package: str, prefix: str) -> ctypes.CDLL | None:
     """Return the OpenBLAS a package's manylinux wheel bundles in `<package>.libs` as `<prefix><hash>.so`
     (auditwheel's layout), loaded without importing the package; None when there is not exactly one.
@@ -77,9 +80,6 @@ def _bundled_openblas(package: str, prefix: str) -> ctypes.CDLL | None:
         return None
     with _one_blas_thread() if package in _ONE_THREAD_PACKAGES else nullcontext():
         return ctypes.CDLL(str(libraries / found[0]))
-
-
-_ONE_THREAD_PACKAGES = frozenset({"scipy"})  # whose OpenBLAS the engine loads with one thread
 
 
 @contextmanager

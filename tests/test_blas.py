@@ -173,7 +173,7 @@ def test_scipys_openblas_is_the_library_scipy_linalg_then_uses() -> None:
 
 
 THREADS = """
-import ctypes, json, os, sys, threading
+import json, os, sys, threading
 import scorer
 from scorer.blas import blas_kernels
 if sys.argv[1] == "main":
