@@ -74,7 +74,11 @@ def read_trajectories(storage_dir: Path, name: str, sha256: str) -> tuple[dict[s
     """Return each seed's token -> poses of the stored file `name` as parsed at upload, or None when there is no
     intact copy parsed from bytes hashing to `sha256`."""
     try:
-        with np.load(_trajectories_path(storage_dir, name), allow_pickle=False) as stored:
+        # Opened here, not by np.load: np.load leaves its own file open when the archive is damaged.
+        with (
+            _trajectories_path(storage_dir, name).open("rb") as file,
+            np.load(file, allow_pickle=False) as stored,
+        ):
             if str(stored["sha256"]) != sha256:
                 return None
             seeds = []

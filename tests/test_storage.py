@@ -7,6 +7,7 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from server.storage import TRAJECTORIES_SUFFIX, read_file, read_trajectories, store_file, store_trajectories
 
@@ -47,6 +48,7 @@ def test_the_parsed_trajectories_read_back_bit_for_bit(tmp_path: Path) -> None:
         assert all(stored[t].tobytes() == written[t].tobytes() and stored[t].shape == (8, 3) for t in written)
 
 
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")  # a file left open
 def test_a_missing_damaged_or_foreign_copy_is_not_read(tmp_path: Path) -> None:
     assert read_trajectories(tmp_path, "ab/abc", "abc") is None
     store_trajectories(tmp_path, "ab/abc", "abc", _trajectories())
