@@ -5,6 +5,8 @@ FAULT_POISON_TOKEN: a chunk holding this token kills its own process (SIGKILL), 
 kernel's out-of-memory killer would, every time.
 FAULT_HANG_TOKEN: a chunk holding this token hangs where Celery's soft time limit cannot interrupt it
 (as C code that never returns to Python), so only the hard time limit stops it.
+FAULT_PLAN_SECONDS, FAULT_REAP_SECONDS: planning a submission's chunks, and each pass of the reaper, take this
+much longer (a slow database), so that a test can hold them past the chunks' soft time limit.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from worker.app import app
 
 __all__ = ["app"]
 _score_seeds = worker.tasks.score_seeds
+_plan_chunks = worker.tasks.plan_chunks
+_prune_embedded_broker = worker.tasks.prune_embedded_broker
 
 
 def _faulty_score_seeds(
@@ -40,4 +44,16 @@ def _faulty_score_seeds(
     return _score_seeds(split_dir, cache_dir, seeds, versions, tokens, context=context)
 
 
+def _slow_plan_chunks(*args: Any) -> Any:
+    time.sleep(float(os.environ.get("FAULT_PLAN_SECONDS", "0")))
+    return _plan_chunks(*args)
+
+
+def _slow_prune_embedded_broker(settings: Any) -> int:
+    time.sleep(float(os.environ.get("FAULT_REAP_SECONDS", "0")))
+    return _prune_embedded_broker(settings)
+
+
 worker.tasks.score_seeds = _faulty_score_seeds
+worker.tasks.plan_chunks = _slow_plan_chunks
+worker.tasks.prune_embedded_broker = _slow_prune_embedded_broker

@@ -37,14 +37,14 @@ from scorer.evaluate import score_tokens
 from scorer.submission import dump_submission_json, load_submission
 from server.db import transaction
 from server.models import FailureKind, Result, Status, Submission, utc_now
-from server.queue import celery_client, enqueue_submission
+from server.queue import SCORE_TASK, celery_client, enqueue_submission
 from server.services.chunks import plan_chunks
 from server.services.leaderboard import subscore_columns
 from server.services.scoring import BOARD_VERSIONS as VERSIONS
 from server.services.scoring import ScoringJob, claim_submission
 from server.services.splits import create_phase, register_split
 from server.storage import store_file, store_trajectories
-from worker.app import CHUNK_TASK
+from worker.app import CHUNK_TASK, REAP_TASK, SOFT_LIMIT_MARGIN_S, app
 from worker.tasks import ENGINE_FAILURE, Rejected, _predictions
 
 PROBES = Path(__file__).parent / "fixtures" / "epdms" / "probes"
@@ -70,6 +70,17 @@ def service(
         overrides |= {"DATABASE_URL": database_url, "BROKER_URL": REDIS_URL, "QUEUE_NAME": queue}
         with running_service(root, synthetic_split, overrides) as running:
             yield running
+
+
+def test_only_scoring_a_chunk_has_a_soft_time_limit() -> None:
+    """The planner and the reaper write to the broker; an exception raised inside such a write can leave the
+    embedded broker's file locked, so only the hard limit (which kills the process) stops them."""
+    limit = app.conf.task_time_limit
+    chunk, planner, reaper = (app.tasks[name] for name in (CHUNK_TASK, SCORE_TASK, REAP_TASK))
+    assert chunk.soft_time_limit == limit - SOFT_LIMIT_MARGIN_S
+    assert planner.soft_time_limit is None and reaper.soft_time_limit is None
+    assert app.conf.task_soft_time_limit is None
+    assert chunk.time_limit == planner.time_limit == reaper.time_limit == limit
 
 
 def _chunks_ended(service: Service, submission_id: int) -> int:

@@ -176,7 +176,15 @@ def test_a_chunk_past_the_hard_time_limit_fails_the_run_refunded(
     tmp_path: Path, synthetic_split: SplitFixture
 ) -> None:
     entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method="hangs")
-    faults = {"FAULT_HANG_TOKEN": min(entry.seeds[0]), "TASK_TIME_LIMIT": "31", "REAPER_INTERVAL": "2"}
+    # A 31 s limit leaves chunks a 1 s soft limit; planning and the reaper outlast it, and must not be cut by
+    # it (an exception raised inside a broker write can leave the embedded broker's file locked).
+    faults = {
+        "FAULT_HANG_TOKEN": min(entry.seeds[0]),
+        "TASK_TIME_LIMIT": "31",
+        "REAPER_INTERVAL": "2",
+        "FAULT_PLAN_SECONDS": "1.5",
+        "FAULT_REAP_SECONDS": "1.5",
+    }
     with running_service(tmp_path, synthetic_split, faults, faults=True) as service:
         uploaded = time.monotonic()
         submission_id = service.upload(entry)

@@ -32,6 +32,11 @@ SOFT_LIMIT_MARGIN_S = 30.0
 EMBEDDED_POLL_S = 0.1
 
 
+def chunk_soft_time_limit(settings: Settings) -> float:
+    """Return the soft time limit of a chunk: it stops itself and fails its run cleanly before the hard limit."""
+    return settings.task_time_limit - SOFT_LIMIT_MARGIN_S
+
+
 @worker_process_init.connect
 def _lower_priority(**_: object) -> None:
     os.nice(SCORING_NICENESS)
@@ -66,7 +71,10 @@ def create_celery(settings: Settings) -> Celery:
         task_reject_on_worker_lost=not is_embedded_broker(settings),
         worker_prefetch_multiplier=1,
         task_time_limit=settings.task_time_limit,
-        task_soft_time_limit=settings.task_time_limit - SOFT_LIMIT_MARGIN_S,
+        # Only scoring a chunk has a soft limit. It arrives as an exception raised wherever the task is: in
+        # planning or the reaper, that is inside a broker write, which can leave the embedded broker's file
+        # locked by the process for every other one. The hard limit kills the process, which frees it.
+        task_annotations={CHUNK_TASK: {"soft_time_limit": chunk_soft_time_limit(settings)}},
         task_ignore_result=True,
         beat_schedule={
             "reap-lost-work": {

@@ -74,7 +74,7 @@ from server.services.scoring import (
 from server.services.splits import split_tokens
 from server.settings import get_settings
 from server.storage import read_file, read_trajectories
-from worker.app import CHUNK_TASK, REAP_TASK, app
+from worker.app import CHUNK_TASK, REAP_TASK, app, chunk_soft_time_limit
 from worker.heartbeat import beating
 
 log = get_task_logger(__name__)
@@ -211,7 +211,7 @@ def _guarded(submission_id: int, run: int, work: Callable[[], str]) -> str:
     except Rejected as rejection:
         kind, message, detail = rejection.kind, rejection.message, rejection.detail
     except SoftTimeLimitExceeded:
-        limit = app.conf.task_soft_time_limit
+        limit = chunk_soft_time_limit(get_settings())
         kind, message, detail = (
             FailureKind.infrastructure,
             f"scoring a chunk took longer than the time limit of {limit:.0f} s",
