@@ -15,6 +15,11 @@ from scorer.scene import scene_paths
 # The shared fixtures, registered here (before any test module imports them) so their asserts are rewritten.
 pytest_plugins = ["server_testing", "worker_testing"]
 
+# pytest-xdist's workers start with COLUMNS=80 and LINES=24: rich's consoles, made at import, would keep that
+# width, and the tests that ask CliRunner for a wider terminal would not get it. A run is alike on one process.
+for _variable in ("COLUMNS", "LINES"):
+    os.environ.pop(_variable, None)
+
 settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
@@ -31,3 +36,9 @@ def one_token_split(tmp_path: Path) -> tuple[Path, Path]:
     submission["predictions"] = {token: submission["predictions"][token]}
     (tmp_path / "submission.json").write_text(json.dumps(submission))
     return tmp_path / "split", tmp_path / "submission.json"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Put the fault tests first: they wait (kills, outages, time limits) more than they compute, so on
+    `make test`'s two processes they overlap the rest of the suite instead of following it."""
+    items.sort(key=lambda item: item.path.name != "test_worker_faults.py")  # stable: the rest keep order
