@@ -22,13 +22,14 @@ demo: install
 	PORT=$(PORT) $(BIN)/navsim-lb demo
 
 ## make test: everything CI runs (.ci/run calls exactly this): lint, types, the tests, the regression goldens.
-## The suite runs on two processes, a module to each (module fixtures start once); the fault tests go first,
-## so that their waits (kills, outages, deadlines) overlap the rest; the slowest tests are listed.
+## The suite runs on two processes, a module to each (module fixtures start once), in the collected order: the
+## fault tests go first (tests/conftest.py), so that their waits (kills, outages, deadlines) overlap the rest.
+## The slowest tests are listed.
 test: install services browser
 	$(BIN)/ruff check --quiet .
 	$(BIN)/ruff format --check --quiet .
 	$(BIN)/mypy
-	$(BIN)/pytest -q -p no:cacheprovider -n 2 --dist loadscope --durations=15
+	$(BIN)/pytest -q -p no:cacheprovider -n 2 --dist loadscope --no-loadscope-reorder --durations=15
 	$(BIN)/navsim-lb regress
 
 ## PostgreSQL and Redis must answer for the service tests; start them when they do not.
