@@ -7,12 +7,14 @@ from typing import Any
 from celery import Celery
 from kombu.exceptions import ChannelError
 from sqlalchemy import create_engine, inspect, text
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.pool import NullPool
 
 from server.settings import Settings, get_settings
 
 SCORE_TASK = "worker.tasks.score_submission"
 SQLITE_BROKER_TIMEOUT_S = 30.0
+PRUNE_LOCK_WAIT_S = 2.0  # pruning is housekeeping: a file locked longer than this is pruned at a later pass
 KOMBU_MESSAGE_TABLE = "kombu_message"  # kombu's default; we never set `message_tablename`
 _clients: dict[tuple[str, str, float], Celery] = {}
 
@@ -94,17 +96,23 @@ def prune_embedded_broker(settings: Settings) -> int:
 
     kombu's SQL transport only hides a message it delivers (it has no acknowledgement to wait for), so
     without this its file grows with every task ever sent. Other brokers delete messages themselves.
+    A file another process keeps locked for PRUNE_LOCK_WAIT_S is left as it is (0): the messages wait for a
+    later pass, and the caller's work does not wait on them.
     """
     database = _embedded_broker_database(settings.broker_url)
     if database is None:
         return 0
-    engine = create_engine(database, poolclass=NullPool, connect_args={"timeout": SQLITE_BROKER_TIMEOUT_S})
+    engine = create_engine(database, poolclass=NullPool, connect_args={"timeout": PRUNE_LOCK_WAIT_S})
     try:
         with engine.begin() as connection:
             if not inspect(connection).has_table(KOMBU_MESSAGE_TABLE):
                 return 0
             deleted = connection.execute(text(f"DELETE FROM {KOMBU_MESSAGE_TABLE} WHERE visible = 0"))
             return deleted.rowcount
+    except OperationalError as error:
+        if "database is locked" in str(error.orig):
+            return 0
+        raise
     finally:
         engine.dispose()
 

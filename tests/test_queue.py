@@ -4,6 +4,8 @@ the waiting tasks changes nothing on the broker unless the reaper asks it to dec
 from __future__ import annotations
 
 import os
+import sqlite3
+import time
 from pathlib import Path
 
 import pytest
@@ -11,7 +13,13 @@ import redis
 from kombu import Connection
 
 from navsim_lb.scratch import scratch_redis_queue
-from server.queue import SCORE_TASK, celery_client, prune_embedded_broker, waiting_tasks
+from server.queue import (
+    SCORE_TASK,
+    SQLITE_BROKER_TIMEOUT_S,
+    celery_client,
+    prune_embedded_broker,
+    waiting_tasks,
+)
 from server.settings import Settings
 
 
@@ -31,6 +39,27 @@ def test_pruning_deletes_delivered_messages_and_keeps_waiting_ones(tmp_path: Pat
         waiting = queue.get(timeout=5)
         assert waiting.headers["argsrepr"] == "[2]"
         queue.close()
+
+
+def test_pruning_leaves_a_file_another_process_keeps_locked_for_a_later_pass(tmp_path: Path) -> None:
+    settings = Settings(DATA_DIR=tmp_path)
+    celery_client(settings).send_task("worker.tasks.score_submission", args=[1])
+    with Connection(settings.broker_url) as connection:
+        queue = connection.SimpleQueue(settings.queue_name)
+        queue.get(timeout=5).ack()
+        queue.close()
+    holder = sqlite3.connect(tmp_path / "broker.sqlite", isolation_level=None)
+    holder.execute("BEGIN EXCLUSIVE")  # as a process stuck inside a write would hold it
+    try:
+        started = time.monotonic()
+        assert prune_embedded_broker(settings) == 0
+        assert (
+            time.monotonic() - started < SQLITE_BROKER_TIMEOUT_S
+        )  # gave up long before a broker write would
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+    assert prune_embedded_broker(settings) == 1  # the next pass prunes it
 
 
 def test_pruning_leaves_other_brokers_alone(tmp_path: Path) -> None:

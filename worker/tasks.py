@@ -336,9 +336,6 @@ def reap_lost_work() -> dict[str, list[int]]:
     """Re-send what died or what the broker lost, and fail what cannot finish (see the module docstring)."""
     settings = get_settings()
     sessions = _sessions(settings.database_url)
-    pruned = prune_embedded_broker(settings)
-    if pruned:
-        log.info("reaper: deleted %d delivered messages from the embedded broker", pruned)
     now = utc_now()
     chunks: list[tuple[int, int, int]] = []
     submissions: list[int] = []
@@ -390,4 +387,8 @@ def reap_lost_work() -> dict[str, list[int]]:
         score_submission.delay(submission_id)
     if chunks or submissions or failed:
         log.warning("reaper: re-sent chunks %s and submissions %s, failed %s", chunks, submissions, failed)
+    # Housekeeping last: the work above (failing a run past the hard limit above all) never waits on it.
+    pruned = prune_embedded_broker(settings)
+    if pruned:
+        log.info("reaper: deleted %d delivered messages from the embedded broker", pruned)
     return {"chunks": [chunk_id for _, _, chunk_id in chunks], "submissions": submissions, "failed": failed}
