@@ -39,7 +39,7 @@ class Settings(BaseSettings):
     # 1.17x at 768); more cost memory (about 270-360 MiB per pool process at 384, 390-420 at 768) and work lost
     # with a killed process.
     chunk_size: int = Field(384, ge=1, validation_alias="CHUNK_SIZE")
-    # Hard limit of one task; the soft limit (the task's own clean failure) comes 30 s earlier.
+    # Hard limit of one task; a chunk's soft limit (its own clean failure) comes 30 s earlier (worker.app).
     task_time_limit: float = Field(600.0, gt=30, validation_alias="TASK_TIME_LIMIT")
     # A pass costs a few queries: often enough that a lost chunk is re-sent within seconds of its last beat.
     reaper_interval: float = Field(10.0, gt=0, validation_alias="REAPER_INTERVAL")

@@ -53,9 +53,8 @@ def test_pruning_leaves_a_file_another_process_keeps_locked_for_a_later_pass(tmp
     try:
         started = time.monotonic()
         assert prune_embedded_broker(settings) == 0
-        assert (
-            time.monotonic() - started < SQLITE_BROKER_TIMEOUT_S
-        )  # gave up long before a broker write would
+        # It gave up long before a broker write would have.
+        assert time.monotonic() - started < SQLITE_BROKER_TIMEOUT_S
     finally:
         holder.execute("ROLLBACK")
         holder.close()
