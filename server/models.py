@@ -268,6 +268,11 @@ class ChunkState(StrEnum):
     failed = "failed"  # one token whose workers died with it twice: written as failed rows
 
 
+LIVE_CHUNK_STATES = (ChunkState.queued, ChunkState.running)
+# Their rows are written: scored (done), or written as failed (a poisoned token).
+FINISHED_CHUNK_STATES = (ChunkState.done, ChunkState.failed)
+
+
 class ScoringChunk(Base):
     """Some tokens of one run, scored by one task: the SQL record the reaper holds the broker to.
 
@@ -319,7 +324,7 @@ class TokenResultRow(MetricColumns, Base):
     __tablename__ = "token_results"
     __table_args__ = (
         UniqueConstraint("submission_id", "metric_version", "seed", "token"),
-        # Which of a chunk's tokens are scored (server.services.scoring.completed_tokens).
+        # Which of a chunk's tokens are scored (server.runs._run.completed_tokens).
         Index("ix_token_results_submission_token", "submission_id", "token"),
     )
 

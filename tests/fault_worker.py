@@ -17,12 +17,14 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+import scorer.evaluate
+import server.runs._plan
 import worker.tasks
 from worker.app import app
 
 __all__ = ["app"]
-_score_seeds = worker.tasks.score_seeds
-_plan_chunks = worker.tasks.plan_chunks
+_score_seeds = scorer.evaluate.score_seeds
+_plan_chunks = server.runs._plan.plan_chunks
 _prune_embedded_broker = worker.tasks.prune_embedded_broker
 
 
@@ -54,6 +56,6 @@ def _slow_prune_embedded_broker(settings: Any) -> int:
     return _prune_embedded_broker(settings)
 
 
-worker.tasks.score_seeds = _faulty_score_seeds
-worker.tasks.plan_chunks = _slow_plan_chunks
+scorer.evaluate.score_seeds = _faulty_score_seeds  # server.runs imports it where it scores
+server.runs._plan.plan_chunks = _slow_plan_chunks
 worker.tasks.prune_embedded_broker = _slow_prune_embedded_broker

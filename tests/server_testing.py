@@ -215,7 +215,7 @@ def score_run(
     chunk: int = 16,
 ) -> None:
     """Play a worker: claim, write every (version, seed) in chunks through the services, then mark scored."""
-    from server.services.scoring import claim_submission, mark_scored, write_chunk_results
+    from server.runs import claim_submission, mark_scored, write_chunk_results
 
     with transaction(factory) as session:
         run = claim_submission(session, submission_id, "test-worker")
@@ -240,7 +240,7 @@ def score_run(
 
 def claimed_submission(world: World, payload: bytes) -> Submission:
     """Create a submission through the services and claim it as a worker would (status running, run 1)."""
-    from server.services.scoring import claim_submission
+    from server.runs import claim_submission
     from server.services.submissions import create_submission
 
     with transaction(world.factory) as session:

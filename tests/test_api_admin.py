@@ -173,7 +173,7 @@ def test_export_lists_every_scored_submission_with_flags(world: World) -> None:
 
 def test_admin_sees_failures_in_detail_teams_only_the_summary(world: World) -> None:
     from server.models import FailureKind
-    from server.services.scoring import claim_submission, mark_failed
+    from server.runs import claim_submission, mark_failed
 
     with transaction(world.factory) as session:
         submission, _ = create_submission(

@@ -25,11 +25,17 @@ from scorer.evaluate import TokenResult
 from scorer.versions import EPDMS_COLUMNS, VERSIONS
 from server.db import transaction
 from server.models import Submission, utc_now
-from server.services.leaderboard import bootstrap_ci, bootstrap_cis, rank_change_report
-from server.services.scoring import claim_submission, mark_scored, write_chunk_results
+from server.runs import claim_submission, mark_scored, write_chunk_results
+from server.runs._aggregate import bootstrap_cis
+from server.services.leaderboard import rank_change_report
 from server.services.submissions import add_baselines, create_submission
 
 TOKENS = reference_tokens()
+
+
+def bootstrap_ci(token_scores: np.ndarray, samples: int) -> tuple[float, float]:
+    """The bootstrap 95% interval of one series' mean (the runs compute every version's at once)."""
+    return bootstrap_cis(token_scores[np.newaxis], samples)[0]
 
 
 def _board(world: World, **params: str) -> dict:

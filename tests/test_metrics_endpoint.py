@@ -8,8 +8,8 @@ from server_testing import World, claimed_submission, submit_scored, uniform
 
 from server.db import transaction
 from server.models import FailureKind, Submission
-from server.services.chunks import plan_chunks
-from server.services.scoring import mark_failed
+from server.runs import mark_failed
+from server.runs._plan import plan_chunks
 
 
 def _samples(world: World) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:

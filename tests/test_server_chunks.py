@@ -12,19 +12,11 @@ from scorer.evaluate import pairing_contexts
 from scorer.scene import scene_start
 from server.db import transaction
 from server.models import ChunkState, ScoringChunk, Submission, utc_now
-from server.services.chunks import (
-    POISON_DEATHS,
-    StartAction,
-    beat_chunk,
-    dead_chunks,
-    finish_chunk,
-    forgotten_chunks,
-    live_chunks,
-    plan_chunks,
-    resend_chunk,
-    start_chunk,
-)
-from server.services.scoring import cancel
+from server.runs import POISON_DEATHS, StartAction, beat_chunk, cancel, start_chunk
+from server.runs._chunks import dead_chunks, forgotten_chunks, resend_chunk
+from server.runs._finish import live_chunks
+from server.runs._plan import plan_chunks
+from server.runs._rows import finish_chunk
 from server.services.splits import scene_starts
 from server.services.workers import LIVE_WITHIN_S
 

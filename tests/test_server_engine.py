@@ -15,8 +15,8 @@ from server_testing import REFERENCE_DIR, REFERENCE_SUBMISSIONS, World, phase_ro
 
 from scorer.evaluate import score_tokens
 from server.db import transaction
+from server.runs import claim_submission, mark_scored, write_chunk_results
 from server.services.leaderboard import subscore_columns
-from server.services.scoring import claim_submission, mark_scored, write_chunk_results
 from server.services.submissions import create_submission
 
 FAMILY = "lane_change"

@@ -15,9 +15,9 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.db import transaction
 from server.migrate import upgrade
 from server.models import FailureKind, Submission, utc_now
+from server.runs import cancel, claim_submission, mark_failed
 from server.services.errors import Conflict, Forbidden, QuotaExceeded
 from server.services.quota import next_utc_midnight, quota_usage
-from server.services.scoring import cancel, claim_submission, mark_failed
 from server.services.submissions import create_submission
 from server.services.teams import set_team_quota
 

@@ -30,22 +30,21 @@ from scorer.evaluate import TokenResult
 from server.db import transaction
 from server.migrate import upgrade
 from server.models import ChunkState, Result, ScoringChunk, Status, Submission, TokenResultRow, utc_now
-from server.services.chunks import finish_chunk, plan_chunks
-from server.services.errors import Conflict
-from server.services.scoring import (
+from server.runs import (
     BOARD_VERSIONS,
     cancel,
     claim_submission,
-    completed_tokens,
-    finish_if_complete,
-    load_job,
     mark_scored,
-    requeue,
     reset_for_rerun,
-    stale_queued,
-    stalled_runs,
     write_chunk_results,
 )
+from server.runs._finish import finish_if_complete
+from server.runs._job import load_job
+from server.runs._plan import plan_chunks
+from server.runs._reaper import requeue, stale_queued, stalled_runs
+from server.runs._rows import finish_chunk
+from server.runs._run import completed_tokens
+from server.services.errors import Conflict
 from server.services.submissions import create_submission
 from server.storage import read_file
 

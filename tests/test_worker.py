@@ -38,15 +38,16 @@ from scorer.submission import dump_submission_json, load_submission
 from server.db import transaction
 from server.models import FailureKind, Result, Status, Submission, utc_now
 from server.queue import SCORE_TASK, celery_client, enqueue_submission
-from server.services.chunks import plan_chunks
+from server.runs import BOARD_VERSIONS as VERSIONS
+from server.runs import Rejected, ScoringJob, claim_submission
+from server.runs._job import trajectories
+from server.runs._plan import plan_chunks
 from server.services.leaderboard import subscore_columns
-from server.services.scoring import BOARD_VERSIONS as VERSIONS
-from server.services.scoring import ScoringJob, claim_submission
 from server.services.splits import create_phase, register_split
 from server.settings import get_settings
 from server.storage import store_file, store_trajectories
 from worker.app import CHUNK_TASK, REAP_TASK, SOFT_LIMIT_MARGIN_S, app
-from worker.tasks import ENGINE_FAILURE, Rejected, _predictions
+from worker.tasks import ENGINE_FAILURE
 
 PROBES = Path(__file__).parent / "fixtures" / "epdms" / "probes"
 REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
@@ -317,17 +318,17 @@ def test_a_process_reads_the_file_of_a_run_once_and_of_a_new_run_again(
         seed_count=2,
         versions=VERSIONS,
     )
-    parsed = _predictions(job, tmp_path)
+    parsed = trajectories(job, tmp_path)
     assert len(parsed) == 2
     (tmp_path / job.stored_name).unlink()
-    assert _predictions(job, tmp_path) is parsed  # the run's next chunk
+    assert trajectories(job, tmp_path) is parsed  # the run's next chunk
     with pytest.raises(Rejected, match="missing"):
-        _predictions(dataclasses.replace(job, run=2), tmp_path)
+        trajectories(dataclasses.replace(job, run=2), tmp_path)
     # With the trajectories its upload's check parsed, a run reads those instead of parsing the file (which
     # must still be there, intact).
     store_file(tmp_path, sha256, data)
     store_trajectories(tmp_path, job.stored_name, sha256, parsed[:1])  # one seed: told apart from the file
-    copied = _predictions(dataclasses.replace(job, run=3), tmp_path)
+    copied = trajectories(dataclasses.replace(job, run=3), tmp_path)
     assert len(copied) == 1 and list(copied[0]) == list(parsed[0])  # the copy's one seed, not the file's two
     assert all(np.array_equal(copied[0][t], parsed[0][t]) for t in parsed[0])
 

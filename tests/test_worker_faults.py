@@ -35,8 +35,8 @@ from navsim_lb.scratch import scratch_redis_queue
 from scorer.submission import Submission as Predictions
 from server.main import DATABASE_DOWN
 from server.models import ChunkState, FailureKind, ScoringChunk, Status, Summary, TokenResultRow
-from server.services.scoring import BOARD_VERSIONS as VERSIONS
-from worker.tasks import POISONED_TOKEN
+from server.runs import BOARD_VERSIONS as VERSIONS
+from server.runs._score import POISONED_TOKEN
 
 REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
 # The promise: a killed worker costs a submission at most two minutes, with the default settings.

@@ -5,7 +5,7 @@ uses can say who runs. A consumer bootstep starts one thread per worker (the mai
 it records the worker at start and every HEARTBEAT_SECONDS, keeps going through database outages (a beat
 that fails is logged and retried), and removes the worker when it stops. The pool process scoring a chunk
 beats for that chunk the same way (`beating`): when the process dies, whatever killed it, the beat stops
-and the reaper sends the chunk again (server.services.chunks).
+and the reaper sends the chunk again (server.runs).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.db import make_engine, make_session_factory, transaction
 from server.models import utc_now
-from server.services.chunks import beat_chunk
+from server.runs import beat_chunk
 from server.services.workers import HEARTBEAT_SECONDS, forget_worker, record_heartbeat
 from server.settings import get_settings
 

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 
 from scorer.versions import get_version
 from server.models import Phase, Result, Submission, Summary, TokenResultRow
+from server.runs import BOARD_VERSIONS
 from server.schemas import (
     AdminSubmissionOut,
     PhaseOut,
@@ -20,7 +21,6 @@ from server.schemas import (
     TokenRow,
 )
 from server.services.leaderboard import subscore_columns, summary_figures
-from server.services.scoring import BOARD_VERSIONS
 from server.services.splits import is_open, subset_tokens, visible_subsets
 
 

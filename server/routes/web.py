@@ -17,8 +17,8 @@ from server.auth import SessionDep
 from server.models import Phase
 from server.routes.params import RowId
 from server.routes.public import cached_board
+from server.runs import BOARD_VERSIONS
 from server.services.errors import ServiceError
-from server.services.scoring import BOARD_VERSIONS
 
 # Templates and static assets are package data of `server.web`: the same lookup in a checkout and a wheel.
 WEB_DIR = Path(str(files("server.web")))

@@ -30,9 +30,9 @@ from server.models import (
     Team,
     TeamQuota,
 )
+from server.runs import cancel, reset_for_rerun
 from server.services.errors import Conflict, NotFound
 from server.services.leaderboard import leaderboard, phase_summaries, rank_change_report, subscore_columns
-from server.services.scoring import cancel, reset_for_rerun
 from server.services.splits import create_phase, register_split, split_by_name
 from server.services.submissions import add_baselines, get_submission
 from server.services.teams import create_team, set_approval, set_team_quota

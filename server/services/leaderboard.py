@@ -1,28 +1,28 @@
-"""Leaderboard aggregation: per-token rows -> per-seed results -> entries with multi-seed spread and bootstrap CI.
-
-Means follow `scorer.evaluate.summarize`: every token of the subset counts, a token that could not be
-scored counting 0, and the number of such tokens is reported.
-"""
+"""The leaderboard as it is read: per team its selected (else best) entry and the baselines, ranked by score
+with statistical ties, and the rank changes between two rankings. Runs write the summaries it reads
+(server.runs)."""
 
 from __future__ import annotations
 
-import math
-from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from sqlalchemy import case, delete, func, or_, select
+from sqlalchemy import case, func, or_, select
 from sqlalchemy.orm import Session
 
-from scorer.metrics.aggregation import defined_mean
 from scorer.versions import ALL_RESULT_COLUMNS, get_version
-from server.models import Phase, Result, Status, Submission, Summary, Team, TokenResultRow
-from server.services.errors import Invalid
+from server.models import Phase, Status, Submission, Summary, Team
+from server.services.errors import Forbidden, Invalid, NotFound
+from server.services.splits import (
+    ALL_SUBSET,
+    PUBLIC_SUBSET,
+    has_closed,
+    resolve_phase,
+    subset_names,
+    visible_subsets,
+)
 
-BOOTSTRAP_SEED = 20240915  # fixed: the same rows always give the same interval
-BOOTSTRAP_BATCH = 256
 HIDDEN_STATUSES = (Status.failed, Status.cancelled)
 
 
@@ -33,228 +33,6 @@ def subscore_columns(version: str) -> tuple[str, ...]:
     except ValueError as error:
         raise Invalid(str(error), [{"token": None, "field": "version", "message": str(error)}]) from None
     return tuple(column for column in columns if column != "score")
-
-
-def bootstrap_cis(
-    token_scores: np.ndarray, samples: int, seed: int = BOOTSTRAP_SEED
-) -> list[tuple[float, float]]:
-    """Return the percentile bootstrap 95% interval of the mean of each row of `token_scores` (series, tokens),
-    resampling tokens.
-
-    Every row gets the same resamples, drawn once: the draws depend only on the seed and the number of
-    tokens, and a navtest-size draw (2000 x 12,000) costs more than the means it feeds.
-    """
-    series, count = token_scores.shape
-    if count == 0:
-        return [(float("nan"), float("nan"))] * series
-    rng = np.random.default_rng(seed)
-    means = np.empty((series, samples))
-    for start in range(0, samples, BOOTSTRAP_BATCH):
-        stop = min(start + BOOTSTRAP_BATCH, samples)
-        drawn = rng.integers(0, count, size=(stop - start, count))
-        for row, scores in enumerate(token_scores):  # a row at a time: (series, draws, tokens) sums otherwise
-            means[row, start:stop] = scores[drawn].mean(axis=1)
-    low, high = np.percentile(means, [2.5, 97.5], axis=1)
-    return [(float(lo), float(hi)) for lo, hi in zip(low, high, strict=True)]
-
-
-def bootstrap_ci(token_scores: np.ndarray, samples: int, seed: int = BOOTSTRAP_SEED) -> tuple[float, float]:
-    """Return the percentile bootstrap 95% interval of the mean of `token_scores` (resampling tokens)."""
-    return bootstrap_cis(token_scores[np.newaxis], samples, seed)[0]
-
-
-@dataclass(frozen=True)
-class _SeedRows:
-    """A run's rows of one (metric version, seed) as arrays, in the order the database gave them."""
-
-    position: dict[str, int]  # token -> its row
-    # (rows + 1, ALL_RESULT_COLUMNS): a null value as NaN, every value of an invalid row 0; the last row, all 0
-    # and invalid, stands for a token without a row (never scored: it counts as a failed token).
-    values: np.ndarray
-    valid: np.ndarray
-    workers: np.ndarray  # (rows,) of str
-    durations: np.ndarray  # (rows,)
-
-    @classmethod
-    def of(
-        cls,
-        tokens: Sequence[str],
-        valid: np.ndarray,
-        workers: np.ndarray,
-        durations: np.ndarray,
-        values: np.ndarray,
-    ) -> _SeedRows:
-        """Return the rows of `tokens`, each with its validity, worker, duration and values (ALL_RESULT_COLUMNS)."""
-        valid = np.append(valid.astype(bool), False)
-        values = np.concatenate([values, np.zeros((1, len(ALL_RESULT_COLUMNS)))])
-        values[~valid] = 0.0
-        position = dict(zip(tokens, range(len(tokens)), strict=True))
-        return cls(position, values, valid, workers, durations)
-
-    @classmethod
-    def empty(cls) -> _SeedRows:
-        """Return the rows of a (version, seed) without any: every token counts as failed."""
-        return cls.of(
-            [], np.zeros(0), np.zeros(0, dtype=object), np.zeros(0), np.zeros((0, len(ALL_RESULT_COLUMNS)))
-        )
-
-    def of_tokens(
-        self, tokens: Sequence[str], columns: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Return the `columns` (indices into ALL_RESULT_COLUMNS) of `tokens`' rows, (tokens, columns), their
-        validity, and the rows of those that have one."""
-        missing = len(self.durations)
-        at = np.array([self.position.get(token, missing) for token in tokens], dtype=np.intp)
-        return self.values[np.ix_(at, columns)], self.valid[at], at[at < missing]
-
-
-_ROW_COLUMNS = (
-    TokenResultRow.metric_version,
-    TokenResultRow.seed,
-    TokenResultRow.token,
-    TokenResultRow.valid,
-    TokenResultRow.worker,
-    TokenResultRow.duration_s,
-)
-
-
-def _seed_rows(session: Session, submission: Submission) -> dict[tuple[str, int], _SeedRows]:
-    """Return (metric version, seed) -> the current run's rows: the columns the aggregation reads, not the
-    rows' details. A navtest-size run has about 100,000: they are read as plain tuples (no ORM rows) and
-    turned into one array per column."""
-    query = select(*_ROW_COLUMNS, *(getattr(TokenResultRow, column) for column in ALL_RESULT_COLUMNS)).where(
-        TokenResultRow.submission_id == submission.id, TokenResultRow.run == submission.run
-    )
-    columns = list(zip(*session.connection().execute(query).all(), strict=True))
-    if not columns:
-        return {}
-    versions, seeds, tokens, valid, workers, durations = columns[: len(_ROW_COLUMNS)]
-    # Null values become NaN.
-    values = np.array(columns[len(_ROW_COLUMNS) :], dtype=object).astype(np.float64).T
-    valid_array, worker_array = np.array(valid, dtype=bool), np.array(workers, dtype=object)
-    duration_array = np.array(durations, dtype=np.float64)
-    grouped: dict[tuple[str, int], list[int]] = defaultdict(list)
-    for index, key in enumerate(zip(versions, seeds, strict=True)):
-        grouped[key].append(index)
-    return {
-        key: _SeedRows.of(
-            [tokens[index] for index in indices],
-            valid_array[indices],
-            worker_array[indices],
-            duration_array[indices],
-            values[indices],
-        )
-        for key, indices in grouped.items()
-    }
-
-
-def stored_value(value: float | None) -> float | None:
-    """Return a value as a result column holds it: undefined (NaN: v2.2's EC without a pair, or a mean no token
-    defines) or absent as null."""
-    return None if value is None or math.isnan(value) else value
-
-
-def aggregate_submission(
-    session: Session,
-    submission: Submission,
-    subsets: dict[str, list[str]],
-    engine_version: str,
-    bootstrap_samples: int,
-) -> None:
-    """Replace the results and summaries of a submission with those of its current run's per-token rows.
-
-    The means are `scorer.evaluate.summarize`'s to the bit: the same values in the same order (the subset's),
-    an unscored token 0 and an undefined value left out.
-    """
-    by_seed = _seed_rows(session, submission)
-    session.execute(delete(Result).where(Result.submission_id == submission.id))
-    session.execute(delete(Summary).where(Summary.submission_id == submission.id))
-    versions = sorted({version for version, _ in by_seed})
-    seeds = sorted({seed for _, seed in by_seed})
-    unscored = _SeedRows.empty()
-    for subset, tokens in subsets.items():
-        per_version = {}
-        for version in versions:
-            columns = get_version(version).result_columns
-            picked = np.array([ALL_RESULT_COLUMNS.index(column) for column in columns], dtype=np.intp)
-            per_seed = []
-            for seed in seeds:
-                rows = by_seed.get((version, seed), unscored)
-                values, valid, present = rows.of_tokens(tokens, picked)
-                per_seed.append((values, valid))
-                session.add(
-                    Result(
-                        submission_id=submission.id,
-                        metric_version=version,
-                        subset=subset,
-                        seed=seed,
-                        tokens=len(tokens),
-                        failed=int(np.count_nonzero(~valid)),
-                        engine_version=engine_version,
-                        split_hash=submission.split.content_hash,
-                        workers=",".join(sorted(set(rows.workers[present].tolist()))),
-                        duration_s=float(sum(rows.durations[np.sort(present)].tolist())),
-                        **{
-                            column: stored_value(defined_mean(values[:, at]))
-                            for at, column in enumerate(columns)
-                        },
-                    )
-                )
-            per_version[version] = _by_column(per_seed, columns), [valid for _, valid in per_seed], columns
-        # One resampling for every version: their seed-averaged token scores, one row each.
-        token_scores = np.array([by_column["score"].mean(axis=0) for by_column, _, _ in per_version.values()])
-        intervals = bootstrap_cis(token_scores.reshape(len(per_version), len(tokens)), bootstrap_samples)
-        for (version, (by_column, validity, columns)), interval in zip(
-            per_version.items(), intervals, strict=True
-        ):
-            session.add(_summary(submission.id, version, subset, by_column, validity, interval, columns))
-    session.flush()
-
-
-def _by_column(
-    per_seed: list[tuple[np.ndarray, np.ndarray]], columns: tuple[str, ...]
-) -> dict[str, np.ndarray]:
-    """Return column -> its values (seeds, tokens), unscored tokens as 0, from each seed's (values (tokens,
-    columns), validity)."""
-    return {
-        column: np.stack([seed_values[:, at] for seed_values, _ in per_seed])
-        for at, column in enumerate(columns)
-    }
-
-
-def _summary(
-    submission_id: int,
-    version: str,
-    subset: str,
-    values: dict[str, np.ndarray],
-    validity: list[np.ndarray],
-    interval: tuple[float, float],
-    columns: tuple[str, ...],
-) -> Summary:
-    """Combine the seeds of one (version, subset), `values` as `_by_column` gives them and each seed's token
-    `validity`: means, per-seed score spread, and `interval`, the CI of the seed-averaged token scores.
-
-    A column's mean skips undefined values (NaN) as `summarize` does; the score is defined on every token.
-    """
-    tokens = len(validity[0])
-    seed_scores = values["score"].mean(axis=1) if values["score"].size else np.full(len(validity), np.nan)
-    low, high = interval
-    failed_anywhere = np.zeros(tokens, dtype=bool)
-    for valid in validity:
-        failed_anywhere |= ~valid
-    return Summary(
-        submission_id=submission_id,
-        metric_version=version,
-        subset=subset,
-        seeds=len(validity),
-        score_std=float(np.std(seed_scores)),
-        score_max=float(np.max(seed_scores)),
-        ci_low=low,
-        ci_high=high,
-        tokens=tokens,
-        failed=int(np.count_nonzero(failed_anywhere)),
-        **{column: stored_value(defined_mean(values[column])) for column in columns},
-    )
 
 
 def summary_figures(summary: Any, columns: tuple[str, ...]) -> dict[str, Any]:
@@ -404,4 +182,37 @@ def rank_change_report(before: list[dict[str, Any]], after: list[dict[str, Any]]
         "entered": sorted(team for team in new if team not in old),
         "left": sorted(team for team in old if team not in new),
         "kendall_tau": tau,
+    }
+
+
+def leaderboard_view(
+    session: Session, version: str, subset: str | None, sort: str, phase_name: str | None, admin: bool = False
+) -> dict[str, Any]:
+    """Return the leaderboard body for the query (shared by the REST route and the web page)."""
+    phase = resolve_phase(session, phase_name)
+    columns = subscore_columns(version)
+    visible = visible_subsets(phase.split, phase, admin)
+    if subset is None:
+        subset = PUBLIC_SUBSET if PUBLIC_SUBSET in visible else ALL_SUBSET
+    known = subset_names(phase.split)
+    if subset not in known:
+        raise NotFound(f"split {phase.split.name!r} has no subset {subset!r}; it has {', '.join(known)}")
+    if subset not in visible:
+        closes = phase.closes_at.isoformat() if phase.closes_at else "an admin closes it"
+        raise Forbidden(
+            f"subset {subset!r} of phase {phase.name!r} is revealed when the phase closes ({closes})"
+        )
+    metric_version = get_version(version)
+    return {
+        "version": version,
+        "score_label": metric_version.score_label,
+        "official_code": metric_version.official_code,
+        "phase": phase.name,
+        "split": phase.split.name,
+        "subset": subset,
+        "subsets": visible,
+        "closed": has_closed(phase),
+        "sort": sort,
+        "columns": list(columns),
+        "rows": leaderboard(session, phase, version, subset, sort),
     }

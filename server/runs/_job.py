@@ -1,0 +1,149 @@
+"""What a chunk scores: its run as a job, the tokens still without rows, and the run's trajectories.
+
+A redelivered or re-dispatched chunk scores only the tokens missing from the rows; the tokens written
+already still pair with the rest for v2.2's two-frame comfort, as the chunk's context does.
+
+A process keeps the trajectories it read last (`trajectories`): every chunk of a run scores the same file.
+It reads them from the copy the upload's check parsed (server.storage): parsing a navtest-size file again
+(12,000 tokens x 3 seeds) costs as much as scoring a chunk.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+from sqlalchemy.orm import Session
+
+from scorer.geometry import FloatArray
+from scorer.scene import scene_paths
+from server.models import FailureKind, Submission
+from server.runs._chunks import ChunkStart, StartAction
+from server.runs._run import BOARD_VERSIONS, completed_tokens
+from server.services.errors import NotFound
+from server.storage import read_file, read_trajectories
+
+MAX_LISTED_PROBLEMS = 5
+# Parsed files a process keeps: the run it scores, and one more for the chunks of two runs interleaving.
+PARSED_FILES_KEPT = 2
+
+
+class Rejected(Exception):
+    """A run that cannot go on: `message` is shown to the team, `detail` only to admins."""
+
+    def __init__(self, kind: FailureKind, message: str, detail: str | None = None) -> None:
+        super().__init__(message)
+        self.kind, self.message, self.detail = kind, message, detail
+
+
+@dataclass(frozen=True)
+class ScoringJob:
+    """Everything a worker needs to score one run of a submission but the file's bytes, stored under
+    `stored_name`, and the split's tokens: both are large, and read only when the file is parsed."""
+
+    submission_id: int
+    run: int
+    filename: str
+    stored_name: str
+    sha256: str  # of the upload: the stored bytes must still match it
+    split_name: str
+    split_dir: Path
+    split_hash: str
+    seed_count: int
+    versions: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ChunkInputs:
+    """A chunk taken by its process: the run's job, the tokens to write and the tokens scored beside them."""
+
+    chunk_id: int
+    job: ScoringJob
+    todo: tuple[str, ...]  # the chunk's tokens without every row
+    context: tuple[str, ...]  # scored for EC to pair with, not written
+    poisoned: bool  # its one token killed its workers: written as failed, not scored
+
+
+def load_job(session: Session, submission_id: int) -> ScoringJob:
+    """Return the current run of a submission as a scoring job (its file named, not read)."""
+    submission = session.get(Submission, submission_id)
+    if submission is None:
+        raise NotFound(f"submission {submission_id} does not exist")
+    split = submission.split
+    return ScoringJob(
+        submission_id=submission.id,
+        run=submission.run,
+        filename=submission.filename,
+        stored_name=submission.stored_name,
+        sha256=submission.sha256,
+        split_name=split.name,
+        split_dir=Path(split.directory),
+        split_hash=split.content_hash,
+        seed_count=submission.seed_count,
+        versions=BOARD_VERSIONS,
+    )
+
+
+def chunk_inputs(session: Session, submission_id: int, run: int, start: ChunkStart) -> ChunkInputs | None:
+    """Return what the chunk `start` took has left to score; None when the run is no longer wanted."""
+    done = completed_tokens(session, submission_id, run, among=start.tokens)
+    if done is None:
+        return None
+    todo = tuple(token for token in start.tokens if token not in done)
+    return ChunkInputs(
+        chunk_id=start.chunk_id,
+        job=load_job(session, submission_id),
+        todo=todo,
+        context=(*start.context, *(token for token in start.tokens if token in done)),
+        poisoned=start.action == StartAction.poisoned and bool(todo),
+    )
+
+
+def _stored_file(job: ScoringJob, storage_dir: Path) -> bytes:
+    """Return the stored bytes of the run's file, or raise Rejected when they are missing or damaged."""
+    try:
+        data = read_file(storage_dir, job.stored_name)
+    except FileNotFoundError as error:
+        raise Rejected(
+            FailureKind.infrastructure, "the stored copy of this file is missing", str(error)
+        ) from None
+    if hashlib.sha256(data).hexdigest() != job.sha256:
+        raise Rejected(
+            FailureKind.infrastructure,
+            "the stored copy of this file is damaged (its sha256 differs from the upload)",
+            f"stored bytes of submission {job.submission_id} do not hash to {job.sha256}",
+        )
+    return data
+
+
+@lru_cache(maxsize=PARSED_FILES_KEPT)
+def trajectories(job: ScoringJob, storage_dir: Path) -> tuple[dict[str, FloatArray], ...]:
+    """Return each seed's trajectories of the run, or raise Rejected when its stored file is missing, damaged or
+    no longer fits the split. A run's file is checked and read once per process; an error is raised again each
+    time.
+
+    The trajectories come from the copy its upload's check parsed; without one (an upload stored before those
+    copies, or a copy lost) the file is parsed again.
+    """
+    # Imported here: the API imports this package, and loads the parser only when it checks an upload.
+    from scorer.submission import SubmissionError, coverage_problems, load_submission
+
+    data = _stored_file(job, storage_dir)
+    seeds = read_trajectories(storage_dir, job.stored_name, job.sha256)
+    if seeds is None:
+        try:
+            seeds = load_submission(data, job.filename).seeds
+        except SubmissionError as error:
+            listed = "; ".join(str(problem) for problem in error.problems[:MAX_LISTED_PROBLEMS])
+            raise Rejected(FailureKind.submission, f"the file cannot be read: {listed}") from None
+    problems = coverage_problems([list(seed) for seed in seeds], scene_paths(job.split_dir))
+    if problems:
+        # The file was checked against the split at upload: the split's tokens changed since.
+        raise Rejected(
+            FailureKind.infrastructure,
+            f"split {job.split_name} changed after the upload; the file no longer matches it",
+            "; ".join(str(problem) for problem in problems[:MAX_LISTED_PROBLEMS]),
+        )
+    return seeds

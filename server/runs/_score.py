@@ -1,0 +1,51 @@
+"""Scoring a chunk's tokens with the engine: every seed and version at once (a token's caches read once, each
+trajectory simulated once), or, for a token that killed its workers, failed rows naming the cause."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from time import perf_counter
+from typing import TYPE_CHECKING
+
+from server.runs._job import ChunkInputs, trajectories
+
+if TYPE_CHECKING:
+    from scorer.evaluate import TokenResult
+
+POISONED_TOKEN = (
+    "scoring this token stopped the worker process twice (a crash or running out of memory); "
+    "it was not scored and counts as a failed token"
+)
+
+
+@dataclass(frozen=True)
+class ScoredChunk:
+    """A chunk's rows per metric version, and the scoring time each version's rows share."""
+
+    rows: Mapping[str, Sequence[TokenResult]]
+    seconds_per_version: float
+    admin_note: str | None = None  # what admins read of the run's problems (the team sees per-token errors)
+
+
+def score_chunk(inputs: ChunkInputs, storage_dir: Path, cache_dir: Path) -> ScoredChunk:
+    """Score the chunk's tokens without rows (raises Rejected when the run's file cannot be used)."""
+    # The engine is heavy: the API imports this package without it.
+    from scorer.evaluate import TokenResult, score_seeds
+
+    job = inputs.job
+    if inputs.poisoned:
+        failed = [
+            TokenResult(token, seed, valid=False, error=POISONED_TOKEN)
+            for seed in range(job.seed_count)
+            for token in inputs.todo
+        ]
+        note = f"token {', '.join(inputs.todo)}: written as failed, {POISONED_TOKEN}"
+        return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
+    if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
+        return ScoredChunk({}, 0.0)
+    seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, storage_dir)))
+    started = perf_counter()
+    rows = score_seeds(job.split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
+    return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))
