@@ -13,15 +13,12 @@ from urllib.parse import quote
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import AdminDep, SessionDep
-from server.models import Approval, Status, Submission, Team
-from server.routes.params import PNG_RESPONSE, Offset, OptionalRowId, RowId, SceneToken, SeedIndex
-from server.routes.public import leaderboard_view
-from server.routes.views import phase_view, submission_views, token_result_views
+from server.models import Approval, Status, Submission
+from server.params import PNG_RESPONSE, Offset, OptionalRowId, RowId, SceneToken, SeedIndex
 from server.schemas import (
     AdminSubmissionOut,
     AuditOut,
@@ -43,10 +40,12 @@ from server.schemas import (
     TokenRow,
 )
 from server.services import admin as actions
+from server.services.leaderboard import leaderboard_view
 from server.services.pictures import scene_picture
+from server.services.presenters import phase_view, submission_views, token_result_views
 from server.services.splits import resolve_phase
 from server.services.submissions import get_submission, list_submissions
-from server.services.teams import get_team
+from server.services.teams import get_team, list_teams
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/admin", tags=["admin"])
@@ -63,10 +62,7 @@ def _enqueue(request: Request, submission_ids: Iterable[int]) -> None:
 @router.get("/teams")
 def teams(session: SessionDep, _admin: AdminDep) -> list[TeamOut]:
     """Every team, pending ones first."""
-    rows = session.scalars(select(Team).where(Team.is_system.is_(False)).order_by(Team.id)).all()
-    return [
-        TeamOut.model_validate(team) for team in sorted(rows, key=lambda t: t.approval != Approval.pending)
-    ]
+    return [TeamOut.model_validate(team) for team in list_teams(session)]
 
 
 @router.post("/teams", status_code=201)

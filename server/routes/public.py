@@ -2,27 +2,19 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
-from fastapi import APIRouter, FastAPI, Request
+from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
-from sqlalchemy import select, text
-from sqlalchemy.orm import Session
 
-from scorer.versions import DEFAULT_VERSION, VersionName, get_version
+from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import SessionDep, TokenDep
-from server.migrate import current_revision
-from server.models import Approval, Phase, Scope, Split
-from server.routes.params import PNG_RESPONSE, RowId, SceneToken, SeedIndex
-from server.routes.views import phase_view, submission_views, token_result_views
+from server.models import Approval, Scope
+from server.params import PNG_RESPONSE, RowId, SceneToken, SeedIndex
 from server.schemas import (
     HealthOut,
     LeaderboardOut,
     MeOut,
     PhaseOut,
-    QuotaOut,
     SplitOut,
     SubmissionOut,
     TeamIn,
@@ -30,78 +22,22 @@ from server.schemas import (
     TeamRegistered,
     TokenRow,
 )
-from server.services.errors import Forbidden, NotFound
-from server.services.leaderboard import leaderboard, subscore_columns
+from server.services.health import health_report
+from server.services.leaderboard import cached_board
 from server.services.pictures import scene_picture
-from server.services.quota import quota_usage
-from server.services.splits import (
-    ALL_SUBSET,
-    PUBLIC_SUBSET,
-    has_closed,
-    is_open,
-    resolve_phase,
-    subset_names,
-    visible_subsets,
+from server.services.presenters import (
+    phase_view,
+    quota_views,
+    split_views,
+    submission_views,
+    token_result_views,
 )
+from server.services.splits import list_phases
 from server.services.submissions import published_submission
 from server.services.teams import create_team
 from server.services.tokens import create_token
-from server.services.workers import workers_from_heartbeats
 
 router = APIRouter()
-
-
-def leaderboard_view(
-    session: Session, version: str, subset: str | None, sort: str, phase_name: str | None, admin: bool = False
-) -> dict[str, Any]:
-    """Return the leaderboard body for the query (shared by the REST route and the web page)."""
-    phase = resolve_phase(session, phase_name)
-    columns = subscore_columns(version)
-    visible = visible_subsets(phase.split, phase, admin)
-    if subset is None:
-        subset = PUBLIC_SUBSET if PUBLIC_SUBSET in visible else ALL_SUBSET
-    known = subset_names(phase.split)
-    if subset not in known:
-        raise NotFound(f"split {phase.split.name!r} has no subset {subset!r}; it has {', '.join(known)}")
-    if subset not in visible:
-        closes = phase.closes_at.isoformat() if phase.closes_at else "an admin closes it"
-        raise Forbidden(
-            f"subset {subset!r} of phase {phase.name!r} is revealed when the phase closes ({closes})"
-        )
-    metric_version = get_version(version)
-    return {
-        "version": version,
-        "score_label": metric_version.score_label,
-        "official_code": metric_version.official_code,
-        "phase": phase.name,
-        "split": phase.split.name,
-        "subset": subset,
-        "subsets": visible,
-        "closed": has_closed(phase),
-        "sort": sort,
-        "columns": list(columns),
-        "rows": leaderboard(session, phase, version, subset, sort),
-    }
-
-
-@dataclass(frozen=True)
-class Board:
-    """A leaderboard body and its JSON encoding, computed once per cache period."""
-
-    view: dict[str, Any]
-    body: bytes
-
-
-def cached_board(app: FastAPI, version: str, subset: str | None, sort: str, phase: str | None) -> Board:
-    """Return the public leaderboard for the query, from the app's short-lived cache when it is fresh."""
-    key = (version, subset, sort, phase)
-    board = app.state.leaderboard_cache.get(key)
-    if board is None:
-        with app.state.session_factory() as session:
-            view = leaderboard_view(session, version, subset, sort, phase)
-        board = Board(view, bytes(JSONResponse(view).body))
-        app.state.leaderboard_cache.put(key, board)
-    return board
 
 
 @router.get("/leaderboard", response_model=LeaderboardOut, tags=["leaderboard"])
@@ -113,56 +49,33 @@ async def get_leaderboard(
     phase: str | None = None,
 ) -> Response:
     """Best (or selected) entry per team plus baselines, ranked by PDMS with bootstrap 95% intervals."""
-    board = request.app.state.leaderboard_cache.get((version, subset, sort, phase))
+    cache, sessions = request.app.state.leaderboard_cache, request.app.state.session_factory
+    board = cache.get((version, subset, sort, phase))
     if board is None:  # the database is only asked off the event loop
-        board = await run_in_threadpool(cached_board, request.app, version, subset, sort, phase)
+        board = await run_in_threadpool(cached_board, cache, sessions, version, subset, sort, phase)
     return Response(board.body, media_type="application/json")
 
 
 @router.get("/splits", tags=["splits"])
 def splits(session: SessionDep) -> list[SplitOut]:
     """Registered splits with their token counts, content hashes, subsets and phases."""
-    phases = session.scalars(select(Phase).order_by(Phase.opens_at)).all()
-    return [
-        SplitOut(
-            name=split.name,
-            token_count=split.token_count,
-            content_hash=split.content_hash,
-            scenes_public=split.scenes_public,
-            subsets={subset.name: len(subset.tokens) for subset in split.subsets}
-            | {ALL_SUBSET: split.token_count},
-            phases=[phase_view(phase) for phase in phases if phase.split_id == split.id],
-        )
-        for split in session.scalars(select(Split).order_by(Split.name)).all()
-    ]
+    return split_views(session)
 
 
 @router.get("/phases", tags=["splits"])
 def phases(session: SessionDep) -> list[PhaseOut]:
     """Every phase with its window and default quotas."""
-    return [phase_view(phase) for phase in session.scalars(select(Phase).order_by(Phase.opens_at)).all()]
+    return [phase_view(phase) for phase in list_phases(session)]
 
 
 @router.get("/health", response_model=HealthOut, tags=["health"])
 def health(request: Request, session: SessionDep) -> JSONResponse:
     """Database, broker and live workers; 503 when the database does not answer."""
-    try:
-        session.execute(text("SELECT 1"))
-        database = {"ok": True, "revision": current_revision(request.app.state.engine), "detail": ""}
-    except Exception as error:  # noqa: BLE001 - health reports, it does not fail
-        database = {"ok": False, "revision": None, "detail": f"{type(error).__name__}: {error}"}
-    settings = request.app.state.settings
-    broker, workers = request.app.state.broker_status(settings), request.app.state.live_workers(settings)
-    if workers["ok"] is None and database["ok"]:  # no ping on this transport: the workers' own heartbeats
-        workers = workers_from_heartbeats(session)
-    healthy = database["ok"] and broker["ok"] and workers["ok"] is not False
-    body = {
-        "status": "ok" if healthy else "degraded",
-        "database": database,
-        "broker": broker,
-        "workers": workers,
-    }
-    return JSONResponse(HealthOut(**body).model_dump(mode="json"), status_code=200 if database["ok"] else 503)
+    state = request.app.state
+    broker, workers = state.broker_status(state.settings), state.live_workers(state.settings)
+    body = health_report(session, state.engine, broker, workers)
+    status_code = 200 if body["database"]["ok"] else 503
+    return JSONResponse(HealthOut(**body).model_dump(mode="json"), status_code=status_code)
 
 
 @router.post("/teams", status_code=201, tags=["teams"])
@@ -178,16 +91,7 @@ def register_team(session: SessionDep, team_in: TeamIn) -> TeamRegistered:
 def me(session: SessionDep, token: TokenDep) -> MeOut:
     """The caller's token, team and quota usage in every open phase."""
     team = token.team
-    quotas = []
-    if team is not None:
-        for phase in session.scalars(select(Phase).order_by(Phase.opens_at)).all():
-            if is_open(phase):
-                quotas += [
-                    QuotaOut(
-                        phase=phase.name, quota=u.name, limit=u.limit, used=u.used, resets_at=u.resets_at
-                    )
-                    for u in quota_usage(session, team.id, phase)
-                ]
+    quotas = quota_views(session, team.id) if team is not None else []
     return MeOut(
         scope=token.scope,
         team=team.name if team else None,

@@ -13,10 +13,10 @@ from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import ApprovedTeamDep, SessionDep, TeamDep, counted_upload
 from server.body_limit import upload_too_large
 from server.models import Phase, Status
-from server.routes.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
-from server.routes.views import submission_views, token_result_views
+from server.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
 from server.schemas import SubmissionAccepted, SubmissionOut, SubmissionPatch, TokenRow, ValidationReport
 from server.services.pictures import scene_picture
+from server.services.presenters import submission_views, token_result_views
 from server.services.splits import resolve_phase, split_tokens
 from server.services.submissions import create_submission, edit_submission, get_submission, list_submissions
 from server.services.validation import ValidUpload, validate_upload

@@ -10,15 +10,14 @@ from urllib.parse import urlencode
 from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
-from sqlalchemy import select
 
 from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, VERSIONS, VersionName
 from server.auth import SessionDep
-from server.models import Phase
-from server.routes.params import RowId
-from server.routes.public import cached_board
+from server.params import RowId
 from server.runs import BOARD_VERSIONS
 from server.services.errors import ServiceError
+from server.services.leaderboard import cached_board
+from server.services.splits import list_phases
 
 # Templates and static assets are package data of `server.web`: the same lookup in a checkout and a wheel.
 WEB_DIR = Path(str(files("server.web")))
@@ -45,7 +44,7 @@ def leaderboard_page(
     context: dict[str, Any] = {
         "versions": list(BOARD_VERSIONS),
         "score_labels": SCORE_LABELS,
-        "phases": [p.name for p in session.scalars(select(Phase).order_by(Phase.opens_at.desc())).all()],
+        "phases": [phase.name for phase in list_phases(session, newest_first=True)],
         "labels": METRIC_LABELS,
         "query": query,
         "here": here,
@@ -53,7 +52,10 @@ def leaderboard_page(
     }
     status = 200
     try:
-        board = cached_board(request.app, version, subset, "score", phase).view
+        state = request.app.state
+        board = cached_board(
+            state.leaderboard_cache, state.session_factory, version, subset, "score", phase
+        ).view
         context["board"] = board
         query["phase"], query["subset"] = board["phase"], board["subset"]
     except ServiceError as error:

@@ -1,15 +1,17 @@
 """The leaderboard as it is read: per team its selected (else best) entry and the baselines, ranked by score
-with statistical ties, and the rank changes between two rankings. Runs write the summaries it reads
-(server.runs)."""
+with statistical ties; the board's body for a query, cached briefly; the rank changes between two rankings.
+Runs write the summaries it reads (server.runs)."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from sqlalchemy import case, func, or_, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from scorer.versions import ALL_RESULT_COLUMNS, get_version
 from server.models import Phase, Status, Submission, Summary, Team
@@ -22,6 +24,7 @@ from server.services.splits import (
     subset_names,
     visible_subsets,
 )
+from server.ttl_cache import TTLCache
 
 HIDDEN_STATUSES = (Status.failed, Status.cancelled)
 
@@ -216,3 +219,35 @@ def leaderboard_view(
         "columns": list(columns),
         "rows": leaderboard(session, phase, version, subset, sort),
     }
+
+
+def _json(view: dict[str, Any]) -> bytes:
+    """Return the body as the API sends it (Starlette's JSONResponse encoding)."""
+    return json.dumps(view, ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode("utf-8")
+
+
+@dataclass(frozen=True)
+class Board:
+    """A leaderboard body and its JSON encoding, computed once per cache period."""
+
+    view: dict[str, Any]
+    body: bytes
+
+
+def cached_board(
+    cache: TTLCache[Board],
+    sessions: sessionmaker[Session],
+    version: str,
+    subset: str | None,
+    sort: str,
+    phase: str | None,
+) -> Board:
+    """Return the public leaderboard for the query, from the short-lived `cache` when it is fresh."""
+    key = (version, subset, sort, phase)
+    board = cache.get(key)
+    if board is None:
+        with sessions() as session:
+            view = leaderboard_view(session, version, subset, sort, phase)
+        board = Board(view, _json(view))
+        cache.put(key, board)
+    return board

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -176,3 +177,14 @@ def resolve_phase(session: Session, name: str | None, now: datetime | None = Non
         raise NotFound("no phase exists yet: an admin must create one (`navsim-lb admin create-phase`)")
     open_phases = [phase for phase in phases if is_open(phase, now)]
     return (open_phases or phases)[0]
+
+
+def list_phases(session: Session, newest_first: bool = False) -> Sequence[Phase]:
+    """Return every phase by opening time (the newest first when asked)."""
+    order = Phase.opens_at.desc() if newest_first else Phase.opens_at
+    return session.scalars(select(Phase).order_by(order)).all()
+
+
+def list_splits(session: Session) -> Sequence[Split]:
+    """Return every registered split by name."""
+    return session.scalars(select(Split).order_by(Split.name)).all()

@@ -30,6 +30,12 @@ def create_team(
     return team
 
 
+def list_teams(session: Session) -> list[Team]:
+    """Return every team but the system's, pending ones first, then by id."""
+    teams = session.scalars(select(Team).where(Team.is_system.is_(False)).order_by(Team.id)).all()
+    return sorted(teams, key=lambda team: team.approval != Approval.pending)
+
+
 def get_team(session: Session, team_id: int) -> Team:
     """Return the team or raise NotFound."""
     team = session.get(Team, team_id)

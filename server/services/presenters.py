@@ -1,4 +1,4 @@
-"""Shape stored rows into the response models (shared by the team, public and admin routes)."""
+"""Read-side presenters: stored rows shaped into the response models the team, public and admin routes answer."""
 
 from __future__ import annotations
 
@@ -15,13 +15,23 @@ from server.runs import BOARD_VERSIONS
 from server.schemas import (
     AdminSubmissionOut,
     PhaseOut,
+    QuotaOut,
     SeedResult,
+    SplitOut,
     SubmissionOut,
     SubsetResult,
     TokenRow,
 )
 from server.services.leaderboard import subscore_columns, summary_figures
-from server.services.splits import is_open, subset_tokens, visible_subsets
+from server.services.quota import quota_usage
+from server.services.splits import (
+    ALL_SUBSET,
+    is_open,
+    list_phases,
+    list_splits,
+    subset_tokens,
+    visible_subsets,
+)
 
 
 def _subset_result(summary: Summary, results: list[Result]) -> SubsetResult:
@@ -178,3 +188,32 @@ def _detail(detail: dict[str, Any], admin: bool) -> dict[str, Any]:
     if overridden:
         seen["agent_before"] = {column: before[column] for column in overridden}
     return detail | {"human_filter": seen}
+
+
+def split_views(session: Session) -> list[SplitOut]:
+    """Return the registered splits with their token counts, content hashes, subsets and phases."""
+    phases = list_phases(session)
+    return [
+        SplitOut(
+            name=split.name,
+            token_count=split.token_count,
+            content_hash=split.content_hash,
+            scenes_public=split.scenes_public,
+            subsets={subset.name: len(subset.tokens) for subset in split.subsets}
+            | {ALL_SUBSET: split.token_count},
+            phases=[phase_view(phase) for phase in phases if phase.split_id == split.id],
+        )
+        for split in list_splits(session)
+    ]
+
+
+def quota_views(session: Session, team_id: int) -> list[QuotaOut]:
+    """Return a team's usage of every quota in every open phase."""
+    return [
+        QuotaOut(
+            phase=phase.name, quota=usage.name, limit=usage.limit, used=usage.used, resets_at=usage.resets_at
+        )
+        for phase in list_phases(session)
+        if is_open(phase)
+        for usage in quota_usage(session, team_id, phase)
+    ]
