@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import BoolArray, FloatArray, ego_center
+from scorer.geometry import BoolArray, FloatArray, IntArray, ego_center
 from scorer.scene import Lane, Scene
 
 MAP_RADIUS = 100.0  # half-side of the proximity square, m
@@ -53,8 +53,8 @@ class MapBatch:
     is_drivable: BoolArray  # roadblock, intersection, car park (lanes are not drivable polygons)
     is_intersection: BoolArray
     is_route: BoolArray  # a lane of the token's route
-    start: npt.NDArray[np.intp]  # (B,)
-    count: npt.NDArray[np.intp]  # (B,)
+    start: IntArray  # (B,)
+    count: IntArray  # (B,)
 
     @classmethod
     def of(cls, maps: Sequence[DrivableMap], route_lane_ids: Sequence[Collection[str]]) -> MapBatch:

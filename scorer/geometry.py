@@ -15,6 +15,7 @@ import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.floating[Any]]  # float64 in practice; numpy types arithmetic results this wide
 BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.intp]  # indices and counts
 
 # Chrysler Pacifica (nuplan/common/actor_state/vehicle_parameters.py); docs/engine.md,
 # "Conventions: the ego vehicle and its box".

@@ -23,11 +23,9 @@ import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import BoolArray, FloatArray, box_corners, normalize_angle
+from scorer.geometry import BoolArray, FloatArray, IntArray, box_corners, normalize_angle
 from scorer.red_lights import RED_LIGHT_TOKEN, STEPS_PER_FRAME, RedLights
 from scorer.scene import AGENT_CATEGORIES, FUTURE_FRAMES, Scene
-
-IntArray = npt.NDArray[np.intp]
 
 OBSERVATION_STEPS = FUTURE_FRAMES * STEPS_PER_FRAME + 1  # v1: occupancy maps at k * 0.1 s, k = 0..50
 STEP_S = 0.1

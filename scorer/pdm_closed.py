@@ -39,6 +39,7 @@ from scorer.geometry import (
     EGO_LENGTH,
     EGO_WIDTH,
     FloatArray,
+    IntArray,
     box_corners,
     ego_center,
     normalize_angle,
@@ -125,7 +126,7 @@ class PdmPath:
 def interpolate_paths(
     states: FloatArray,
     progress: FloatArray,
-    last_vertex: npt.NDArray[np.intp],
+    last_vertex: IntArray,
     distances: FloatArray,
     wrap: Callable[[FloatArray], FloatArray],
 ) -> FloatArray:
@@ -182,9 +183,7 @@ def idm_step(
     return progress + STEP_S * speed, speed + STEP_S * acceleration
 
 
-def _shared_buffer(
-    values: FloatArray, written: npt.NDArray[np.bool_], groups: npt.NDArray[np.intp]
-) -> FloatArray:
+def _shared_buffer(values: FloatArray, written: npt.NDArray[np.bool_], groups: IntArray) -> FloatArray:
     """Return, per row, the value last written at or before it within its group, else 0.
 
     The devkit fills one 3-value buffer per path and step, proposal after proposal, so a value a
@@ -269,7 +268,7 @@ class IdmUnroll:
         self.idm[:, 0, 0] = np.concatenate(start)[self.path_of]
         self.idm[:, 0, 1] = np.repeat([plan.speed for plan in scenes], NUM_PATHS * NUM_POLICIES)
 
-    def run(self, rows: npt.NDArray[np.intp], steps: range, groups: npt.NDArray[np.intp]) -> None:
+    def run(self, rows: IntArray, steps: range, groups: IntArray) -> None:
         """Advance the proposals `rows` (sorted) through time indices `steps`.
 
         `groups` (one per row, consecutive) are the devkit's calls that share one leading-agent buffer:
@@ -285,18 +284,14 @@ class IdmUnroll:
                 previous[:, 0], previous[:, 1], self.leading[rows, step], self.targets[rows]
             )
 
-    def poses(
-        self, rows: npt.NDArray[np.intp], steps: slice, wrap: Callable[[FloatArray], FloatArray]
-    ) -> FloatArray:
+    def poses(self, rows: IntArray, steps: slice, wrap: Callable[[FloatArray], FloatArray]) -> FloatArray:
         """Return the path poses (len(rows), steps, 3) at the rows' progress, headings wrapped with `wrap`."""
         paths = self.path_of[rows]
         return interpolate_paths(
             self.states[paths], self.progress[paths], self.last_vertex[paths], self.idm[rows, steps, 0], wrap
         )
 
-    def _leading_agents(
-        self, rows: npt.NDArray[np.intp], step: int, groups: npt.NDArray[np.intp]
-    ) -> FloatArray:
+    def _leading_agents(self, rows: IntArray, step: int, groups: IntArray) -> FloatArray:
         """Return the leading-agent buffer values (len(rows), 3) at an update step (`_update_leading_agents`)."""
         map_index = PlannerObservation.map_index(step)
         paths = self.path_of[rows]
@@ -406,12 +401,12 @@ class Proposals:
     plans: tuple[ScenePlan, ...]
     unroll: IdmUnroll
 
-    def rows(self, scene_index: int) -> npt.NDArray[np.intp]:
+    def rows(self, scene_index: int) -> IntArray:
         """Return the rows of a scene's 15 proposals."""
         count = NUM_PATHS * NUM_POLICIES
         return np.arange(scene_index * count, (scene_index + 1) * count)
 
-    def poses(self, rows: npt.NDArray[np.intp], steps: slice) -> FloatArray:
+    def poses(self, rows: IntArray, steps: slice) -> FloatArray:
         """Return proposals' poses (len(rows), steps, 3) as the devkit stores them (AVX-512 heading wrap)."""
         return self.unroll.poses(rows, steps, normalize_angle)
 
@@ -432,7 +427,7 @@ def best_proposals(
     plans: Sequence[ScenePlan],
     drivable_maps: Sequence[DrivableMap],
     configs: Sequence[ScorerConfig],
-) -> npt.NDArray[np.intp]:
+) -> IntArray:
     """Return the index (S, C) of each scene's best proposal under each planner config, from the simulated
     proposals (S, 15, 41, 11): the devkit's `score_proposals` per scene and config, then the first best score.
 

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from scorer.drivable_map import DrivableMap, MapBatch
-from scorer.geometry import BoolArray, FloatArray
+from scorer.geometry import BoolArray, FloatArray, IntArray
 from scorer.metrics.aggregation import aggregate
 from scorer.metrics.collisions import no_at_fault_collisions
 from scorer.metrics.comfort import comfort_series, is_comfortable
@@ -37,8 +37,6 @@ from scorer.metrics.traffic_light import traffic_light_compliance
 from scorer.observation import Observation, ObservationBatch
 from scorer.trajectory import SCORING_INTERVAL_S, SCORING_POSES, STATE_SIZE
 from scorer.versions import ScorerConfig
-
-IntArray = npt.NDArray[np.intp]
 
 # The devkit's metric rows (`MultiMetricIndex`, `WeightedMetricIndex` names) and the result column of each.
 RESULT_COLUMN_OF_ROW = {

@@ -26,6 +26,7 @@ import shapely
 from scorer.geometry import (
     BoolArray,
     FloatArray,
+    IntArray,
     arctan2_avx512,
     box_corners,
     ego_center,
@@ -64,7 +65,7 @@ class PlannerObservation:
         return time_index // 2
 
 
-def _nearest_first(distances: FloatArray, limit: int) -> npt.NDArray[np.intp]:
+def _nearest_first(distances: FloatArray, limit: int) -> IntArray:
     # The devkit's np.argsort (default kind), then the first `limit`.
     return np.argsort(distances)[:limit]
 
@@ -86,7 +87,7 @@ def observe_for_planner(
     rings = np.concatenate([corners, corners[:, :1]], axis=1)
     center_distances = ((boxes[:, :2] - center) ** 2.0).sum(axis=-1) ** 0.5
 
-    def nearest(mask: BoolArray, limit: int) -> npt.NDArray[np.intp]:
+    def nearest(mask: BoolArray, limit: int) -> IntArray:
         members = np.flatnonzero(mask)
         return members[_nearest_first(center_distances[members], limit)]
 

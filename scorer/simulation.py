@@ -12,9 +12,8 @@ several times faster (tests check both claims against einsum).
 from __future__ import annotations
 
 import numpy as np
-import numpy.typing as npt
 
-from scorer.geometry import WHEEL_BASE, FloatArray, normalize_angle, principal_value
+from scorer.geometry import WHEEL_BASE, FloatArray, IntArray, normalize_angle, principal_value
 from scorer.trajectory import SCORING_INTERVAL_S, SCORING_POSES, STATE_SIZE, StateIndex
 
 # The tracker discretises with the proposal interval; the bicycle integrates over a TimePoint
@@ -288,9 +287,7 @@ def simulate(reference: FloatArray, initial: FloatArray) -> FloatArray:
     return _simulate(poses, initial_states)
 
 
-def _distinct_rows(
-    poses: FloatArray, initial: FloatArray
-) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+def _distinct_rows(poses: FloatArray, initial: FloatArray) -> tuple[IntArray, IntArray]:
     """Return one row of each distinct (poses, initial state) pair, and for every row its distinct one.
 
     Rows are compared byte for byte (so -0.0 and 0.0 differ, as they may in a simulation). Rows are

@@ -17,7 +17,9 @@ import numpy.typing as npt
 from scorer.geometry import FloatArray, arctan2_avx512, principal_value, rear_axle_round_trip
 from scorer.scene import EgoStatus
 
-IntArray = npt.NDArray[np.int64]
+# Time stamps in us since the epoch (~1.6e15), int64 on every platform, as the devkit's integer TimePoints;
+# not geometry.IntArray (np.intp, indices and counts), which is 32 bits on a 32-bit build.
+MicrosecondArray = npt.NDArray[np.int64]
 
 
 class StateIndex(IntEnum):
@@ -67,7 +69,7 @@ def initial_state(ego: EgoStatus) -> FloatArray:
     return state
 
 
-def scoring_times_us(t0_us: int | IntArray) -> IntArray:
+def scoring_times_us(t0_us: int | MicrosecondArray) -> MicrosecondArray:
     """Return the 41 query times in us (..., 41), before clipping: `int((arange + t0 * 1e-6) * 1e6)`.
 
     See docs/engine.md, "Time stamps".
@@ -76,7 +78,9 @@ def scoring_times_us(t0_us: int | IntArray) -> IntArray:
     return _truncate_to_us(times_s + _seconds(t0_us))
 
 
-def agent_knot_times_us(t0_us: int | IntArray, num_poses: int, interval_length: float) -> IntArray:
+def agent_knot_times_us(
+    t0_us: int | MicrosecondArray, num_poses: int, interval_length: float
+) -> MicrosecondArray:
     """Return the time stamps (..., n) of submitted poses as nuPlan's `_get_fixed_timesteps` makes them.
 
     See docs/engine.md, "Time stamps".
@@ -85,13 +89,13 @@ def agent_knot_times_us(t0_us: int | IntArray, num_poses: int, interval_length: 
     return _truncate_to_us(steps_s[:num_poses] + _seconds(t0_us))
 
 
-def _seconds(t0_us: int | IntArray) -> FloatArray:
+def _seconds(t0_us: int | MicrosecondArray) -> FloatArray:
     # TimePoint.time_s is a multiplication (a TimeDuration would divide).
     seconds: FloatArray = np.asarray(t0_us, dtype=np.int64) * 1e-6
     return seconds[..., None]
 
 
-def _truncate_to_us(times_s: FloatArray) -> IntArray:
+def _truncate_to_us(times_s: FloatArray) -> MicrosecondArray:
     # `int(t * 1e6)` truncates, which puts many stamps 1 us early.
     return (times_s * 1e6).astype(np.int64)
 
@@ -131,7 +135,7 @@ def _poses_of(matrices: FloatArray) -> FloatArray:
 
 
 def agent_references(
-    initial: FloatArray, t0_us: IntArray, poses: FloatArray, interval_length: float = 0.5
+    initial: FloatArray, t0_us: MicrosecondArray, poses: FloatArray, interval_length: float = 0.5
 ) -> FloatArray:
     """Return the reference states (T, 41, 11) of T submitted trajectories, each with its own initial state.
 
@@ -155,7 +159,7 @@ def agent_references(
     return interpolate_states(knot_times, knots, scoring_times_us(t0_us))
 
 
-def pdm_references(t0_us: IntArray, pdm_poses: FloatArray) -> FloatArray:
+def pdm_references(t0_us: MicrosecondArray, pdm_poses: FloatArray) -> FloatArray:
     """Return the reference states (T, 41, 11) of T cached PDM-Closed trajectories (T, 51, 3).
 
     The poses are those the cached EgoStates report (already round-tripped) at t0 + k * 0.1 s; their
@@ -169,7 +173,9 @@ def pdm_references(t0_us: IntArray, pdm_poses: FloatArray) -> FloatArray:
     return interpolate_states(knot_times, knots, scoring_times_us(t0_us))
 
 
-def interpolate_states(knot_times_us: IntArray, knots: FloatArray, query_times_us: IntArray) -> FloatArray:
+def interpolate_states(
+    knot_times_us: MicrosecondArray, knots: FloatArray, query_times_us: MicrosecondArray
+) -> FloatArray:
     """Return states (T, q, 11) of T InterpolatedTrajectories with knots (T, k, 11) at (T, q) times.
 
     Query times are clipped to each knot span. Linear channels use scipy `interp1d`'s formula; the heading

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import FloatArray
+from scorer.geometry import FloatArray, IntArray
 from scorer.metrics.contacts import (
     BEHIND_ANGLE,
     FirstInfraction,
@@ -28,8 +28,6 @@ from scorer.metrics.ego_areas import EgoArea
 from scorer.metrics.ego_box import BoxPoint, ego_corners
 from scorer.observation import ObservationBatch
 from scorer.trajectory import StateIndex
-
-IntArray = npt.NDArray[np.intp]
 
 STOPPED_SPEED = 5e-2  # m/s, `get_collision_type` and `is_track_stopped` defaults (not the TTC threshold)
 AGENT_COLLISION = 0.0  # vehicles, pedestrians, bicycles

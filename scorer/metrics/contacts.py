@@ -15,12 +15,10 @@ import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import BoolArray, FloatArray
+from scorer.geometry import BoolArray, FloatArray, IntArray
 from scorer.metrics.convex import is_convex_counterclockwise, quads_intersect, segment_meets_quad
 from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, same_token_pairs
 from scorer.observation import ObservationBatch
-
-IntArray = npt.NDArray[np.intp]
 
 AHEAD_ANGLE = float(np.deg2rad(30.0))  # nuPlan `is_agent_ahead`
 BEHIND_ANGLE = float(np.deg2rad(150.0))  # nuPlan `is_agent_behind`

@@ -8,14 +8,11 @@ from __future__ import annotations
 from enum import IntEnum
 
 import numpy as np
-import numpy.typing as npt
 
 from scorer.drivable_map import MapBatch
-from scorer.geometry import BoolArray, FloatArray
+from scorer.geometry import BoolArray, FloatArray, IntArray
 from scorer.metrics.ego_box import BoxPoint
 from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, points_inside, same_token_pairs
-
-IntArray = npt.NDArray[np.intp]
 
 CORNERS = int(BoxPoint.CENTER)  # points 0..3 are the corners
 

@@ -15,9 +15,7 @@ import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import BoolArray, FloatArray
-
-IntArray = npt.NDArray[np.intp]
+from scorer.geometry import BoolArray, FloatArray, IntArray
 
 
 def lane_keeping(

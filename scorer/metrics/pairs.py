@@ -7,13 +7,10 @@ polygon lies inside its box, so the exact shapely test that follows sees every t
 from __future__ import annotations
 
 import numpy as np
-import numpy.typing as npt
 import shapely
 
 from scorer.drivable_map import MapBatch
-from scorer.geometry import BoolArray, FloatArray
-
-IntArray = npt.NDArray[np.intp]
+from scorer.geometry import BoolArray, FloatArray, IntArray
 
 
 def same_token_pairs(row_token: IntArray, start: IntArray, count: IntArray) -> tuple[IntArray, IntArray]:

@@ -6,11 +6,9 @@ import numpy as np
 import numpy.typing as npt
 import shapely
 
-from scorer.geometry import FloatArray
+from scorer.geometry import FloatArray, IntArray
 from scorer.metrics.ego_box import BoxPoint
 from scorer.versions import ProgressNormalisation
-
-IntArray = npt.NDArray[np.intp]
 
 
 def centerline_strings(centerlines: list[FloatArray]) -> npt.NDArray[np.object_]:

@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from scorer.drivable_map import MapBatch
-from scorer.geometry import FloatArray
+from scorer.geometry import FloatArray, IntArray
 from scorer.metrics.contacts import (
     AHEAD_ANGLE,
     BEHIND_ANGLE,
@@ -32,8 +32,6 @@ from scorer.metrics.ego_areas import EgoArea, in_intersection
 from scorer.metrics.ego_box import ego_corners
 from scorer.observation import ObservationBatch
 from scorer.trajectory import StateIndex
-
-IntArray = npt.NDArray[np.intp]
 
 PROJECTION_STEPS = np.arange(0, 10, 3)  # time indices ahead: 0, 3, 6, 9
 

@@ -11,14 +11,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import numpy.typing as npt
 import shapely
 
-from scorer.geometry import FloatArray
+from scorer.geometry import FloatArray, IntArray
 from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, same_token_pairs
 from scorer.red_lights import RedLights
-
-IntArray = npt.NDArray[np.intp]
 
 
 def traffic_light_compliance(

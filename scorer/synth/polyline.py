@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import FloatArray, arctan2_avx512
+from scorer.geometry import FloatArray, IntArray, arctan2_avx512
 
 GRID_STEP = 1.0  # m between vertices of reference lines and lane centres
 
@@ -113,7 +113,7 @@ def concatenate(paths: Sequence[FloatArray]) -> Polyline:
     return Polyline.from_points(np.concatenate(paths))
 
 
-def sample_indices(n: int, stride: int) -> npt.NDArray[np.intp]:
+def sample_indices(n: int, stride: int) -> IntArray:
     """Return every `stride`-th index of n vertices, always including the last."""
     indices = np.arange(0, n, stride)
     return indices if indices[-1] == n - 1 else np.append(indices, n - 1)
