@@ -287,7 +287,10 @@ def arctan2_avx512(y: npt.ArrayLike, x: npt.ArrayLike) -> FloatArray:
 
 
 def normalize_angle(angle: npt.ArrayLike) -> FloatArray:
-    """Return the angle wrapped to (-pi, pi] via atan2 (PDM's `normalize_angle`), with the devkit's arctan2."""
+    """Return the angle wrapped to (-pi, pi] via atan2, with the devkit's arctan2.
+
+    PDM's `normalize_angle`, whose name (and American spelling) this keeps so the two can be matched.
+    """
     angle = np.asarray(angle, dtype=np.float64)
     return arctan2_avx512(np.sin(angle), np.cos(angle))
 

@@ -31,7 +31,7 @@ from scorer.metrics.ego_areas import ego_areas, in_intersection
 from scorer.metrics.ego_box import BoxPoint, ego_box_points, ego_corners
 from scorer.metrics.history_comfort import history_comfort
 from scorer.metrics.lane_keeping import lane_keeping
-from scorer.metrics.progress import centerline_strings, normalized_progress, raw_progress
+from scorer.metrics.progress import centerline_strings, normalised_progress, raw_progress
 from scorer.metrics.time_to_collision import time_to_collision
 from scorer.metrics.traffic_light import traffic_light_compliance
 from scorer.observation import Observation, ObservationBatch
@@ -403,7 +403,7 @@ def score_measures(
     }
     multiplier_rows = {row: columns[RESULT_COLUMN_OF_ROW[row]] for row in config.multiplier_rows}
     multipliers = np.stack(list(multiplier_rows.values()))
-    columns["ego_progress"] = normalized_progress(
+    columns["ego_progress"] = normalised_progress(
         measures.progress_raw,
         multipliers.prod(axis=0),
         config.progress_distance_threshold,

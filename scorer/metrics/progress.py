@@ -26,7 +26,7 @@ def raw_progress(points: FloatArray, centerlines: npt.NDArray[np.object_], row_t
     return np.clip(located[:, 1] - located[:, 0], 0.0, None)
 
 
-def normalized_progress(
+def normalised_progress(
     raw: FloatArray, multiplier: FloatArray, threshold: float, normalisation: ProgressNormalisation
 ) -> FloatArray:
     """Return EP (B, P) relative to the best multiplier-scaled progress of each token's proposals.
