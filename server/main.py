@@ -22,7 +22,7 @@ from server.migrate import require_migrated
 from server.models import Split
 from server.queue import broker_status, enqueue_submission, live_workers
 from server.rate_limits import RateLimits
-from server.routes import admin, metrics, public, submissions, web
+from server.routes import admin, monitoring, public, submissions, web
 from server.services.admin import add_split
 from server.services.errors import ServiceError
 from server.settings import Settings, get_settings
@@ -108,7 +108,7 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     app.include_router(submissions.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(web.router)
-    app.include_router(metrics.router)
+    app.include_router(monitoring.router)
     app.mount("/static", StaticFiles(directory=web.WEB_DIR / "static"), name="static")
     register_configured_splits(app)
     return app

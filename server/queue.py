@@ -76,7 +76,7 @@ def waiting_tasks(settings: Settings, declare: bool = False) -> int:
     A broker that lost its state (Redis flushed) keeps the connections, so nobody declares again what
     each connection declared once, and kombu's Redis transport drops a message sent to an exchange with
     no binding: the reaper declares at every pass, which makes such a broker route again. Without
-    `declare` (a metrics scrape) nothing changes on the broker: a queue it does not know holds 0 tasks.
+    `declare` (a Prometheus scrape) nothing changes on the broker: a queue it does not know holds 0 tasks.
     """
     client = celery_client(settings)
     queue = client.amqp.queues[settings.queue_name]

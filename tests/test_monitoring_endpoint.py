@@ -22,7 +22,7 @@ def _samples(world: World) -> dict[tuple[str, tuple[tuple[str, str], ...]], floa
     }
 
 
-def test_metrics_count_runs_failures_chunks_and_scoring(world: World) -> None:
+def test_monitoring_counts_runs_failures_chunks_and_scoring(world: World) -> None:
     submit_scored(
         world, world.team_id, b"scored", [uniform(0.5)]
     )  # 3 chunks of 0.5 s per version, 3 versions

@@ -28,8 +28,11 @@ def _gauge(name: str, documentation: str, label: str, counts: dict[Any, int], ev
     return gauge
 
 
-def service_metrics(session: Session, queue_depth: int | None) -> Iterator[Metric]:
-    """Yield the service's metrics: runs by status, failures by kind, chunks, deaths, scoring time, workers."""
+def service_figures(session: Session, queue_depth: int | None) -> Iterator[Metric]:
+    """Yield the service's figures as Prometheus metric families.
+
+    Runs by status, failures by kind, chunks, deaths, scoring time, workers.
+    """
     statuses = dict(
         session.execute(select(Submission.status, func.count()).group_by(Submission.status)).all()
     )
