@@ -52,7 +52,7 @@ def _split_dir(data_dir: Path, scenes: int) -> Path:
 
 
 def _warm_cache(split_dir: Path, cache_dir: Path, scenes: int) -> None:
-    """Build the split's metric caches (both versions) on every core, as an operator would beforehand."""
+    """Build the split's metric caches (v1.0, v1.1, v2.2) on every core, as an operator would beforehand."""
     from scorer.evaluate import build_split_cache
     from scorer.versions import VERSIONS
 

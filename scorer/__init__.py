@@ -1,4 +1,4 @@
-"""PDM Score engine for NAVSIM v1.0 and v1.1: a pure library (numpy, shapely 2, scipy).
+"""PDM Score engine for NAVSIM v1.0, v1.1 (PDMS) and v2.2 (EPDMS): a pure library (numpy, shapely 2, scipy).
 
 Importing it first selects the OpenBLAS kernels the official results were made with (`scorer.blas`).
 """

@@ -90,7 +90,10 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
         favicon_url="/static/favicon.svg",
         title="NAVSIM Leaderboard",
         version=ENGINE_VERSION,
-        description="Submissions, PDM Score (v1.0, v1.1) leaderboard and administration of the NAVSIM benchmark.",
+        description=(
+            "Submissions, leaderboard (PDM Score v1.0 and v1.1, Extended PDM Score v2.2) and administration"
+            " of the NAVSIM benchmark."
+        ),
     )
     app.state.settings = settings
     app.state.engine = engine

@@ -4,7 +4,8 @@ nuPlan's `get_agent_relative_angle` takes `np.dot` and `np.linalg.norm` of 2-vec
 exactly behind the ego, whether the dot product rounds past -1 (arccos NaN, so "behind" is false) depends
 on the OpenBLAS kernel. The devkit's results exist under two kernel sets (`fixtures/knife-edge/README.md`).
 The engine must give each set's results under that set's kernels: every column equal, bit for bit, in
-both versions. Each run is a fresh process, because OpenBLAS picks its kernels when it loads.
+v1.0 and v1.1 (the versions of those runs). Each run is a fresh process, because OpenBLAS picks its
+kernels when it loads.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Synthetic scenes go through the whole engine: metric cache (PDM-Closed) and scoring, both metric versions."""
+"""Synthetic scenes go through the whole engine: metric cache (PDM-Closed) and scoring in v1.0, v1.1, v2.2."""
 
 from __future__ import annotations
 

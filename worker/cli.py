@@ -36,7 +36,7 @@ def run_worker(
     ] = False,
     loglevel: Annotated[str, typer.Option(help="debug, info, warning or error")] = "info",
 ) -> None:
-    """Run a scoring worker: chunks of submissions under both metric versions, on the configured broker."""
+    """Run a scoring worker on the configured broker: chunks of submissions in v1.0, v1.1 and v2.2."""
     command = worker_command(concurrency, beat, loglevel)
     os.execv(command[0], command)
 

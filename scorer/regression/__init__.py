@@ -1,4 +1,4 @@
-"""Metric-version regression guard: golden per-token results of a fixed synthetic split, both versions.
+"""Metric-version regression guard: golden per-token results of a fixed synthetic split, v1.0, v1.1, v2.2.
 
 The split is regenerated from its seed each run (the generator is deterministic), scored with every
 trajectory family under every registered version, and compared with the versioned golden files.
