@@ -1,8 +1,8 @@
 """Entry point of `navsim-lb`: each room registers its own subcommands.
 
-`pip install navsim-leaderboard` gives the engine and a team's commands (score, plot, regress, submit, ...);
-the server's and the worker's need the `[server]` extra. Without it they stay listed, and running one says
-what to install rather than "no such command".
+`pip install navsim-leaderboard` gives the engine and a team's commands (score, regress, submit, ...; plot
+draws with the `[plot]` extra); the server's and the worker's need the `[server]` extra. Without it they stay
+listed, and running one says what to install rather than "no such command".
 """
 
 from __future__ import annotations

@@ -1,9 +1,10 @@
-"""Engine subcommands of `navsim-lb`: synth, baseline, cache, score, regress."""
+"""Engine subcommands of `navsim-lb`: synth, baseline, cache, score, plot, regress."""
 
 from __future__ import annotations
 
 import os
 from enum import StrEnum
+from importlib.util import find_spec
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -16,6 +17,9 @@ from scorer.versions import DEFAULT_VERSION, VERSIONS, VersionName
 
 if TYPE_CHECKING:
     from scorer.submission import Submission
+
+# The pictures draw with matplotlib, an optional extra of the engine's install.
+PLOT_EXTRA = "pip install 'navsim-leaderboard[plot]'"
 
 
 class BaselineKind(StrEnum):
@@ -142,10 +146,12 @@ def plot(
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
 ) -> None:
     """Draw why a token scored what it did: map, objects, trajectories, the first infraction of each kind."""
+    if find_spec("matplotlib") is None:  # finding the module does not import it: start-up stays fast
+        raise fail(f"`navsim-lb plot` draws with matplotlib, not installed here: {PLOT_EXTRA}")
     from scorer.evaluate import TokenError
     from scorer.explain import explain_token
+    from scorer.picture import render
     from scorer.scene import SceneFormatError, scene_paths
-    from server.scene_plot import render
 
     image_format = out.suffix.lower().removeprefix(".")
     if image_format not in ("png", "svg"):

@@ -1,8 +1,8 @@
 """What decided one token's score: the simulated trajectories, the metrics, and where each infraction happened.
 
-The drill-down pictures draw it (`server/scene_plot.py`, `navsim-lb plot`). It makes the scoring's own
-calls (`evaluate.score_against_references` on the token's metric cache), so its numbers are the
-leaderboard's. The infractions are the first of each kind on the submitted trajectory, as the metrics see
+The drill-down pictures draw it (`scorer.picture`, for `navsim-lb plot` and the server). It makes the
+scoring's own calls (`evaluate.score_against_references` on the token's metric cache), so its numbers are
+the leaderboard's. The infractions are the first of each kind on the submitted trajectory, as the metrics see
 them: an at-fault collision (NC) and a time-to-collision violation (TTC) with the object involved, the first
 state off the drivable area (DAC), and the first state in oncoming traffic when DDC is below 1.
 """

@@ -11,13 +11,15 @@ import pytest
 from devkit_kernels import UNDER_DEVKIT_KERNELS, V1_VERSIONS, devkit_tolerance
 from typer.testing import CliRunner
 
+from navsim_lb import engine_cli
 from navsim_lb.cli import app
+from navsim_lb.engine_cli import PLOT_EXTRA
 from scorer.evaluate import score_tokens
 from scorer.explain import explain_token
+from scorer.picture import render
 from scorer.scene import scene_paths
 from scorer.submission import load_submission
 from scorer.versions import EPDMS_COLUMNS, METRIC_COLUMNS
-from server.scene_plot import render
 
 FIXTURES = Path(__file__).parent / "fixtures"
 REFERENCE = FIXTURES / "reference"
@@ -101,6 +103,14 @@ def test_plot_command_writes_the_picture_and_names_the_infractions(cache_dir: Pa
     assert out.read_bytes().startswith(b"\x89PNG") and "collision at 3.6 s with VEHICLE" in result.output
     wrong = CliRunner().invoke(app, ["plot", *arguments, "--out", str(tmp_path / "x.gif")])
     assert wrong.exit_code == 2 and "must end in .png or .svg" in wrong.output
+
+
+def test_plot_command_says_what_to_install_without_matplotlib(monkeypatch: pytest.MonkeyPatch) -> None:
+    found = engine_cli.find_spec
+    monkeypatch.setattr(engine_cli, "find_spec", lambda name: None if name == "matplotlib" else found(name))
+    arguments = [str(REFERENCE), str(REFERENCE / "submissions" / "hard_brake.json"), "52297891ba5e8666"]
+    result = CliRunner().invoke(app, ["plot", *arguments, "--out", "drill-down.png"])
+    assert result.exit_code == 2 and PLOT_EXTRA in " ".join(result.output.split())
 
 
 def test_a_v2_2_explanation_is_the_tokens_row_scored_alone_and_its_picture_names_epdms(

@@ -1,7 +1,7 @@
 """The wheel, as a user installs it: built from the sources, installed into a fresh virtual environment (not
 the checkout), first without extras (the engine and a team's commands), then with `[server]`. The engine-only
-install passes `navsim-lb regress` and imports no server library; the full one migrates a database and serves
-the pages, their assets and the API from the package data alone.
+install passes `navsim-lb regress`, imports no server library and says which extra draws pictures (`[plot]`);
+the full one migrates a database and serves the pages, their assets and the API from the package data alone.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from worker_testing import api_answers, free_port, wait_for
 
 from navsim_lb import demo
 from navsim_lb.cli import SERVER_COMMANDS, SERVER_EXTRA
+from navsim_lb.engine_cli import PLOT_EXTRA
 from navsim_lb.processes import child_process
 from server import cli as server_cli
 from server.migrate import head_revision
@@ -162,6 +163,11 @@ def test_the_engine_installs_without_the_server_and_passes_the_regression(instal
     serve = install.run("navsim-lb", "serve", "--port", "1", check=False)
     assert serve.returncode == 2
     assert SERVER_EXTRA in " ".join((serve.stdout + serve.stderr).split()), serve
+    plot = install.run(
+        "navsim-lb", "plot", "split", "submission.json", "token", "--out", "x.png", check=False
+    )
+    assert plot.returncode == 2
+    assert PLOT_EXTRA in " ".join((plot.stdout + plot.stderr).split()), plot
 
 
 def test_the_server_extra_migrates_and_serves_the_pages_from_the_wheel(install: Install, wheel: Path) -> None:

@@ -57,9 +57,9 @@ def scene_picture(
 ) -> bytes:
     """Return the PNG that explains the submission's score on `token` (rendered once, then from disk)."""
     from scorer.explain import explain_token
+    from scorer.picture import render
     from scorer.scene import scene_file_hash
     from scorer.submission import load_submission
-    from server.scene_plot import render
 
     scene = _checked(submission, token, seed, admin)
     path = (

@@ -4,6 +4,9 @@ The map excerpt the metrics use (roadblocks, intersections, car parks, lanes and
 route's centreline, every object at the current time and, faintly, where it goes; the human's recorded
 future, PDM-Closed's reference and the submitted trajectory as the simulator tracks them; the ego box at
 the first infraction of each kind, with the object involved drawn in red at that time.
+
+matplotlib is the engine's optional extra (`[plot]`): it is imported when a picture is drawn, never with the
+module, so that the engine imports no plotting library.
 """
 
 from __future__ import annotations
