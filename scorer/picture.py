@@ -13,15 +13,21 @@ from __future__ import annotations
 
 import io
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from scorer.cache import MetricCache
 from scorer.drivable_map import CARPARK_AREA, INTERSECTION, LANE, LANE_CONNECTOR, ROADBLOCK
-from scorer.explain import Explanation
+from scorer.explain import Explanation, Infraction
+from scorer.geometry import FloatArray
 from scorer.metrics.ego_box import ego_box_points, ego_corners
+from scorer.observation import Observation
 from scorer.trajectory import SCORING_INTERVAL_S, StateIndex
 from scorer.versions import METRIC_LABELS, VERSIONS
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 MARGIN_M = 25.0
 FUTURE_EVERY = 10  # draw objects' future boxes every 1 s
@@ -32,34 +38,16 @@ MAP_STYLE = {  # (face, edge, line width, z order)
     LANE: ("none", "#b9bfcc", 0.6, 2),
     LANE_CONNECTOR: ("none", "#c9cdd8", 0.5, 2),
 }
+OTHER_MAP_STYLE = ("none", "#dddddd", 0.4, 1)
 COLORS = {"human": "#6b7385", "reference": "#2457c5", "agent": "#e07b00", "infraction": "#c42b1c"}
 
 
-def _box(axes: Any, corners: np.ndarray, **style: Any) -> None:
-    from matplotlib.patches import Polygon
-
-    axes.add_patch(Polygon(corners, closed=True, **style))
-
-
-def _extent(explanation: Explanation, origin: np.ndarray) -> tuple[float, float, float, float]:
-    points = (
-        np.concatenate(
-            [
-                explanation.agent_states[:, :2],
-                explanation.reference_states[:, :2],
-                explanation.human_future[:, :2],
-            ]
-        )
-        - origin
-    )
-    low, high = points.min(axis=0) - MARGIN_M, points.max(axis=0) + MARGIN_M
-    half = max(high - low) / 2  # a square view: equal scale on both axes without distortion
-    centre = (low + high) / 2
-    return centre[0] - half, centre[0] + half, centre[1] - half, centre[1] + half
-
-
 def render(explanation: Explanation, image_format: str = "png") -> bytes:
-    """Return the picture of an explanation as PNG or SVG bytes."""
+    """Return the picture of an explanation as PNG or SVG bytes.
+
+    Each part is drawn by its own function, in the order below: artists of equal z order are drawn in the
+    order they were added, and the legend lists its entries in that order too.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -69,12 +57,33 @@ def render(explanation: Explanation, image_format: str = "png") -> bytes:
     axes = figure.add_subplot()
     # Metres from the ego's rear axle at the current time: map coordinates (UTM) make unreadable ticks.
     origin = explanation.agent_states[0, :2].copy()
-    x_low, x_high, y_low, y_high = _extent(explanation, origin)
-    cache = explanation.cache
+    _draw_map(axes, explanation.cache, origin)
+    _draw_objects(axes, explanation.cache.observation, origin)
+    _draw_trajectories(axes, explanation, origin)
+    for number, infraction in enumerate(explanation.infractions):
+        _draw_infraction(axes, explanation, infraction, number, origin)
+    _frame(axes, explanation, origin)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format=image_format)
+    return buffer.getvalue()
 
+
+def _box(axes: Axes, corners: FloatArray, **style: Any) -> None:
+    from matplotlib.patches import Polygon
+
+    axes.add_patch(Polygon(corners, closed=True, **style))
+
+
+def _ego_box(states: FloatArray, step: int, origin: FloatArray) -> FloatArray:
+    """Return the corners (4, 2) of the ego's box at time index `step`, relative to `origin`."""
+    return ego_corners(ego_box_points(states[step])) - origin
+
+
+def _draw_map(axes: Axes, cache: MetricCache, origin: FloatArray) -> None:
+    """Draw the map excerpt the metrics use, each layer in its style, and the route's centreline."""
     for polygon, kind in zip(cache.drivable_map.polygons, cache.drivable_map.types, strict=True):
-        face, edge, width, order = MAP_STYLE.get(kind, ("none", "#dddddd", 0.4, 1))
-        for part in getattr(polygon, "geoms", [polygon]):
+        face, edge, width, order = MAP_STYLE.get(kind, OTHER_MAP_STYLE)
+        for part in getattr(polygon, "geoms", [polygon]):  # a multipolygon's parts one by one
             axes.fill(
                 *(np.asarray(part.exterior.coords) - origin).T,
                 facecolor=face,
@@ -91,7 +100,9 @@ def render(explanation: Explanation, image_format: str = "png") -> bytes:
         label="route centreline",
     )
 
-    observation = cache.observation
+
+def _draw_objects(axes: Axes, observation: Observation, origin: FloatArray) -> None:
+    """Draw every object present at the current time, and faintly where each one is every second after."""
     for index in range(len(observation.tokens)):
         for step in range(FUTURE_EVERY, observation.present.shape[0], FUTURE_EVERY):
             if observation.present[step, index]:
@@ -114,6 +125,10 @@ def render(explanation: Explanation, image_format: str = "png") -> bytes:
                 zorder=5,
             )
 
+
+def _draw_trajectories(axes: Axes, explanation: Explanation, origin: FloatArray) -> None:
+    """Draw the human's recorded future, PDM-Closed's reference and the submission as the simulator tracks
+    them, and the ego's box at the current time."""
     axes.plot(
         *(explanation.human_future[:, :2] - origin).T,
         color=COLORS["human"],
@@ -136,46 +151,83 @@ def render(explanation: Explanation, image_format: str = "png") -> bytes:
             zorder=7,
             label=label,
         )
-    ego_start = ego_corners(ego_box_points(explanation.agent_states[0])) - origin
-    _box(axes, ego_start, facecolor="#ffd9a8", edgecolor=COLORS["agent"], linewidth=1.2, zorder=8)
+    start = _ego_box(explanation.agent_states, 0, origin)
+    _box(axes, start, facecolor="#ffd9a8", edgecolor=COLORS["agent"], linewidth=1.2, zorder=8)
 
-    for number, infraction in enumerate(explanation.infractions):
-        step = round(infraction.time_s / SCORING_INTERVAL_S)
-        ego = ego_corners(ego_box_points(explanation.agent_states[step])) - origin
-        _box(axes, ego, fill=False, edgecolor=COLORS["infraction"], linewidth=1.6, zorder=9)
-        if infraction.object_index is not None and step < observation.present.shape[0]:
-            _box(
-                axes,
-                observation.corners[step, infraction.object_index] - origin,
-                facecolor="#f6c6c0",
-                edgecolor=COLORS["infraction"],
-                linewidth=1.6,
-                zorder=9,
-            )
-        what = (
-            f" with {(infraction.object_type or 'object').lower()} {infraction.object_token[:8]}"
-            if infraction.object_token
-            else ""
-        )
-        centre = ego.mean(axis=0)
-        axes.annotate(
-            f"{infraction.kind} at {infraction.time_s:.1f} s{what}",
-            centre,
-            xytext=(16, 16 + 22 * number),
-            textcoords="offset points",
-            color=COLORS["infraction"],
-            fontsize=9,
-            zorder=10,
-            arrowprops={"arrowstyle": "-", "color": COLORS["infraction"], "linewidth": 0.8},
-            bbox={"boxstyle": "round,pad=0.2", "facecolor": "white", "edgecolor": "none", "alpha": 0.85},
-        )
 
+def _draw_infraction(
+    axes: Axes, explanation: Explanation, infraction: Infraction, number: int, origin: FloatArray
+) -> None:
+    """Draw the ego's box at an infraction, the object involved at that time in red, and a label; the
+    `number`-th infraction's label sits higher, so that labels of nearby infractions do not overlap."""
+    step = round(infraction.time_s / SCORING_INTERVAL_S)
+    ego = _ego_box(explanation.agent_states, step, origin)
+    _box(axes, ego, fill=False, edgecolor=COLORS["infraction"], linewidth=1.6, zorder=9)
+    observation = explanation.cache.observation
+    if infraction.object_index is not None and step < observation.present.shape[0]:
+        _box(
+            axes,
+            observation.corners[step, infraction.object_index] - origin,
+            facecolor="#f6c6c0",
+            edgecolor=COLORS["infraction"],
+            linewidth=1.6,
+            zorder=9,
+        )
+    axes.annotate(
+        _infraction_label(infraction),
+        ego.mean(axis=0),
+        xytext=(16, 16 + 22 * number),
+        textcoords="offset points",
+        color=COLORS["infraction"],
+        fontsize=9,
+        zorder=10,
+        arrowprops={"arrowstyle": "-", "color": COLORS["infraction"], "linewidth": 0.8},
+        bbox={"boxstyle": "round,pad=0.2", "facecolor": "white", "edgecolor": "none", "alpha": 0.85},
+    )
+
+
+def _infraction_label(infraction: Infraction) -> str:
+    """Return an infraction's label: its kind, its time and the object involved, if any."""
+    what = (
+        f" with {(infraction.object_type or 'object').lower()} {infraction.object_token[:8]}"
+        if infraction.object_token
+        else ""
+    )
+    return f"{infraction.kind} at {infraction.time_s:.1f} s{what}"
+
+
+def _frame(axes: Axes, explanation: Explanation, origin: FloatArray) -> None:
+    """Set the view, the axis labels, the legend and the title (the token, its score and subscores)."""
+    x_low, x_high, y_low, y_high = _extent(explanation, origin)
     axes.set_xlim(x_low, x_high)
     axes.set_ylim(y_low, y_high)
     axes.set_aspect("equal")
     axes.set_xlabel("x (m from the ego's start)")
     axes.set_ylabel("y (m from the ego's start)")
     axes.legend(loc="upper left", fontsize=8, framealpha=0.9)
+    axes.set_title(_title(explanation), fontsize=10)
+
+
+def _extent(explanation: Explanation, origin: FloatArray) -> tuple[float, float, float, float]:
+    """Return the square view (x low, x high, y low, y high) around the three trajectories, with a margin."""
+    points = (
+        np.concatenate(
+            [
+                explanation.agent_states[:, :2],
+                explanation.reference_states[:, :2],
+                explanation.human_future[:, :2],
+            ]
+        )
+        - origin
+    )
+    low, high = points.min(axis=0) - MARGIN_M, points.max(axis=0) + MARGIN_M
+    half = max(high - low) / 2  # a square view: equal scale on both axes without distortion
+    centre = (low + high) / 2
+    return centre[0] - half, centre[0] + half, centre[1] - half, centre[1] + half
+
+
+def _title(explanation: Explanation) -> str:
+    """Return the title: the token and its score, and on a second line every subscore, in percent."""
     metrics = explanation.metrics
     subscores = "  ".join(  # an undefined value (v2.2's EC of a token drawn alone) is left out
         f"{METRIC_LABELS[column]} {100 * value:.1f}"
@@ -183,10 +235,5 @@ def render(explanation: Explanation, image_format: str = "png") -> bytes:
         if column != "score" and not math.isnan(value)
     )
     score_label = VERSIONS[explanation.version].score_label
-    axes.set_title(
-        f"{explanation.token} · {score_label} {explanation.version} {100 * metrics['score']:.1f}\n{subscores}",
-        fontsize=10,
-    )
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format=image_format)
-    return buffer.getvalue()
+    score = f"{score_label} {explanation.version} {100 * metrics['score']:.1f}"
+    return f"{explanation.token} · {score}\n{subscores}"
