@@ -11,9 +11,9 @@ version does not score are 1.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, fields
-from functools import cache
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -222,24 +222,168 @@ def measure_batch(
     return measure_alike(states, *inputs, [MeasureSettings.of(config)])[0]
 
 
+# An observation, named by the ids of its Observation objects (one per token).
+ObservationKey = tuple[int, ...]
+# TLC (R,), each row's first red-light contact: its time index and the light (`traffic_light_compliance`).
+TrafficLights = tuple[FloatArray, IntArray, IntArray]
+# LK (R,), the time index at which the run beyond the limit reached the window, its longest run.
+LaneKeeping = tuple[FloatArray, IntArray, IntArray]
+
+
+@dataclass(frozen=True, eq=False)
+class EgoRows:
+    """B tokens' simulated proposals (B, P, 41, 11) as rows (R = B·P), and what reads only them and the maps
+    (the ego's box points, the map areas they lie in): every setting and every observation shares these."""
+
+    rows: FloatArray  # (R, 41, 11)
+    row_token: IntArray  # (R,) the token of each row
+    num_tokens: int
+    num_proposals: int
+    maps: MapBatch
+    centerlines: npt.NDArray[np.object_]  # (B,) LineStrings
+    points: FloatArray  # (R, 41, 5, 2) `ego_box_points`
+    areas: BoolArray  # (R, 41, 3) `ego_areas`
+
+    @classmethod
+    def of(
+        cls,
+        states: FloatArray,
+        drivable_maps: Sequence[DrivableMap],
+        centerlines: Sequence[FloatArray],
+        route_lane_ids: Sequence[Collection[str]],
+    ) -> EgoRows:
+        """Return the rows of `states` (B, P, 41, 11), each token with its map, centerline and route."""
+        states = np.asarray(states, dtype=np.float64)
+        if states.ndim != 4 or states.shape[2:] != (SCORING_POSES + 1, STATE_SIZE):
+            raise ValueError(
+                f"states: expected shape (B, P, {SCORING_POSES + 1}, {STATE_SIZE}), got {states.shape}"
+            )
+        num_tokens, num_proposals = states.shape[:2]
+        rows = states.reshape(-1, *states.shape[2:])
+        row_token = np.repeat(np.arange(num_tokens), num_proposals)
+        maps = MapBatch.of(drivable_maps, route_lane_ids)
+        points = ego_box_points(rows)
+        return cls(
+            rows=rows,
+            row_token=row_token,
+            num_tokens=num_tokens,
+            num_proposals=num_proposals,
+            maps=maps,
+            centerlines=centerline_strings(list(centerlines)),
+            points=points,
+            areas=ego_areas(points, row_token, maps),
+        )
+
+    def per_token(self, values: np.ndarray) -> np.ndarray:
+        """Return per-row values (R, ...) as per-token ones (B, P, ...)."""
+        return values.reshape(self.num_tokens, self.num_proposals, *values.shape[1:])
+
+    @property
+    def centers(self) -> FloatArray:
+        """The box centres (R, 41, 2)."""
+        return self.points[..., BoxPoint.CENTER, :]
+
+    @cached_property
+    def centre_in_intersection(self) -> BoolArray:
+        """Whether each box centre is inside an intersection of its token's map (R, 41): v2's DDC and LK read
+        it, so it is found once, and only when a setting reads it."""
+        num_rows, num_steps = self.rows.shape[:2]
+        x, y = self.centers[..., 0].reshape(-1), self.centers[..., 1].reshape(-1)
+        return in_intersection(x, y, np.repeat(self.row_token, num_steps), self.maps).reshape(
+            num_rows, num_steps
+        )
+
+
 class _Observed:
     """What one observation (per token) decides of a batch's measures: the batch of its objects and NC."""
 
-    def __init__(
-        self,
-        observations: Sequence[Observation],
-        rows: FloatArray,
-        points: FloatArray,
-        areas: BoolArray,
-        row_token: IntArray,
-    ) -> None:
+    def __init__(self, observations: Sequence[Observation], ego: EgoRows) -> None:
+        self.observations = observations
         self.batch = ObservationBatch.of(observations)
-        self.row_token = row_token
-        self.collisions, self.collision = no_at_fault_collisions(rows, points, areas, row_token, self.batch)
+        self.row_token = ego.row_token
+        self.collisions, self.collision = no_at_fault_collisions(
+            ego.rows, ego.points, ego.areas, ego.row_token, self.batch
+        )
 
     def local_object(self, batch_column: IntArray) -> IntArray:
         """Return object columns of the batch as indices in each row's own observation (-1 stays -1)."""
         return np.where(batch_column >= 0, batch_column - self.batch.start[self.row_token], -1)
+
+
+def ttc_horizons(
+    readers: Sequence[tuple[MeasureSettings, ObservationKey]],
+) -> dict[ObservationKey, list[int]]:
+    """Return, per observation, the TTC horizons (time steps) of the settings reading it, in increasing order.
+
+    One contact search over the longest serves them all (`time_to_collision`). Only the horizons of the
+    settings reading that observation count: another observation's may be longer than this one holds.
+    """
+    horizons: dict[ObservationKey, set[int]] = {}
+    for setting, key in readers:
+        horizons.setdefault(key, set()).add(setting.ttc_evaluated_steps)
+    return {key: sorted(steps) for key, steps in horizons.items()}
+
+
+def _time_to_collision(
+    ego: EgoRows,
+    observed: Mapping[ObservationKey, _Observed],
+    readers: Sequence[tuple[MeasureSettings, ObservationKey]],
+) -> dict[tuple[ObservationKey, float, int], tuple[FloatArray, FirstInfraction]]:
+    """Return TTC (R,) and its first infractions by (observation, stopped-speed threshold, horizon), measured
+    once per observation and threshold that a setting reads, over every horizon read of that observation."""
+    horizons = ttc_horizons(readers)
+    measured: dict[tuple[ObservationKey, float, int], tuple[FloatArray, FirstInfraction]] = {}
+    for key, threshold in dict.fromkeys((key, setting.stopped_speed_threshold) for setting, key in readers):
+        batch = observed[key].batch
+        found = time_to_collision(
+            ego.rows,
+            ego.points,
+            ego.areas,
+            ego.row_token,
+            batch,
+            ego.maps,
+            threshold,
+            SCORING_INTERVAL_S,
+            horizons[key],
+        )
+        measured |= {(key, threshold, steps): ttc for steps, ttc in zip(horizons[key], found, strict=True)}
+    return measured
+
+
+def _traffic_lights(
+    ego: EgoRows,
+    observed: Mapping[ObservationKey, _Observed],
+    readers: Sequence[tuple[MeasureSettings, ObservationKey]],
+) -> dict[ObservationKey, TrafficLights]:
+    """Return TLC by observation, measured for each observation that a setting with TLC reads."""
+    reading = dict.fromkeys(key for setting, key in readers if setting.traffic_light_compliance)
+    return {
+        key: traffic_light_compliance(
+            ego_corners(ego.points),
+            ego.row_token,
+            [observation.red_lights for observation in observed[key].observations],
+        )
+        for key in reading
+    }
+
+
+def _lane_keeping(
+    ego: EgoRows, settings: Sequence[MeasureSettings]
+) -> dict[tuple[float, float], LaneKeeping]:
+    """Return LK by (deviation limit, horizon window), measured once for each pair a setting reads."""
+    limits = dict.fromkeys(setting.lane_keeping for setting in settings if setting.lane_keeping is not None)
+    return {
+        (limit, window): lane_keeping(
+            ego.centers,
+            ego.centre_in_intersection,
+            ego.centerlines,
+            ego.row_token,
+            limit,
+            window,
+            SCORING_INTERVAL_S,
+        )
+        for limit, window in limits
+    }
 
 
 def measure_alike(
@@ -257,120 +401,78 @@ def measure_alike(
     reads the observation too (NC, TTC, TLC) once per observation (settings given the same Observation objects
     share it); every other measure once per value of the settings it reads.
     """
-    states = np.asarray(states, dtype=np.float64)
-    if states.ndim != 4 or states.shape[2:] != (SCORING_POSES + 1, STATE_SIZE):
-        raise ValueError(
-            f"states: expected shape (B, P, {SCORING_POSES + 1}, {STATE_SIZE}), got {states.shape}"
-        )
-    num_tokens, num_proposals = states.shape[:2]
-    rows = states.reshape(-1, *states.shape[2:])
-    row_token = np.repeat(np.arange(num_tokens), num_proposals)
-    maps = MapBatch.of(drivable_maps, route_lane_ids)
-
-    def per_token(values: np.ndarray) -> np.ndarray:
-        return values.reshape(num_tokens, num_proposals, *values.shape[1:])
-
-    points = ego_box_points(rows)
-    areas = ego_areas(points, row_token, maps)
-    centers = points[..., BoxPoint.CENTER, :]
-    num_steps = rows.shape[1]
-    centerline_lines = centerline_strings(list(centerlines))
-    no_index = np.full(len(rows), -1, dtype=np.intp)
-
+    ego = EgoRows.of(states, drivable_maps, centerlines, route_lane_ids)
     # An observation is named by its Observation objects: settings given the same objects share its measures.
-    observation_keys = [tuple(map(id, token_observations)) for token_observations in observations]
-    observation_of = dict(zip(observation_keys, observations, strict=True))
-
-    @cache
-    def observed(key: tuple[int, ...]) -> _Observed:
-        return _Observed(observation_of[key], rows, points, areas, row_token)
-
-    @cache
-    def ttc(
-        key: tuple[int, ...], stopped_speed_threshold: float
-    ) -> dict[int, tuple[FloatArray, FirstInfraction]]:
-        # The horizons of the settings reading this observation only: another may hold fewer time steps.
-        reading = zip(settings, observation_keys, strict=True)
-        horizons = sorted({setting.ttc_evaluated_steps for setting, seen in reading if seen == key})
-        measured = time_to_collision(
-            rows,
-            points,
-            areas,
-            row_token,
-            observed(key).batch,
-            maps,
-            stopped_speed_threshold,
-            SCORING_INTERVAL_S,
-            horizons,
-        )
-        return dict(zip(horizons, measured, strict=True))
-
-    @cache
-    def centre_in_intersection() -> BoolArray:
-        return in_intersection(
-            centers[..., 0].reshape(-1), centers[..., 1].reshape(-1), np.repeat(row_token, num_steps), maps
-        ).reshape(len(rows), num_steps)
-
-    @cache
-    def traffic_light(key: tuple[int, ...]) -> tuple[FloatArray, IntArray, IntArray]:
-        red_lights = [observation.red_lights for observation in observation_of[key]]
-        return traffic_light_compliance(ego_corners(points), row_token, red_lights)
-
-    @cache
-    def keeping(limits: tuple[float, float]) -> tuple[FloatArray, IntArray, IntArray]:
-        inside = centre_in_intersection()
-        return lane_keeping(centers, inside, centerline_lines, row_token, *limits, SCORING_INTERVAL_S)
-
-    @cache
-    def comfort(at_centre: bool) -> FloatArray:
-        return per_token(comfort_series(rows, at_centre=at_centre))
-
-    @cache
-    def off_route(excludes_intersections: bool) -> FloatArray:
-        excluded = centre_in_intersection() if excludes_intersections else None
-        return per_token(off_route_steps(points, areas, excluded))
-
-    shared = {
-        "drivable_area_compliance": per_token(drivable_area_compliance(areas)),
-        "progress_raw": per_token(raw_progress(points, centerline_lines, row_token)),
-        "ego_areas": per_token(areas),
+    keys = [tuple(map(id, token_observations)) for token_observations in observations]
+    observed = {key: _Observed(seen, ego) for key, seen in dict(zip(keys, observations, strict=True)).items()}
+    readers = list(zip(settings, keys, strict=True))
+    ttc = _time_to_collision(ego, observed, readers)
+    lights = _traffic_lights(ego, observed, readers)
+    keeping = _lane_keeping(ego, settings)
+    comfort = {
+        at_centre: ego.per_token(comfort_series(ego.rows, at_centre=at_centre))
+        for at_centre in dict.fromkeys(setting.comfort_at_centre for setting in settings)
     }
-    measures = []
-    for setting, key in zip(settings, observation_keys, strict=True):
-        seen = observed(key)
-        time_to_collision_within_bound, ttc_infraction = ttc(key, setting.stopped_speed_threshold)[
-            setting.ttc_evaluated_steps
-        ]
-        light: tuple[FloatArray, IntArray, IntArray] = (np.ones(len(rows)), no_index, no_index)
-        if setting.traffic_light_compliance:
-            light = traffic_light(key)
-        lane: tuple[FloatArray, IntArray, IntArray] = (
-            np.ones(len(rows)),
-            no_index,
-            np.zeros(len(rows), dtype=np.intp),
+    off_route = {
+        excludes: ego.per_token(
+            off_route_steps(ego.points, ego.areas, ego.centre_in_intersection if excludes else None)
         )
-        if setting.lane_keeping is not None:
-            lane = keeping(setting.lane_keeping)
-        measures.append(
-            ProposalMeasures(
+        for excludes in dict.fromkeys(setting.ddc_excludes_intersections for setting in settings)
+    }
+    shared = {
+        "drivable_area_compliance": ego.per_token(drivable_area_compliance(ego.areas)),
+        "progress_raw": ego.per_token(raw_progress(ego.points, ego.centerlines, ego.row_token)),
+        "ego_areas": ego.per_token(ego.areas),
+    }
+    return [
+        _setting_measures(
+            ego,
+            observed[key],
+            ttc[key, setting.stopped_speed_threshold, setting.ttc_evaluated_steps],
+            lights[key] if setting.traffic_light_compliance else None,
+            None if setting.lane_keeping is None else keeping[setting.lane_keeping],
+            {
                 **shared,
-                no_at_fault_collisions=per_token(seen.collisions),
-                collision_index=per_token(seen.collision.index),
-                collision_object=per_token(seen.local_object(seen.collision.obj)),
-                time_to_collision_within_bound=per_token(time_to_collision_within_bound),
-                ttc_index=per_token(ttc_infraction.index),
-                ttc_object=per_token(seen.local_object(ttc_infraction.obj)),
-                comfort_series=comfort(setting.comfort_at_centre),
-                off_route_steps=off_route(setting.ddc_excludes_intersections),
-                traffic_light_compliance=per_token(light[0]),
-                red_light_index=per_token(light[1]),
-                red_light=per_token(light[2]),
-                lane_keeping=per_token(lane[0]),
-                lane_keeping_index=per_token(lane[1]),
-                lane_keeping_run=per_token(lane[2]),
-            )
+                "comfort_series": comfort[setting.comfort_at_centre],
+                "off_route_steps": off_route[setting.ddc_excludes_intersections],
+            },
         )
-    return measures
+        for setting, key in readers
+    ]
+
+
+def _setting_measures(
+    ego: EgoRows,
+    seen: _Observed,
+    ttc: tuple[FloatArray, FirstInfraction],
+    light: TrafficLights | None,
+    lane: LaneKeeping | None,
+    per_token: Mapping[str, np.ndarray],
+) -> ProposalMeasures:
+    """Return one setting's measures (B, P) from the per-row ones it reads and those already `per_token`
+    (B, P, ...); without TLC or LK (None) it gets 1 and no infraction."""
+    num_rows = len(ego.rows)
+    no_index = np.full(num_rows, -1, dtype=np.intp)
+    if light is None:
+        light = (np.ones(num_rows), no_index, no_index)
+    if lane is None:
+        lane = (np.ones(num_rows), no_index, np.zeros(num_rows, dtype=np.intp))
+    ttc_within_bound, ttc_infraction = ttc
+    return ProposalMeasures(
+        **per_token,
+        no_at_fault_collisions=ego.per_token(seen.collisions),
+        collision_index=ego.per_token(seen.collision.index),
+        collision_object=ego.per_token(seen.local_object(seen.collision.obj)),
+        time_to_collision_within_bound=ego.per_token(ttc_within_bound),
+        ttc_index=ego.per_token(ttc_infraction.index),
+        ttc_object=ego.per_token(seen.local_object(ttc_infraction.obj)),
+        traffic_light_compliance=ego.per_token(light[0]),
+        red_light_index=ego.per_token(light[1]),
+        red_light=ego.per_token(light[2]),
+        lane_keeping=ego.per_token(lane[0]),
+        lane_keeping_index=ego.per_token(lane[1]),
+        lane_keeping_run=ego.per_token(lane[2]),
+    )
 
 
 def score_measures(

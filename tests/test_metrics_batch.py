@@ -13,9 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scorer import pdm_scorer
 from scorer.drivable_map import build_drivable_map
 from scorer.observation import observe_scene
 from scorer.pdm_scorer import (
+    EgoRows,
     MeasureSettings,
     ProposalMeasures,
     ProposalScores,
@@ -25,6 +27,7 @@ from scorer.pdm_scorer import (
     score_batch,
     score_measures,
     score_proposals,
+    ttc_horizons,
 )
 from scorer.scene import load_scene
 from scorer.versions import METRIC_COLUMNS, get_version
@@ -138,3 +141,41 @@ def test_configs_measured_together_get_what_each_gets_alone() -> None:
     assert any(0.0 in measures.time_to_collision_within_bound for measures in together)  # TTC is exercised
     # Without objects TTC finds nothing: the two observations were measured apart.
     assert (together[5].time_to_collision_within_bound == 1.0).all()
+
+
+def test_ego_rows_are_each_tokens_proposals_in_order() -> None:
+    cases = _tokens("v1.1")[:2]
+    states, _, maps, centerlines, routes = (list(column) for column in zip(*cases, strict=True))
+    ego = EgoRows.of(np.stack(states), maps, centerlines, routes)
+    assert ego.row_token.tolist() == [0, 0, 1, 1]
+    assert np.array_equal(ego.per_token(ego.rows), np.stack(states))
+    with pytest.raises(ValueError, match="expected shape"):
+        EgoRows.of(np.stack(states)[:, :, :-1], maps, centerlines, routes)
+
+
+def test_ttc_horizons_are_those_of_the_settings_reading_each_observation() -> None:
+    v1 = MeasureSettings.of(get_version("v1.1").evaluation)
+    readers = [
+        (v1, (1, 2)),
+        (replace(v1, ttc_evaluated_steps=32), (1, 2)),
+        (replace(v1, ttc_evaluated_steps=12), (3, 4)),
+        (v1, (1, 2)),
+    ]
+    assert ttc_horizons(readers) == {(1, 2): [32, v1.ttc_evaluated_steps], (3, 4): [12]}
+
+
+def test_centres_in_intersections_are_found_once_and_only_when_a_setting_reads_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """v1 reads no intersection; v2.2's DDC and LK both do, from one query however many settings read it."""
+    found = []
+    query = pdm_scorer.in_intersection
+    monkeypatch.setattr(pdm_scorer, "in_intersection", lambda *args: found.append(args) or query(*args))
+    states, observations, maps, centerlines, routes = (
+        list(column) for column in zip(*_tokens("v1.1"), strict=True)
+    )
+    v1, v2 = (MeasureSettings.of(get_version(version).evaluation) for version in ("v1.1", "v2.2"))
+    measure_alike(np.stack(states), [observations], maps, centerlines, routes, [v1])
+    assert not found
+    measure_alike(np.stack(states), [observations] * 3, maps, centerlines, routes, [v1, v2, v2])
+    assert len(found) == 1
