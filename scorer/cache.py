@@ -29,7 +29,7 @@ from scorer.geometry import FloatArray
 from scorer.human import FILTERED_COLUMNS, human_future_poses, is_synthetic
 from scorer.metrics.history_comfort import past_states
 from scorer.observation import Observation, drop_tracks_on_ego, observe_scene
-from scorer.pdm_scorer import MeasureSettings, ProposalMeasures, measure_alike, measure_batch, score_measures
+from scorer.pdm_scorer import MeasureSettings, ProposalMeasures, measure_alike, score_batch
 from scorer.red_lights import RedLights, observe_red_lights
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
@@ -245,15 +245,12 @@ def score_humans(
     humans: list[dict[str, float] | None] = [None] * num_scenes
     if not original:
         return humans
-    scores = score_measures(
-        measure_batch(
-            states[:, None],
-            [observations[index] for index in original],
-            [drivable_maps[index] for index in original],
-            [centerlines[index] for index in original],
-            [route_lane_ids[index] for index in original],
-            version.evaluation,
-        ),
+    scores = score_batch(
+        states[:, None],
+        [observations[index] for index in original],
+        [drivable_maps[index] for index in original],
+        [centerlines[index] for index in original],
+        [route_lane_ids[index] for index in original],
         version.evaluation,
     )
     for row, index in enumerate(original):

@@ -329,25 +329,6 @@ def score_against_references(
     return states, score_simulated(caches, states, version)
 
 
-def score_caches(
-    caches: Sequence[MetricCache],
-    poses: Sequence[FloatArray],
-    version: MetricVersion,
-    seed: int | None = None,
-) -> list[TokenResult]:
-    """Score one agent trajectory per cache, all tokens in one batch, against the cached PDM-Closed measures.
-
-    Each token is scored alone: v2.2's EC, which pairs tokens, is left undefined (`join_two_frame_comfort`).
-    """
-    states, failed = _simulated([cache.token for cache in caches], caches, poses)
-    rows = [
-        item.result if isinstance(item, ScoredToken) else item
-        for item in _rows_of_simulated({version.name: caches}, states, failed, [version], seed)[version.name]
-    ]
-    order = {cache.token: index for index, cache in enumerate(caches)}
-    return sorted(rows, key=lambda row: order[row.token])
-
-
 def _rows_of_simulated(
     caches: Mapping[str, Sequence[MetricCache]],
     states: Mapping[str, FloatArray],

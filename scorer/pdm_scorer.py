@@ -173,24 +173,6 @@ def join_measures(parts: Sequence[ProposalMeasures], axis: int = 1) -> ProposalM
     )
 
 
-def score_proposals(
-    states: FloatArray,
-    observation: Observation,
-    drivable_map: DrivableMap,
-    centerline_xy: FloatArray,
-    route_lane_ids: Collection[str],
-    config: ScorerConfig,
-) -> ProposalScores:
-    """Return the scores of simulated proposals (P, 41, 11) against an observation and map.
-
-    See docs/engine.md, "Metrics".
-    """
-    states = np.asarray(states, dtype=np.float64)
-    return score_batch(
-        states[None], [observation], [drivable_map], [centerline_xy], [route_lane_ids], config
-    ).token(0)
-
-
 def score_batch(
     states: FloatArray,
     observations: Sequence[Observation],
@@ -201,7 +183,8 @@ def score_batch(
 ) -> ProposalScores:
     """Return the scores (B, P) of B tokens' simulated proposals (B, P, 41, 11), each against its own inputs.
 
-    Every token is scored as if alone (`score_proposals`); the batch only shares the array calls.
+    Every token is scored as if alone (a batch of one, as the devkit scores it); the batch only shares the
+    array calls.
     """
     return score_measures(
         measure_batch(states, observations, drivable_maps, centerlines, route_lane_ids, config), config

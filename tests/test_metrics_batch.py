@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from engine_scoring import score_proposals
 
 from scorer import pdm_scorer
 from scorer.drivable_map import build_drivable_map
@@ -26,7 +27,6 @@ from scorer.pdm_scorer import (
     measure_batch,
     score_batch,
     score_measures,
-    score_proposals,
     ttc_horizons,
 )
 from scorer.scene import load_scene

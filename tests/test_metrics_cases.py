@@ -13,12 +13,13 @@ import math
 import numpy as np
 import pytest
 import shapely
+from engine_scoring import score_proposals
 
 from scorer.drivable_map import DrivableMap
 from scorer.geometry import REAR_AXLE_TO_CENTER, box_corners
 from scorer.metrics.ego_areas import EgoArea
 from scorer.observation import OBSERVATION_STEPS, Observation
-from scorer.pdm_scorer import ProposalScores, score_proposals
+from scorer.pdm_scorer import ProposalScores
 from scorer.trajectory import STATE_SIZE, StateIndex
 from scorer.versions import ScorerConfig, get_version
 

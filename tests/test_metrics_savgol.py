@@ -13,13 +13,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from engine_scoring import score_caches
 from scipy.linalg import lstsq
 from scipy.ndimage import convolve1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
 from scorer.blas import KEEP_VARIABLE
 from scorer.cache import build_caches
-from scorer.evaluate import score_caches
 from scorer.metrics import comfort
 from scorer.metrics.savgol import (
     _coefficients,

@@ -26,11 +26,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from devkit_kernels import V1_VERSIONS, devkit_tolerance
+from engine_scoring import score_proposals
 
 from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.metrics.ego_areas import EgoArea
 from scorer.observation import Observation, observe_scene
-from scorer.pdm_scorer import ProposalScores, score_proposals
+from scorer.pdm_scorer import ProposalScores
 from scorer.scene import Scene, load_scene
 from scorer.simulation import simulate
 from scorer.trajectory import SCORING_INTERVAL_S, agent_references, initial_state, pdm_references

@@ -6,9 +6,9 @@ import json
 
 import numpy as np
 import pytest
+from engine_scoring import score_caches
 
 from scorer.cache import build_caches
-from scorer.evaluate import score_caches
 from scorer.scene import Scene, iter_scenes
 from scorer.synth import synthesize_split
 from scorer.versions import VERSIONS
@@ -55,9 +55,9 @@ def test_synthetic_scenes_are_cached_and_scored_in_every_version(
         caches = build_caches(scene, list(VERSIONS.values()))
         for name, cache in caches.items():
             assert len(cache.centerline) > 10 and cache.route_lane_ids, (scene.token, name)
-            human, constant = score_caches(
-                [cache, cache], [_recorded_future(scene), _constant_velocity(scene)], VERSIONS[name]
-            )
+            # One call each: a batch names the states by token.
+            (human,) = score_caches([cache], [_recorded_future(scene)], VERSIONS[name])
+            (constant,) = score_caches([cache], [_constant_velocity(scene)], VERSIONS[name])
             for result in (human, constant):
                 assert result.valid, (scene.token, name, result.error)
                 columns = [c for c in VERSIONS[name].result_columns if c != "two_frame_extended_comfort"]
