@@ -14,6 +14,7 @@ import tomllib
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import httpx
 import pytest
@@ -45,6 +46,8 @@ NOT_ENGINE = (
     "pandas",
     "matplotlib",
 )
+# setuptools' warning for such a directory: since version 68, then its older wording.
+UNDECLARED = ("is absent from the `packages` configuration", "as data is deprecated")
 SOURCES_IGNORED = (
     ".git",
     ".venv",
@@ -80,16 +83,36 @@ def test_the_install_hints_stand_for_exactly_the_server_commands() -> None:
     assert _names(server_only) == set(SERVER_COMMANDS)
 
 
+class Build(NamedTuple):
+    wheel: Path
+    log: str  # pip's verbose output, which holds the build backend's warnings
+
+
 @pytest.fixture(scope="module")
-def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def build(tmp_path_factory: pytest.TempPathFactory) -> Build:
     """Build the wheel from a copy of the sources (a build in place would leave build/ in the checkout)."""
     sources = tmp_path_factory.mktemp("sources") / "navsim-leaderboard"
     shutil.copytree(ROOT, sources, ignore=shutil.ignore_patterns(*SOURCES_IGNORED))
     out = tmp_path_factory.mktemp("dist")
-    command = [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps"]
-    subprocess.run([*command, "--wheel-dir", str(out), str(sources)], check=True, capture_output=True)
+    # Verbose: without it pip hides what the build backend prints, warnings included.
+    command = [sys.executable, "-m", "pip", "wheel", "--verbose", "--no-deps"]
+    done = subprocess.run(
+        [*command, "--wheel-dir", str(out), str(sources)], check=True, capture_output=True, text=True
+    )
     (built,) = out.glob("navsim_leaderboard-*.whl")
-    return built
+    return Build(built, done.stdout + done.stderr)
+
+
+@pytest.fixture(scope="module")
+def wheel(build: Build) -> Path:
+    return build.wheel
+
+
+def test_the_build_takes_no_data_directory_for_an_undeclared_package(build: Build) -> None:
+    """A data directory such as web/templates is importable to Python; unless setuptools is told the package data
+    is exactly what `package-data` lists, it prints a page-long warning for each one on every `pip install`."""
+    warned = [line for line in build.log.splitlines() if any(words in line for words in UNDECLARED)]
+    assert warned == []
 
 
 def test_the_wheel_carries_the_pages_the_migrations_and_the_goldens(wheel: Path) -> None:
