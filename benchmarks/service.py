@@ -37,6 +37,7 @@ import itertools
 import multiprocessing
 import os
 import socket
+import sys
 import tempfile
 import time
 import uuid
@@ -53,7 +54,6 @@ from sqlalchemy import func, select
 from threadpoolctl import threadpool_limits
 
 from navsim_lb.processes import api_command, child_process
-from navsim_lb.scratch import scratch_postgres_database, scratch_redis_queue
 from scorer.baselines import baseline_submission
 from scorer.evaluate import build_split_cache, score_seeds, score_versions
 from scorer.geometry import FloatArray
@@ -71,6 +71,10 @@ from server.services.tokens import create_token
 from server.settings import Settings
 from worker import SCORING_NICENESS
 from worker.cli import worker_command
+
+# The throwaway databases and queues come from the tests' helpers: the benchmark runs on the same servers.
+sys.path.append(str(Path(__file__).resolve().parent.parent / "tests"))
+from scratch import scratch_postgres_database, scratch_redis_queue
 
 DATA = Path(__file__).parent / ".data"
 POSTGRES_URL = os.environ.get("NAVSIM_LB_BENCH_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/test")

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
+from scratch import scratch_postgres_database
 from sqlalchemy import create_engine
 from sqlalchemy.orm import Session, sessionmaker
 
-from navsim_lb.scratch import scratch_postgres_database
 from scorer.versions import ALL_RESULT_COLUMNS, VERSIONS
 from server.db import make_engine, make_session_factory, transaction
 from server.main import create_app

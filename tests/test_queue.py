@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import redis
 from kombu import Connection
+from scratch import scratch_redis_queue
 
-from navsim_lb.scratch import scratch_redis_queue
 from server.queue import (
     SCORE_TASK,
     SQLITE_BROKER_TIMEOUT_S,

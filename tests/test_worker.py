@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scratch import scratch_redis_queue
 from server_testing import fresh_postgres_database
 from sqlalchemy import select
 from worker_testing import (
@@ -31,7 +32,6 @@ from worker_testing import (
     write_submission,
 )
 
-from navsim_lb.scratch import scratch_redis_queue
 from scorer.blas import engine_provenance
 from scorer.evaluate import score_tokens
 from scorer.submission import dump_submission_json, load_submission

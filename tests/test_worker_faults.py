@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 from own_servers import own_postgres, own_redis
+from scratch import scratch_redis_queue
 from server_testing import fresh_postgres_database
 from sqlalchemy import func, select
 from worker_testing import (
@@ -31,7 +32,6 @@ from worker_testing import (
 )
 
 from navsim_lb.processes import child_process
-from navsim_lb.scratch import scratch_redis_queue
 from scorer.submission import Submission as Predictions
 from server.main import DATABASE_DOWN
 from server.models import ChunkState, FailureKind, ScoringChunk, Status, Summary, TokenResultRow
