@@ -81,7 +81,7 @@ POSTGRES_URL = os.environ.get("NAVSIM_LB_BENCH_POSTGRES", "postgresql+psycopg://
 REDIS_URL = os.environ.get("NAVSIM_LB_BENCH_REDIS", "redis://127.0.0.1:6379/0")
 SPLIT_SEED = 11
 CONNECTIONS = 64  # concurrent clients of the leaderboard load
-SERVICE_TARGET = 1.25  # POST to leaderboard row against the engine alone (issue 14)
+SERVICE_TARGET = 1.25  # POST to leaderboard row against the engine alone
 # How often the client asks whether its upload is scored: each answer costs the API a few ms of the CPU the
 # workers score on, so asking 20 times a second would slow what it measures by several percent.
 STATUS_POLL_S = 0.25

@@ -1,4 +1,4 @@
-"""Hand-built cases whose metric values follow from the spec by hand (issue 2, item 8).
+"""Hand-built cases whose metric values follow from the spec by hand.
 
 The road: x from -60 to 160 m, lane "right" (on the route) y in [-3.5, 0], lane "left" y in [0, 3.5],
 one roadblock over both. The ego drives along +x; its rear axle at (x, y) puts its box corners at

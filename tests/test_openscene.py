@@ -1,4 +1,4 @@
-"""OpenScene log pickles, frame conversion, GeoPackage reading and map excerpts (issue 4)."""
+"""OpenScene log pickles, frame conversion, GeoPackage reading and map excerpts."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Import OpenScene log pickles and nuPlan map GeoPackages into `navsim-lb/scene` files (issue 4).
+"""Import OpenScene log pickles and nuPlan map GeoPackages into `navsim-lb/scene` files.
 
 Modules: `log_pickle` (restricted loader), `frames` (devkit frame conversion, scene windows),
 `gpkg` (GeoPackage reader), `excerpt` (per-scene map excerpt), `navigation` (driving command),
