@@ -366,8 +366,8 @@ class Result(MetricColumns, Base):
 class Summary(MetricColumns, Base):
     """A leaderboard entry: the seeds of one (submission, metric version, subset) combined, with the CI.
 
-    Metric columns hold means over seeds; `score_std`/`score_max` describe the spread of per-seed PDMS,
-    `ci_low`/`ci_high` the bootstrap 95% interval of PDMS over tokens (seed-averaged per token).
+    Metric columns hold means over seeds; `score_std`/`score_max` describe the spread of per-seed scores (PDMS or EPDMS),
+    `ci_low`/`ci_high` the bootstrap 95% interval of the score over tokens (seed-averaged per token).
     """
 
     __tablename__ = "summaries"

@@ -162,7 +162,9 @@ class LeaderboardRow(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    rank: int | None = Field(description="standing by PDMS among team entries; null for baselines")
+    rank: int | None = Field(
+        description="standing by the version's score (PDMS or EPDMS) among team entries; null for baselines"
+    )
     tied_with_above: bool = Field(
         description="its 95% interval overlaps the interval of the entry ranked above (statistically tied)"
     )
@@ -173,7 +175,7 @@ class LeaderboardRow(BaseModel):
     score: float | None
     seeds: Seeds
     baseline: bool
-    ci95: list[float] = Field(description="bootstrap 95% interval of PDMS over tokens")
+    ci95: list[float] = Field(description="bootstrap 95% interval of the score over tokens")
     submitted_at: datetime
     submission_id: int
     tokens: int

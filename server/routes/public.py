@@ -48,7 +48,7 @@ async def get_leaderboard(
     sort: str = "score",
     phase: str | None = None,
 ) -> Response:
-    """Best (or selected) entry per team plus baselines, ranked by PDMS with bootstrap 95% intervals."""
+    """Best (or selected) entry per team plus baselines, ranked by the version's score (PDMS or EPDMS) with bootstrap 95% intervals."""
     cache, sessions = request.app.state.leaderboard_cache, request.app.state.session_factory
     board = cache.get((version, subset, sort, phase))
     if board is None:  # the database is only asked off the event loop

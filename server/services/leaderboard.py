@@ -39,7 +39,7 @@ def subscore_columns(version: str) -> tuple[str, ...]:
 
 
 def summary_figures(summary: Any, columns: tuple[str, ...]) -> dict[str, Any]:
-    """Return the figures of a summary as the API shows them: PDMS, the version's subscore `columns`, the seeds,
+    """Return the figures of a summary as the API shows them: the score (PDMS or EPDMS), the version's subscore `columns`, the seeds,
     the 95% interval and the token counts. `summary` is a Summary, or a row selecting its columns by name."""
     return {
         "score": summary.score,
@@ -132,7 +132,7 @@ def _overlap(interval: list[float], other: list[float]) -> bool:
 def leaderboard(
     session: Session, phase: Phase, version: str, subset: str, sort: str = "score"
 ) -> list[dict[str, Any]]:
-    """Return the leaderboard rows: ranked by PDMS (ties: earlier submission, then id), ordered by `sort`."""
+    """Return the leaderboard rows: ranked by the version's score (ties: earlier submission, then id), ordered by `sort`."""
     columns = subscore_columns(version)
     sortable = ("score", *columns, "submitted_at")
     if sort not in sortable:
@@ -151,7 +151,7 @@ def leaderboard(
     if sort == "submitted_at":
         return sorted(rows, key=lambda row: (row["submitted_at"], row["submission_id"]))
     if sort != "score":
-        # Python's sort is stable: equal values keep the PDMS order.
+        # Python's sort is stable: equal values keep the score's order.
         return sorted(rows, key=lambda row: -(row[sort] if row[sort] is not None else float("-inf")))
     return rows
 
