@@ -15,16 +15,19 @@ import math
 import pickle
 import re
 import zlib
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, fields
-from typing import Any, cast
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
 from scorer.geometry import FloatArray
 
 FORMAT = "navsim-lb/submission"
+TWO_STAGE_FORMAT = "navsim-lb/submission-two-stage"
 FORMAT_VERSION = 1
+# NAVSIM v2's two-stage pickle (and our JSON of it): each a list of one token -> Trajectory dict per seed.
+STAGE_FIELDS = ("first_stage_predictions", "second_stage_predictions")
 NUM_POSES = 8
 TIME_HORIZON_S = 4.0
 INTERVAL_LENGTH_S = 0.5
@@ -67,12 +70,19 @@ class SubmissionError(Exception):
     """A submission that cannot be read; `problems` lists every reason found.
 
     `seed_tokens` holds the tokens each seed named (readable or not) when the file got that far, so
-    coverage of the split can still be reported alongside the other problems.
+    coverage of the split can still be reported alongside the other problems; for a two-stage submission
+    they are the first stage's, and `second_stage_tokens` the second stage's.
     """
 
-    def __init__(self, problems: Sequence[Problem], seed_tokens: Sequence[Sequence[str]] = ()) -> None:
+    def __init__(
+        self,
+        problems: Sequence[Problem],
+        seed_tokens: Sequence[Sequence[str]] = (),
+        second_stage_tokens: Sequence[Sequence[str]] = (),
+    ) -> None:
         self.problems = list(problems)
         self.seed_tokens = [list(tokens) for tokens in seed_tokens]
+        self.second_stage_tokens = [list(tokens) for tokens in second_stage_tokens]
         super().__init__("; ".join(str(problem) for problem in self.problems))
 
 
@@ -98,6 +108,18 @@ class Submission:
     seeds: tuple[dict[str, FloatArray], ...]
 
 
+@dataclass(frozen=True)
+class TwoStageSubmission:
+    """Metadata and, per seed, the stage-one and the stage-two token -> (8, 3) ego-frame poses mappings."""
+
+    metadata: SubmissionMetadata
+    first_stage: tuple[dict[str, FloatArray], ...]
+    second_stage: tuple[dict[str, FloatArray], ...]
+
+
+Seeds = tuple[tuple[dict[str, FloatArray], ...], list[list[str]]]  # readable poses, every token, per seed
+
+
 class _Problems:
     """Collects problems, keeping the first MAX_PROBLEMS and counting the rest."""
 
@@ -121,8 +143,8 @@ class _Problems:
             raise SubmissionError(self.result(), seed_tokens)
 
 
-def _seed_field(seed: int, seed_count: int) -> str:
-    return f"predictions[{seed}]" if seed_count > 1 else "predictions"
+def _seed_field(seed: int, seed_count: int, field: str = "predictions") -> str:
+    return f"{field}[{seed}]" if seed_count > 1 else field
 
 
 def _kind_of_value(values: np.ndarray) -> str:
@@ -227,17 +249,15 @@ def _object_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return result
 
 
-JSON_FIELDS = {
+JSON_HEADER_FIELDS = {
     "format",
     "version",
     "trajectory_sampling",
-    "predictions",
     *(f.name for f in fields(SubmissionMetadata)),
 }
 
 
-def _load_json(data: bytes) -> Submission:
-    problems = _Problems()
+def _json_document(data: bytes) -> dict[str, Any]:
     try:
         # NaN and Infinity (which Python's json writes) are read, then reported per token as non-finite.
         document = json.loads(data, object_pairs_hook=_object_pairs)
@@ -249,11 +269,21 @@ def _load_json(data: bytes) -> Submission:
         ) from None
     if not isinstance(document, dict):
         raise SubmissionError([Problem(None, None, "the JSON document must be an object")])
-    if document.get("format") != FORMAT:
-        problems.add(None, "format", f"must be {FORMAT!r}, got {document.get('format')!r}")
+    return document
+
+
+def _json_header(
+    document: dict[str, Any], format_name: str, prediction_fields: Sequence[str], problems: _Problems
+) -> SubmissionMetadata:
+    """Check the fields of a JSON submission other than its predictions; return its metadata."""
+    if document.get("format") != format_name:
+        hint = ""
+        if {*STAGE_FIELDS, "predictions"} & set(document) - set(prediction_fields):
+            hint = " (one-stage and two-stage submissions are scored under different metric versions)"
+        problems.add(None, "format", f"must be {format_name!r}, got {document.get('format')!r}{hint}")
     if document.get("version") != FORMAT_VERSION:
         problems.add(None, "version", f"must be {FORMAT_VERSION}, got {document.get('version')!r}")
-    for key in sorted(set(document) - JSON_FIELDS):
+    for key in sorted(set(document) - JSON_HEADER_FIELDS - set(prediction_fields)):
         problems.add(None, key, "unknown field")
     metadata = SubmissionMetadata(
         **{f.name: _text(document.get(f.name), f.name, problems) for f in fields(SubmissionMetadata)}
@@ -268,14 +298,10 @@ def _load_json(data: bytes) -> Submission:
         _check_sampling(num_poses, horizon, interval, None, "trajectory_sampling", problems)
     else:
         problems.add(None, "trajectory_sampling", "must be an object with time_horizon and interval_length")
-    seeds, seed_tokens = _json_predictions(document.get("predictions"), problems)
-    problems.raise_if_any(seed_tokens)
-    return Submission(metadata, seeds)
+    return metadata
 
 
-def _json_predictions(
-    predictions: Any, problems: _Problems
-) -> tuple[tuple[dict[str, FloatArray], ...], list[list[str]]]:
+def _json_predictions(predictions: Any, problems: _Problems, field_name: str) -> Seeds:
     """Return the readable poses of each seed and every token each seed names."""
     if isinstance(predictions, dict):
         per_seed = [predictions]
@@ -284,14 +310,14 @@ def _json_predictions(
     else:
         problems.add(
             None,
-            "predictions",
+            field_name,
             "must be an object token -> poses, or a non-empty list of them (one per seed)",
         )
         return (), []
     seeds = []
     seed_tokens = []
     for seed, mapping in enumerate(per_seed):
-        field = _seed_field(seed, len(per_seed))
+        field = _seed_field(seed, len(per_seed), field_name)
         if not isinstance(mapping, dict):
             problems.add(None, field, f"must be an object token -> poses, got {type(mapping).__name__}")
             continue
@@ -488,18 +514,28 @@ def _pickle_trajectory(value: Any, token: Any, field: str, problems: _Problems) 
     return _check_poses(poses, token, f"{field}.poses", problems)
 
 
-def _load_pickle(data: bytes) -> Submission:
+def _pickle_document(data: bytes) -> dict[Any, Any]:
     document = _unpickle(data)
-    problems = _Problems()
     if not isinstance(document, dict):
         raise SubmissionError(
             [Problem(None, None, f"the pickle must hold a dict, got {type(document).__name__}")]
         )
-    if "first_stage_predictions" in document:
-        raise SubmissionError(
-            [Problem(None, "first_stage_predictions", "NAVSIM v2 submissions are not scored here")]
+    return document
+
+
+def _pickle_metadata(
+    document: dict[Any, Any], format_name: str, prediction_keys: Sequence[str], problems: _Problems
+) -> SubmissionMetadata:
+    """Check the keys of a NAVSIM pickle other than its predictions; return its metadata. The pickle names no
+    format: its prediction keys tell a one-stage (`format_name` FORMAT) from a two-stage one."""
+    if format_name == FORMAT and any(key in document for key in STAGE_FIELDS):
+        problems.add(
+            None,
+            STAGE_FIELDS[0],
+            "a two-stage (NAVSIM v2 pseudo-simulation) submission: score it under a two-stage version",
         )
-    for key in sorted(set(map(str, document)) - {*PICKLE_METADATA_KEYS, "predictions"}):
+        return SubmissionMetadata()
+    for key in sorted(set(map(str, document)) - {*PICKLE_METADATA_KEYS, *prediction_keys}):
         problems.add(None, key, "unknown key")
     values = {name: _text(document.get(key), key, problems) for key, name in PICKLE_METADATA_KEYS.items()}
     # The leaderboard rules ask for team_name as `<a href=URL>Method</a>`: split it into method and link.
@@ -509,18 +545,20 @@ def _load_pickle(data: bytes) -> Submission:
             link.group(1),
             re.sub(r"<[^>]*>", "", link.group(2)).strip(),
         )
-    metadata = SubmissionMetadata(**values)
-    predictions = document.get("predictions")
-    # v1.0 pickles hold one dict; v1.1 a list of dicts, one per seed.
+    return SubmissionMetadata(**values)
+
+
+def _pickle_predictions(predictions: Any, problems: _Problems, field_name: str) -> Seeds:
+    """Return the readable poses of each seed and every token each seed names."""
+    # v1.0 pickles hold one dict; v1.1 and v2 a list of dicts, one per seed.
     per_seed = [predictions] if isinstance(predictions, dict) else predictions
     if not isinstance(per_seed, list) or not per_seed:
-        problems.add(None, "predictions", "must be a dict token -> Trajectory or a non-empty list of them")
-        problems.raise_if_any()
-    assert isinstance(per_seed, list)  # raise_if_any raised otherwise
+        problems.add(None, field_name, "must be a dict token -> Trajectory or a non-empty list of them")
+        return (), []
     seeds = []
     seed_tokens = []
     for seed, mapping in enumerate(per_seed):
-        field = _seed_field(seed, len(per_seed))
+        field = _seed_field(seed, len(per_seed), field_name)
         if not isinstance(mapping, dict):
             problems.add(None, field, f"must be a dict token -> Trajectory, got {type(mapping).__name__}")
             continue
@@ -530,8 +568,51 @@ def _load_pickle(data: bytes) -> Submission:
         }
         seeds.append({token: value for token, value in poses.items() if value is not None})
         seed_tokens.append([token for token in mapping if isinstance(token, str)])
+    return tuple(seeds), seed_tokens
+
+
+# Either form ----------------------------------------------------------------------------------------
+
+
+class _Form(NamedTuple):
+    """How one file form (JSON or pickle) gives its document, its metadata and one predictions field."""
+
+    document: Callable[[bytes], dict[Any, Any]]
+    metadata: Callable[[dict[Any, Any], str, Sequence[str], _Problems], SubmissionMetadata]
+    predictions: Callable[[Any, _Problems, str], Seeds]
+
+
+_JSON = _Form(_json_document, _json_header, _json_predictions)
+_PICKLE = _Form(_pickle_document, _pickle_metadata, _pickle_predictions)
+
+
+def _read(content: bytes, form: _Form) -> Submission:
+    document = form.document(content)
+    problems = _Problems()
+    metadata = form.metadata(document, FORMAT, ["predictions"], problems)
+    seeds, seed_tokens = form.predictions(document.get("predictions"), problems, "predictions")
     problems.raise_if_any(seed_tokens)
-    return Submission(metadata, tuple(seeds))
+    return Submission(metadata, seeds)
+
+
+def _read_two_stage(content: bytes, form: _Form) -> TwoStageSubmission:
+    """Return the two stages' seeds as one submission: seed i is the i-th dict of each stage's list."""
+    document = form.document(content)
+    problems = _Problems()
+    metadata = form.metadata(document, TWO_STAGE_FORMAT, STAGE_FIELDS, problems)
+    (first, first_tokens), (second, second_tokens) = (
+        form.predictions(document.get(field), problems, field) for field in STAGE_FIELDS
+    )
+    if first_tokens and second_tokens and len(first_tokens) != len(second_tokens):
+        problems.add(
+            None,
+            STAGE_FIELDS[1],
+            f"{len(second_tokens)} seed(s), but {STAGE_FIELDS[0]} has {len(first_tokens)}: "
+            "each seed is one dict in each list",
+        )
+    if problems.items:
+        raise SubmissionError(problems.result(), first_tokens, second_tokens)
+    return TwoStageSubmission(metadata, first, second)
 
 
 # Entry points -------------------------------------------------------------------------------------
@@ -559,32 +640,69 @@ def _decompress(data: bytes) -> bytes:
     return inflated
 
 
+def _content(data: bytes, filename: str) -> tuple[bytes, bool]:
+    """Return the decompressed bytes of a submission file and whether they are a pickle."""
+    if not data:
+        raise SubmissionError([Problem(None, None, f"{filename} is empty")])
+    content = _decompress(data)
+    # Pickle protocol 2+ streams start with the PROTO opcode.
+    return content, content[:1] == b"\x80"
+
+
 def load_submission(data: bytes, filename: str = "submission") -> Submission:
     """Read a submission (JSON or NAVSIM pickle, optionally xz- or gzip-compressed) from its bytes.
 
     Raises SubmissionError listing every problem; `filename` only labels messages.
     """
-    if not data:
-        raise SubmissionError([Problem(None, None, f"{filename} is empty")])
-    content = _decompress(data)
-    # Pickle protocol 2+ streams start with the PROTO opcode.
-    if content[:1] == b"\x80":
-        return _load_pickle(content)
-    return _load_json(content)
+    content, is_pickle = _content(data, filename)
+    return _read(content, _PICKLE if is_pickle else _JSON)
 
 
-def coverage_problems(seed_tokens: Sequence[Iterable[str]], tokens: Iterable[str]) -> list[Problem]:
+def load_two_stage_submission(data: bytes, filename: str = "submission") -> TwoStageSubmission:
+    """Read a two-stage submission (`navsim-lb/submission-two-stage` JSON or NAVSIM v2's pickle with
+    `first_stage_predictions` and `second_stage_predictions`, optionally xz- or gzip-compressed).
+
+    Several seeds are allowed (the official script refuses them): seed i is the i-th dict of both lists.
+    Raises SubmissionError listing every problem.
+    """
+    content, is_pickle = _content(data, filename)
+    return _read_two_stage(content, _PICKLE if is_pickle else _JSON)
+
+
+def coverage_problems(
+    seed_tokens: Sequence[Iterable[str]], tokens: Iterable[str], field_name: str = "predictions"
+) -> list[Problem]:
     """Return what keeps each seed's tokens from covering the split `tokens` exactly."""
+    problems = _Problems()
+    _add_coverage(seed_tokens, tokens, field_name, problems)
+    return problems.result()
+
+
+def _add_coverage(
+    seed_tokens: Sequence[Iterable[str]], tokens: Iterable[str], field_name: str, problems: _Problems
+) -> None:
     expected = list(tokens)
     expected_set = set(expected)
-    problems = _Problems()
     for seed, named in enumerate(seed_tokens):
         present = set(named)
-        field = _seed_field(seed, len(seed_tokens))
+        field = _seed_field(seed, len(seed_tokens), field_name)
         for token in (t for t in expected if t not in present):
             problems.add(token, field, "token of the split is missing")
         for token in (t for t in named if t not in expected_set):
             problems.add(token, field, "token is not in the split")
+
+
+def two_stage_coverage_problems(
+    first_stage: Sequence[Iterable[str]],
+    second_stage: Sequence[Iterable[str]],
+    stage_one_tokens: Iterable[str],
+    stage_two_tokens: Iterable[str],
+) -> list[Problem]:
+    """Return what keeps each seed of each stage from covering its stage's tokens exactly: every missing and
+    every extra token, the field naming the stage (`first_stage_predictions` or `second_stage_predictions`)."""
+    problems = _Problems()
+    _add_coverage(first_stage, stage_one_tokens, STAGE_FIELDS[0], problems)
+    _add_coverage(second_stage, stage_two_tokens, STAGE_FIELDS[1], problems)
     return problems.result()
 
 
