@@ -45,6 +45,11 @@ class StageGroup:
     pairs: tuple[tuple[str, str], ...]
 
     @property
+    def tokens(self) -> tuple[str, ...]:
+        """Return every token of the entry: orig, prev, then each pair's now2 and prev2."""
+        return (self.original, self.previous, *(token for pair in self.pairs for token in pair))
+
+    @property
     def now_tokens(self) -> tuple[str, ...]:
         """Return the pairs' first tokens (now2): the stage two of `original`."""
         return tuple(now for now, _ in self.pairs)
