@@ -4,6 +4,9 @@ official per-token values of the reference excerpt (13 families x 40 groups x 12
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +21,7 @@ from two_stage_reference import (
 
 from scorer.submission import load_two_stage_submission
 from scorer.two_stage.aggregate import GROUP_PARTS, SCORE_COLUMNS, aggregate_two_stage
+from scorer.two_stage.result_csv import write_two_stage_csv
 from scorer.two_stage.sums import nan_skipping_mean, sums_by_group
 from scorer.two_stage.weights import global_endpoints
 
@@ -82,3 +86,15 @@ def test_group_sums_and_means_add_as_numpy_adds_one_array(size: int) -> None:
     counts = (~np.isnan(with_nan)).sum(axis=1)
     expected = [zero_filled[c].copy().sum() / counts[c] if counts[c] else np.nan for c in range(3)]
     np.testing.assert_array_equal(nan_skipping_mean(with_nan), expected)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_the_csv_is_the_official_one_byte_for_byte(family: str, tmp_path: Path) -> None:
+    result = aggregate_two_stage(aggregation_input(family), SPLIT)
+    write_two_stage_csv(result, tmp_path / "result.csv")
+    assert (tmp_path / "result.csv").read_bytes() == (FIXTURE / "expected" / f"{family}.csv").read_bytes()
+
+
+def test_writing_the_csv_imports_no_pandas() -> None:
+    code = "import sys, scorer.two_stage.result_csv; sys.exit('pandas' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
