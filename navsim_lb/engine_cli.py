@@ -110,8 +110,9 @@ def score(
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
 ) -> None:
     """Score a submission against a split and print the summary."""
-    from navsim_lb.report import results_table, summary_table
+    from navsim_lb.report import summary_table
     from scorer.evaluate import score_tokens
+    from scorer.result_csv import write_results_csv
     from scorer.scene import SceneFormatError, scene_paths
     from scorer.submission import validate_submission
 
@@ -131,7 +132,7 @@ def score(
                 split, cache_dir or default_cache_dir(split), predictions, version, tokens, seed, advance
             )
     if out is not None:
-        results_table(results, VERSIONS[version]).to_csv(out)
+        write_results_csv(results, VERSIONS[version], out)
         console.print(f"wrote {out}")
     output.print(summary_table(results, VERSIONS[version], f"{loaded.metadata.method} on {split.name}"))
 

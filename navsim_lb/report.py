@@ -1,10 +1,9 @@
-"""Result tables: the devkit's per-token CSV layout, and the summary a person reads in a terminal."""
+"""The summary of a scored submission a person reads in a terminal."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 from rich import box
@@ -13,39 +12,6 @@ from rich.table import Table
 
 from scorer.evaluate import TokenResult, summarize
 from scorer.versions import METRIC_LABELS, MetricVersion
-
-if TYPE_CHECKING:
-    import pandas as pd
-
-
-def results_table(results: Sequence[TokenResult], version: MetricVersion) -> pd.DataFrame:
-    """Return the devkit's CSV table: token, valid, the version's columns, an `error`, and an `average` row.
-
-    As in the devkit, the average row is the column mean over valid rows and its `valid` is all(valid);
-    a `seed` column is added only for multi-seed results.
-    """
-    import pandas as pd  # about 0.3 s to import, and only `score --out` needs it
-
-    multi_seed = any(result.seed is not None for result in results)
-    rows = []
-    for result in results:
-        row: dict[str, object] = {"token": result.token}
-        if multi_seed:
-            row["seed"] = result.seed
-        row["valid"] = result.valid
-        row.update({column: result.metrics.get(column, np.nan) for column in version.result_columns})
-        row["error"] = result.error or ""
-        rows.append(row)
-    frame = pd.DataFrame(
-        rows, columns=["token", *(["seed"] if multi_seed else []), "valid", *version.result_columns, "error"]
-    )
-    average: dict[str, object] = {
-        "token": version.average_row,
-        "valid": bool(frame["valid"].all()),
-        "error": "",
-    }
-    average.update({column: frame[column].mean() for column in version.result_columns})
-    return pd.concat([frame, pd.DataFrame([average])], ignore_index=True)
 
 
 def percent(value: float) -> str:

@@ -19,10 +19,11 @@ from two_stage_reference import (
     official_tokens,
 )
 
+from scorer.metrics.aggregation import nan_skipping_mean
 from scorer.submission import load_two_stage_submission
 from scorer.two_stage.aggregate import GROUP_PARTS, SCORE_COLUMNS, aggregate_two_stage
 from scorer.two_stage.result_csv import write_two_stage_csv
-from scorer.two_stage.sums import nan_skipping_mean, sums_by_group
+from scorer.two_stage.sums import sums_by_group
 from scorer.two_stage.weights import global_endpoints
 
 

@@ -26,3 +26,15 @@ def defined_mean(values: npt.ArrayLike) -> float:
     array = np.asarray(values, dtype=np.float64)
     defined = array[~np.isnan(array)]
     return float(defined.mean()) if defined.size else math.nan
+
+
+def nan_skipping_mean(values: FloatArray) -> FloatArray:
+    """Return the mean over the last axis leaving NaN out, as pandas' `DataFrame.mean()` (the devkit's summary
+    rows): NaN is replaced by 0 in place, so that numpy's pairwise sum pairs the other values as in the full
+    column (not as in the defined values alone), and the sum is divided by the count of defined values; NaN
+    where none is."""
+    defined = ~np.isnan(values)
+    count = defined.sum(axis=-1)
+    total = np.ascontiguousarray(np.where(defined, values, 0.0)).sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)

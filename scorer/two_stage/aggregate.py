@@ -29,8 +29,9 @@ import numpy as np
 from scorer.evaluate import TokenResult
 from scorer.geometry import BoolArray, FloatArray, IntArray
 from scorer.human import is_synthetic
+from scorer.metrics.aggregation import nan_skipping_mean
 from scorer.two_stage.split import StageGroup, TwoStageSplit
-from scorer.two_stage.sums import nan_skipping_mean, sums_by_group
+from scorer.two_stage.sums import sums_by_group
 from scorer.two_stage.weights import pseudo_closed_loop_weights
 from scorer.versions import EPDMS_COLUMNS
 

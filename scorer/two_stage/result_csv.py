@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 from pathlib import Path
 
 from scorer.files import write_atomically
+from scorer.result_csv import csv_field
 from scorer.two_stage.aggregate import SCORE_COLUMNS, TwoStageResult, stage_of
 
 STAGE_COLUMNS = tuple(column for column in SCORE_COLUMNS if column != "score")
@@ -35,12 +35,8 @@ SUMMARY_TOKENS = (
 )
 
 
-def _field(value: float) -> str:
-    return "" if math.isnan(value) else repr(float(value))
-
-
 def _stage_fields(values: dict[str, float] | None) -> list[str]:
-    return [_field(values[column]) if values is not None else "" for column in STAGE_COLUMNS]
+    return [csv_field(values[column]) if values is not None else "" for column in STAGE_COLUMNS]
 
 
 def two_stage_csv(result: TwoStageResult) -> str:
@@ -57,7 +53,7 @@ def two_stage_csv(result: TwoStageResult) -> str:
                 row.valid,
                 *_stage_fields(row.metrics if stage == 1 else None),
                 *_stage_fields(row.metrics if stage == 2 else None),
-                _field(row.metrics["score"]) if stage is not None else "",
+                csv_field(row.metrics["score"]) if stage is not None else "",
             ]
         )
     summaries = (
@@ -75,7 +71,7 @@ def two_stage_csv(result: TwoStageResult) -> str:
                 result.official,
                 *_stage_fields(stage_one),
                 *_stage_fields(stage_two),
-                _field(score),
+                csv_field(score),
             ]
         )
     return buffer.getvalue()

@@ -28,14 +28,3 @@ def sums_by_group(values: FloatArray, members: Sequence[IntArray]) -> FloatArray
         index = np.stack([members[int(group)] for group in groups])  # (groups, size)
         sums[..., groups] = np.ascontiguousarray(values[..., index]).sum(axis=-1)
     return sums
-
-
-def nan_skipping_mean(values: FloatArray) -> FloatArray:
-    """Return the mean over the last axis leaving NaN out, as pandas' `DataFrame.mean()`: NaN is replaced by 0
-    in place (so the pairing of the other values is that of the full column) and the sum divided by the count
-    of defined values; NaN where none is."""
-    defined = ~np.isnan(values)
-    count = defined.sum(axis=-1)
-    total = np.ascontiguousarray(np.where(defined, values, 0.0)).sum(axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
