@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import numpy.typing as npt
 
@@ -21,11 +19,10 @@ def aggregate(multipliers: FloatArray, weighted: FloatArray, weights: FloatArray
 
 
 def defined_mean(values: npt.ArrayLike) -> float:
-    """Return the mean of the defined values, in their order, NaN if none is: a column's mean over tokens, which
-    leaves out v2.2's undefined EC as the devkit's average row skips NaN."""
-    array = np.asarray(values, dtype=np.float64)
-    defined = array[~np.isnan(array)]
-    return float(defined.mean()) if defined.size else math.nan
+    """Return the mean of the defined values of a column (flattened), NaN if none is: a column's mean over
+    tokens, which leaves out v2.2's undefined EC as the devkit's average row does, to the bit
+    (`nan_skipping_mean`)."""
+    return float(nan_skipping_mean(np.ascontiguousarray(values, dtype=np.float64).reshape(-1)))
 
 
 def nan_skipping_mean(values: FloatArray) -> FloatArray:
