@@ -110,9 +110,20 @@ class SubmissionOut(BaseModel):
     filename: str
     sha256: str
     size_bytes: int
-    hidden: bool
-    selected: bool
-    disqualified: bool
+    hidden: bool = Field(description="hidden from the leaderboard by its team")
+    admin_hidden: bool = Field(
+        description="hidden from the leaderboard by an organiser (the team cannot undo it)"
+    )
+    disqualified: bool = Field(description="disqualified by an organiser: never on the leaderboard")
+    disqualified_reason: str = Field(description="the organiser's reason for the disqualification")
+    selected: bool = Field(description="chosen by its team as the final entry of the phase")
+    final_refusal: str | None = Field(
+        description="why it cannot be the final entry (disqualified, hidden, failed...); null when it can"
+    )
+    on_leaderboard: list[VersionName] = Field(
+        description="the metric versions whose leaderboard of the phase (default subset) shows this entry for "
+        "its team: the final entry if it may be shown, else the team's best"
+    )
     submitted_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -127,8 +138,6 @@ class AdminSubmissionOut(SubmissionOut):
     charged: bool
     failure_kind: str | None
     error_detail: str | None
-    admin_hidden: bool
-    disqualified_reason: str
 
 
 class SubmissionPatch(BaseModel):

@@ -189,6 +189,84 @@ def test_hidden_and_disqualified_entries_leave_the_board(world: World) -> None:
     assert _board(world)["rows"] == []
 
 
+def _team_entry(world: World, version: str) -> int:
+    return next(r["submission_id"] for r in _board(world, version=version)["rows"] if r["team"] == "alpha")
+
+
+def _as_team_sees(world: World, submission_id: int) -> dict:
+    response = world.client.get(f"/api/v1/submissions/{submission_id}", headers=world.team_headers())
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def _select(world: World, submission_id: int, **changes: bool):
+    return world.client.patch(
+        f"/api/v1/submissions/{submission_id}",
+        json={"selected": True, **changes},
+        headers=world.team_headers(),
+    )
+
+
+def _moderate(world: World, submission_id: int, action: str, body: dict) -> None:
+    response = world.client.post(
+        f"/api/v1/admin/submissions/{submission_id}/{action}", json=body, headers=world.admin_headers()
+    )
+    assert response.status_code == 200, response.text
+
+
+def test_a_team_sees_its_sanctions_and_the_entry_the_board_counts(world: World) -> None:
+    worst = submit_scored(world, world.team_id, b"w", [uniform(0.5)], "worst")
+    middle = submit_scored(world, world.team_id, b"m", [uniform(0.6)], "middle")
+    best = submit_scored(world, world.team_id, b"b", [uniform(0.7)], "best")
+
+    def counted() -> dict[int, list[str]]:
+        """Per submission the versions the team's API says the board shows it in; checked against each board."""
+        listing = world.client.get("/api/v1/submissions", headers=world.team_headers()).json()
+        shown = {entry["id"]: entry["on_leaderboard"] for entry in listing}
+        for version in VERSIONS:
+            assert [i for i, versions in shown.items() if version in versions] == [
+                _team_entry(world, version)
+            ]
+        return shown
+
+    assert counted()[best] == list(VERSIONS)  # no final entry chosen: the best
+    assert _select(world, worst).status_code == 200
+    assert counted()[worst] == list(VERSIONS)
+
+    # Disqualified, the final entry leaves the board and the team sees why; it cannot be chosen again.
+    _moderate(world, worst, "disqualify", {"reason": "trained on the test logs"})
+    seen = _as_team_sees(world, worst)
+    assert (seen["disqualified"], seen["disqualified_reason"], seen["on_leaderboard"]) == (
+        True,
+        "trained on the test logs",
+        [],
+    )
+    assert "trained on the test logs" in seen["final_refusal"]
+    assert counted()[best] == list(VERSIONS)
+    refused = _select(world, worst)
+    assert refused.status_code == 409
+    assert "disqualified by an organiser: trained on the test logs" in refused.json()["detail"]
+
+    # Hidden by an organiser: the same, with no reason to give.
+    _moderate(world, best, "hide", {"hidden": True})
+    seen = _as_team_sees(world, best)
+    assert seen["admin_hidden"] is True and seen["on_leaderboard"] == []
+    assert counted()[middle] == list(VERSIONS)
+    refused = _select(world, best)
+    assert (
+        refused.status_code == 409
+        and "hidden from the leaderboard by an organiser" in refused.json()["detail"]
+    )
+
+    # Hidden by the team: shown again in the same request, it may become final.
+    world.client.patch(f"/api/v1/submissions/{middle}", json={"hidden": True}, headers=world.team_headers())
+    refused = _select(world, middle)
+    assert refused.status_code == 409 and "hidden by your team; show it first" in refused.json()["detail"]
+    assert _as_team_sees(world, middle)["selected"] is False  # the refused request changed nothing
+    assert _select(world, middle, hidden=False).status_code == 200
+    assert counted()[middle] == list(VERSIONS)
+
+
 def test_private_subset_is_revealed_when_the_phase_closes(world: World) -> None:
     public = TOKENS[:10]
     add_phase(

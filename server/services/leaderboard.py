@@ -5,7 +5,7 @@ Runs write the summaries it reads (server.runs)."""
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -80,8 +80,11 @@ def phase_summaries(phase: Phase, version: str, subset: str) -> tuple[Any, ...]:
     )
 
 
-def _entries(session: Session, phase: Phase, version: str, subset: str) -> Sequence[Any]:
-    """Return the visible entries of a phase, best first: per team its selected, else best, submission; baselines."""
+def _entries(
+    session: Session, phase: Phase, version: str, subset: str, team_ids: Collection[int] | None = None
+) -> Sequence[Any]:
+    """Return the visible entries of a phase, best first: per team its selected, else best, submission; baselines.
+    With `team_ids`, those teams' entries only (each team's is chosen among its own submissions alone)."""
     # Each baseline is its own entry: partition it by its negated id, which no team id can equal.
     entry_key = case((Submission.is_baseline, -Submission.id), else_=Submission.team_id)
     standing = (Summary.score.desc(), Submission.created_at, Submission.id)
@@ -113,6 +116,7 @@ def _entries(session: Session, phase: Phase, version: str, subset: str) -> Seque
             Submission.admin_hidden.is_(False),
             Submission.disqualified.is_(False),
             Submission.status.not_in(HIDDEN_STATUSES),
+            *(() if team_ids is None else (Submission.team_id.in_(team_ids),)),
         )
         .subquery()
     )
@@ -122,6 +126,20 @@ def _entries(session: Session, phase: Phase, version: str, subset: str) -> Seque
         .order_by(candidates.c.score.desc(), candidates.c.created_at, candidates.c.submission_id)
     )
     return session.execute(query).all()
+
+
+def shown_entries(
+    session: Session, phase: Phase, version: str, subset: str, team_ids: Collection[int]
+) -> set[int]:
+    """Return the submissions of these teams that the phase's leaderboard shows for (version, subset): by the
+    board's own choice, so that a team's pages and the API name the entry the board ranks."""
+    return {entry.submission_id for entry in _entries(session, phase, version, subset, team_ids)}
+
+
+def default_subset(phase: Phase, admin: bool = False) -> str:
+    """Return the subset a leaderboard shows when none is asked: the public tokens while they are all a team
+    may see, else every token."""
+    return PUBLIC_SUBSET if PUBLIC_SUBSET in visible_subsets(phase.split, phase, admin) else ALL_SUBSET
 
 
 def _overlap(interval: list[float], other: list[float]) -> bool:
@@ -196,7 +214,7 @@ def leaderboard_view(
     columns = subscore_columns(version)
     visible = visible_subsets(phase.split, phase, admin)
     if subset is None:
-        subset = PUBLIC_SUBSET if PUBLIC_SUBSET in visible else ALL_SUBSET
+        subset = default_subset(phase, admin)
     known = subset_names(phase.split)
     if subset not in known:
         raise NotFound(f"split {phase.split.name!r} has no subset {subset!r}; it has {', '.join(known)}")

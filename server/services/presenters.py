@@ -22,7 +22,7 @@ from server.schemas import (
     SubsetResult,
     TokenRow,
 )
-from server.services.leaderboard import subscore_columns, summary_figures
+from server.services.leaderboard import default_subset, shown_entries, subscore_columns, summary_figures
 from server.services.quota import quota_usage
 from server.services.splits import (
     ALL_SUBSET,
@@ -32,6 +32,7 @@ from server.services.splits import (
     subset_tokens,
     visible_subsets,
 )
+from server.services.submissions import final_refusal
 
 
 def _subset_result(summary: Summary, results: list[Result]) -> SubsetResult:
@@ -70,6 +71,7 @@ def submission_views(
     by_submission: dict[int, list[Summary]] = defaultdict(list)
     for summary in summaries:
         by_submission[summary.submission_id].append(summary)
+    shown = _shown_versions(session, submissions)
     views = []
     for submission in submissions:
         visible = set(visible_subsets(submission.split, submission.phase, admin))
@@ -81,8 +83,24 @@ def submission_views(
                     summary, results[key]
                 )
         fields = _submission_fields(submission, admin)
-        views.append(view(**fields, results={v: r for v, r in nested.items() if r}))
+        scored = {v: r for v, r in nested.items() if r}
+        views.append(view(**fields, on_leaderboard=shown[submission.id], results=scored))
     return views
+
+
+def _shown_versions(session: Session, submissions: Sequence[Submission]) -> dict[int, list[str]]:
+    """Return per submission the metric versions whose leaderboard of its phase shows it (the board's choice)."""
+    teams: dict[Phase, set[int]] = defaultdict(set)
+    for submission in submissions:
+        if submission.phase is not None:
+            teams[submission.phase].add(submission.team_id)
+    shown: dict[int, list[str]] = defaultdict(list)
+    for phase, team_ids in teams.items():
+        subset = default_subset(phase)
+        for version in BOARD_VERSIONS:
+            for submission_id in shown_entries(session, phase, version, subset, team_ids):
+                shown[submission_id].append(version)
+    return shown
 
 
 def _submission_fields(submission: Submission, admin: bool) -> dict[str, Any]:
@@ -107,8 +125,11 @@ def _submission_fields(submission: Submission, admin: bool) -> dict[str, Any]:
         "sha256": submission.sha256,
         "size_bytes": submission.size_bytes,
         "hidden": submission.hidden,
-        "selected": submission.selected,
+        "admin_hidden": submission.admin_hidden,
         "disqualified": submission.disqualified,
+        "disqualified_reason": submission.disqualified_reason,
+        "selected": submission.selected,
+        "final_refusal": final_refusal(submission),
         "submitted_at": submission.created_at,
         "started_at": submission.started_at,
         "finished_at": submission.finished_at,
@@ -122,8 +143,6 @@ def _submission_fields(submission: Submission, admin: bool) -> dict[str, Any]:
             charged=submission.charged,
             failure_kind=submission.failure_kind,
             error_detail=submission.error_detail,
-            admin_hidden=submission.admin_hidden,
-            disqualified_reason=submission.disqualified_reason,
         )
     return fields
 

@@ -167,8 +167,24 @@ def list_submissions(
     return session.scalars(query).all()
 
 
+def final_refusal(submission: Submission) -> str | None:
+    """Return why a submission cannot be its team's final entry (the leaderboard would not show it), or None.
+    The organisers' sanctions come first, with the reason they gave."""
+    if submission.disqualified:
+        reason = f": {submission.disqualified_reason}" if submission.disqualified_reason else ""
+        return f"submission {submission.id} was disqualified by an organiser{reason}"
+    if submission.admin_hidden:
+        return f"submission {submission.id} was hidden from the leaderboard by an organiser"
+    if submission.hidden:
+        return f"submission {submission.id} is hidden by your team; show it first"
+    if submission.status in RETRYABLE_STATUSES:
+        return f"submission {submission.id} is {submission.status}"
+    return None
+
+
 def edit_submission(session: Session, submission: Submission, changes: dict[str, Any]) -> Submission:
-    """Apply a team's edit: metadata, hidden, and `selected` (the team's final entry in the phase)."""
+    """Apply a team's edit: metadata, hidden, and `selected` (the team's final entry in the phase); an entry
+    the leaderboard would not show cannot become final (Conflict, with the reason)."""
     unknown = set(changes) - {*EDITABLE_FIELDS, "selected"}
     if unknown:
         raise Conflict(f"cannot edit {', '.join(sorted(unknown))}")
@@ -176,8 +192,9 @@ def edit_submission(session: Session, submission: Submission, changes: dict[str,
         if name in changes and changes[name] is not None:
             setattr(submission, name, changes[name])
     if changes.get("selected") is True:
-        if submission.status in RETRYABLE_STATUSES:
-            raise Conflict(f"submission {submission.id} is {submission.status} and cannot be the final entry")
+        refusal = final_refusal(submission)
+        if refusal is not None:
+            raise Conflict(f"{refusal}, so it cannot be the final entry")
         session.execute(
             update(Submission)
             .where(Submission.team_id == submission.team_id, Submission.phase_id == submission.phase_id)
