@@ -77,7 +77,8 @@ def refusal_lines(response: httpx.Response) -> list[str]:
     lines += problem_lines(body.get("problems", []) if isinstance(body, dict) else [])
     if isinstance(body, dict) and body.get("submission_id") is not None:
         lines.append(f"  (submission {body['submission_id']})")
-    if response.headers.get("Retry-After"):
+    # A quota's detail states when it resets; the header would say it a second time.
+    if response.headers.get("Retry-After") and not (isinstance(body, dict) and "resets_at" in body):
         lines.append(f"  retry after {response.headers['Retry-After']} s")
     return lines
 
@@ -138,21 +139,21 @@ def wait_until_done(client: httpx.Client, submission_id: int, poll_s: float = 1.
 
 def results_table(state: dict[str, Any]) -> Table:
     """Return a table of a scored submission: the score (PDMS or EPDMS), 95% interval and failed tokens per
-    version and subset."""
+    version and subset, in % as the pages show them."""
     from scorer.versions import VERSIONS, VersionName  # plain data: no engine import
+    from server.numbers import percent
 
-    table = Table(title=f"submission {state['id']}: {escape(state['method'])}")
+    table = Table(title=f"submission {state['id']}: {escape(state['method'])}", caption="scores in %")
     for column in ("version", "subset", "score", "95% CI", "seeds", "failed tokens"):
-        table.add_column(column)
+        table.add_column(column, justify="left" if column in ("version", "subset") else "right")
     for version, subsets in sorted(state["results"].items()):
         for subset, result in subsets.items():
             low, high = result["ci95"]
-            score = result["score"]
             table.add_row(
                 f"{VERSIONS[VersionName(version)].score_label} {version}",
                 subset,
-                "-" if score is None else f"{score:.4f}",
-                f"[{low:.4f}, {high:.4f}]",
+                percent(result["score"]),
+                f"{percent(low)}–{percent(high)}",
                 str(result["seeds"]["count"]),
                 str(result["failed_tokens"]),
             )

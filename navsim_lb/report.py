@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -12,11 +11,7 @@ from rich.table import Table
 
 from scorer.evaluate import TokenResult, summarize
 from scorer.versions import METRIC_LABELS, MetricVersion
-
-
-def percent(value: float) -> str:
-    """Return a score in [0, 1] as the leaderboard shows it: percent with one decimal ("-" if undefined)."""
-    return "-" if math.isnan(value) else f"{value * 100:.1f}"
+from server.numbers import percent
 
 
 def summary_rows(results: Sequence[TokenResult], version: MetricVersion) -> list[list[str]]:
@@ -52,7 +47,7 @@ def summary_table(results: Sequence[TokenResult], version: MetricVersion, title:
         title=escape(f"{title} ({version.score_label} {version.name})"),  # plain text: it quotes the method
         caption=f"scores in %; unscored tokens count 0; DDC: {version.ddc_role}"
         + (
-            "; EC only between adjacent frames of a log (- where none)"
+            "; EC only between adjacent frames of a log (– where none)"
             if "two_frame_extended_comfort" in version.result_columns
             else ""
         ),

@@ -8,12 +8,15 @@ from functools import partial
 from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.responses import HTMLResponse, JSONResponse, Response
+from fastapi.exception_handlers import http_exception_handler, request_validation_exception_handler
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from pydantic import TypeAdapter
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError, InterfaceError, OperationalError
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from scorer import ENGINE_VERSION
 from server.body_limit import BodySizeLimit
@@ -32,10 +35,17 @@ log = logging.getLogger(__name__)
 API_PREFIX = "/api/v1"
 
 
-def _service_error(_request: Request, error: Exception) -> JSONResponse:
+def _answers_json(request: Request) -> bool:
+    """Whether a path is the API's (JSON errors, as its clients parse them) rather than a page's."""
+    return request.url.path.startswith(("/api/", "/metrics"))
+
+
+def _service_error(request: Request, error: Exception) -> Response:
     assert isinstance(error, ServiceError)
     retry_after = error.retry_after_s()
     headers = {} if retry_after is None else {"Retry-After": str(retry_after)}
+    if not _answers_json(request):
+        return web.error_page(request, error.http_status, error.message, headers)
     return JSONResponse(
         # pydantic's JSON mode, as for every response model: UTC times end in "Z".
         TypeAdapter(Any).dump_python({"detail": error.message, **error.extra}, mode="json"),
@@ -52,10 +62,30 @@ def _database_down(request: Request, error: Exception) -> Response:
     """A database outage is a 503 the client may retry, not a 500: the transaction was rolled back."""
     log.error("database unavailable during %s %s: %s", request.method, request.url.path, error)
     headers = {"Retry-After": str(DATABASE_RETRY_AFTER_S)}
-    if request.url.path.startswith(API_PREFIX):
+    if _answers_json(request):
         return JSONResponse({"detail": DATABASE_DOWN}, status_code=503, headers=headers)
-    page = f"<!doctype html><title>Unavailable</title><p>NAVSIM Leaderboard: {DATABASE_DOWN}.</p>"
-    return HTMLResponse(page, status_code=503, headers=headers)
+    return web.error_page(request, 503, f"NAVSIM Leaderboard: {DATABASE_DOWN}.", headers)
+
+
+async def _http_error(request: Request, error: Exception) -> Response:
+    """A page the product does not have is a 404 page; the API keeps FastAPI's JSON answer."""
+    assert isinstance(error, StarletteHTTPException)
+    if _answers_json(request):
+        return await http_exception_handler(request, error)
+    message = (
+        f"There is no page at {request.url.path}."
+        if error.status_code == 404
+        else f"{request.method} {request.url.path}: {error.detail}."
+    )
+    return web.error_page(request, error.status_code, message, dict(error.headers or {}))
+
+
+async def _invalid_request(request: Request, error: Exception) -> Response:
+    """A page's path that does not parse (/submissions/abc) names no page: 404; the API lists the problems."""
+    assert isinstance(error, RequestValidationError)
+    if _answers_json(request):
+        return await request_validation_exception_handler(request, error)
+    return web.error_page(request, 404, f"There is no page at {request.url.path}.")
 
 
 def register_configured_splits(app: FastAPI) -> None:
@@ -104,6 +134,8 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     app.state.leaderboard_cache = TTLCache(settings.leaderboard_cache_seconds)
     app.state.rate_limits = RateLimits(settings.rate_limit_storage)
     app.add_exception_handler(ServiceError, _service_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_middleware(BodySizeLimit, upload_limit=lambda: app.state.settings.max_upload_bytes)
     for outage in (OperationalError, InterfaceError):
         app.add_exception_handler(outage, _database_down)

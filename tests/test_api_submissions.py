@@ -11,6 +11,7 @@ from pathlib import Path
 
 from server_testing import REFERENCE_SUBMISSIONS, World, add_phase
 
+from navsim_lb.client import refusal_lines
 from scorer.submission import load_submission
 from server.storage import read_trajectories, stored_name
 
@@ -131,6 +132,10 @@ def test_quota_exhaustion_says_what_and_when(world: World) -> None:
     body = response.json()
     assert (body["quota"], body["limit"], body["used"]) == ("per_day", 1, 1)
     assert body["resets_at"].endswith("T00:00:00Z") and int(response.headers["Retry-After"]) > 0
+    # Its reset is stated once, as a person reads a time (the field and the header are for programs).
+    reset = body["resets_at"][:16].replace("T", " ")
+    assert body["detail"].endswith(f"it resets at {reset} UTC") and body["detail"].count("reset") == 1
+    assert refusal_lines(response)[-1] == body["detail"]  # `navsim-lb submit` adds no "retry after"
     assert _state(world) == before
     invalid = _post(world, _broken(), phase="daily")
     assert invalid.status_code == 422  # an invalid file is refused before quotas and uses none

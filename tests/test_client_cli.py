@@ -64,3 +64,18 @@ def test_submit_without_a_reachable_server_says_so(tmp_path: Path) -> None:
         env={"COLUMNS": "200"},
     )
     assert result.exit_code == 2 and "cannot talk to http://127.0.0.1:9" in result.output
+
+
+def test_submit_prints_scores_in_percent_as_the_pages_do(world: World) -> None:
+    from rich.console import Console
+    from server_testing import submit_scored, uniform
+
+    from navsim_lb.client import results_table
+
+    submission_id = submit_scored(world, world.team_id, b"a", [uniform(0.9525)], "Tie")
+    state = world.client.get(f"/api/v1/submissions/{submission_id}", headers=world.team_headers()).json()
+    console = Console(width=120, record=True)
+    console.print(results_table(state))
+    text = console.export_text()
+    assert "scores in %" in text and "PDMS v1.1" in text
+    assert " 95.3 " in text and "0.952" not in text  # the pages' figure, not the fraction

@@ -25,6 +25,7 @@ from scorer.evaluate import TokenResult
 from scorer.versions import EPDMS_COLUMNS, VERSIONS
 from server.db import transaction
 from server.models import Submission, utc_now
+from server.numbers import counted, percent
 from server.runs import claim_submission, mark_scored, write_chunk_results
 from server.runs._aggregate import bootstrap_cis
 from server.services.leaderboard import rank_change_report
@@ -416,6 +417,45 @@ def test_web_page_shows_rows_baseline_flag_and_interval(world: World) -> None:
         unknown.status_code == 422
         and "unknown metric version &#39;v9&#39;; known: v1.0, v1.1, v2.2" in unknown.text
     )
+
+
+def test_the_page_rounds_as_every_page_and_the_command_line_do_and_counts_in_words(world: World) -> None:
+    # 0.9525 × 100 is 95.25 exactly: Python's "%.1f" wrote 95.2, JavaScript's toFixed 95.3 (the other pages).
+    submit_scored(world, world.team_id, b"a", [uniform(0.9525)], "Tie")
+    page = world.client.get("/", params={"version": "v1.1"}).text
+    assert '<td class="num score" data-value="0.9525">95.3</td>' in page.replace("\n", "")
+    assert "1 entry" in page and "1 entries" not in page
+    assert [percent(v) for v in (0.9525, 0.95249999, 1.0, -0.0004, None, math.nan)] == [
+        "95.3",
+        "95.2",
+        "100.0",
+        "0.0",
+        "–",
+        "–",
+    ]
+    assert (counted(1, "entry", "entries"), counted(2, "entry", "entries"), counted(3, "token")) == (
+        "1 entry",
+        "2 entries",
+        "3 tokens",
+    )
+
+
+def test_a_page_the_product_does_not_have_is_a_404_page_and_the_api_keeps_json(world: World) -> None:
+    submission_id = submit_scored(world, world.team_id, b"a", [uniform(0.5)], "Real")
+    assert world.client.get(f"/submissions/{submission_id}").status_code == 200
+    for path, says in (
+        ("/no-such-page", "There is no page at /no-such-page."),
+        (f"/submissions/{submission_id + 1000}", f"submission {submission_id + 1000} does not exist"),
+        ("/submissions/abc", "There is no page at /submissions/abc."),
+    ):
+        response = world.client.get(path)
+        assert response.status_code == 404 and response.headers["content-type"].startswith("text/html"), path
+        assert "<h1>Page not found</h1>" in response.text and says in response.text, path
+        assert '/team">your team' in response.text  # a way on
+    for path in ("/api/v1/no-such-route", f"/api/v1/published/{submission_id + 1000}"):
+        response = world.client.get(path)
+        assert response.status_code == 404 and "detail" in response.json(), path
+    assert "detail" in world.client.get("/api/v1/submissions/abc", headers=world.team_headers()).json()
 
 
 def test_entries_with_overlapping_intervals_are_marked_tied(world: World) -> None:

@@ -13,17 +13,32 @@ from fastapi.templating import Jinja2Templates
 
 from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, VERSIONS, VersionName
 from server.auth import SessionDep
+from server.numbers import counted, percent
 from server.params import RowId
 from server.runs import BOARD_VERSIONS
 from server.services.errors import ServiceError
 from server.services.leaderboard import cached_board
 from server.services.splits import list_phases
+from server.services.submissions import get_submission
 
 # Templates and static assets are package data of `server.web`: the same lookup in a checkout and a wheel.
 WEB_DIR = Path(str(files("server.web")))
 TEMPLATES = Jinja2Templates(directory=WEB_DIR / "templates")
+TEMPLATES.env.filters["percent"] = percent  # the one rounding of every figure (server.numbers)
+TEMPLATES.env.globals["counted"] = counted
 router = APIRouter(include_in_schema=False)
 SCORE_LABELS = {name: VERSIONS[name].score_label for name in BOARD_VERSIONS}  # PDMS or EPDMS per version
+
+
+PAGE_TITLES = {404: "Page not found", 403: "Not allowed", 503: "Unavailable"}
+
+
+def error_page(
+    request: Request, status: int, message: str, headers: dict[str, str] | None = None
+) -> HTMLResponse:
+    """Return the page that says what went wrong (the API's routes answer JSON instead)."""
+    context = {"title": PAGE_TITLES.get(status, "Something went wrong"), "message": message}
+    return TEMPLATES.TemplateResponse(request, "error.html", context, status_code=status, headers=headers)
 
 
 @router.get("/", response_class=HTMLResponse)
@@ -89,8 +104,10 @@ def team_page(request: Request) -> HTMLResponse:
 
 
 @router.get("/submissions/{submission_id}", response_class=HTMLResponse)
-def submission_page(request: Request, submission_id: RowId) -> HTMLResponse:
-    """One submission for its team: breakdown beside the baselines, histograms, worst tokens, a diff."""
+def submission_page(request: Request, session: SessionDep, submission_id: RowId) -> HTMLResponse:
+    """One submission for its team: breakdown beside the baselines, histograms, worst tokens, a diff.
+    The page reads it with the visitor's token; one that does not exist is a 404 page at once."""
+    get_submission(session, submission_id)
     page = {
         "submission_id": submission_id,
         "versions": list(BOARD_VERSIONS),

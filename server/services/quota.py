@@ -84,7 +84,7 @@ def _message(usage: QuotaUsage, phase: Phase) -> str:
     }[usage.name]
     when = {
         "total": "it does not reset",
-        "per_day": f"it resets at {usage.resets_at.isoformat() if usage.resets_at else ''}",
+        "per_day": f"it resets at {usage.resets_at:%Y-%m-%d %H:%M} UTC" if usage.resets_at else "",
         "in_flight": "a slot frees when one of them finishes",
     }[usage.name]
     return f"quota exhausted: {what} ({usage.used} used); {when}"

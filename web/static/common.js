@@ -7,7 +7,17 @@ const API = "/api/v1";
 const TOKEN_KEY = document.querySelector('meta[name="token-key"]').content;
 const $ = (selector) => document.querySelector(selector);
 const token = () => sessionStorage.getItem(TOKEN_KEY) || "";
-const pct = (value) => (value === null || value === undefined ? "–" : (100 * value).toFixed(1));
+// One rule for every figure (server/numbers.py writes the same): a stored fraction in percent with one
+// decimal, 100 × the float rounded by toFixed (halves away from zero), "–" when undefined.
+function pct(value) {
+  if (value === null || value === undefined || !Number.isFinite(value)) return "–";
+  const text = (100 * value).toFixed(1);
+  return text === "-0.0" ? "0.0" : text;
+}
+// A change in percentage points: "+1.2", "-0.4", "0.0".
+const pointChange = (value) => { const text = pct(value); return text === "–" || text.startsWith("-") || text === "0.0" ? text : `+${text}`; };
+// "1 entry", "2 entries".
+const counted = (count, singular, plural = `${singular}s`) => `${count} ${count === 1 ? singular : plural}`;
 const when = (text) => (text ? text.slice(0, 16).replace("T", " ") : "–");
 
 class ApiError extends Error {
@@ -46,6 +56,5 @@ function button(label, action, title) {
 function describeError(error) {
   if (!(error instanceof ApiError)) return `The server could not be reached (${error.message}).`;
   if (error.status === 401) return "This token is not valid (revoked, expired or mistyped).";
-  if (error.status === 429 && error.body.resets_at) return `${error.message} (resets ${when(error.body.resets_at)} UTC)`;
   return error.message;
 }

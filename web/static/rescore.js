@@ -19,9 +19,9 @@ async function show() {
   const tau = report.kendall_tau === null ? "–" : report.kendall_tau.toFixed(3);
   const compared = report.before_version === report.version ? ""
     : ` (ranks before: ${report.before_score_label} ${report.before_version})`;
-  $("#summary").textContent = `${report.phase}, ${report.score_label} ${report.version}${compared}, ${report.subset} tokens · ${report.submissions} ` +
-    `submissions re-run, ${report.pending} still running, ${report.failed} failed · Kendall's tau ${tau} over ` +
-    `${report.entries} entries · ${report.complete ? "complete" : "in progress"}`;
+  $("#summary").textContent = `${report.phase}, ${report.score_label} ${report.version}${compared}, ${report.subset} tokens · ${counted(report.submissions, "submission")} ` +
+    `re-run, ${report.pending} still running, ${report.failed} failed · Kendall's tau ${tau} over ` +
+    `${counted(report.entries, "entry", "entries")} · ${report.complete ? "complete" : "in progress"}`;
   const body = $("#moved tbody");
   body.replaceChildren();
   for (const move of report.moved) {

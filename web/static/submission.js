@@ -245,10 +245,9 @@ async function renderDiff(tokens, summary, columns) {
     const here = summary[column], there = otherSummary ? otherSummary[column] : null;
     cell(row, pct(here), "num");
     cell(row, pct(there), "num");
-    const change = here === null || there === null || there === undefined ? null : here - there;
-    const shown = change === null ? "–" : `${change >= 0 ? "+" : ""}${(100 * change).toFixed(1)}`;
+    const shown = pointChange(defined(here) && defined(there) ? here - there : null);
     // Colour only a change that shows in the rounded figure.
-    cell(row, shown, change >= 0.0005 ? "num better" : change <= -0.0005 ? "num worse" : "num");
+    cell(row, shown, shown.startsWith("+") ? "num better" : shown.startsWith("-") ? "num worse" : "num");
   }
   const theirs = new Map(perToken(await tokenRows(other.id, state.version), columns).map((entry) => [entry.token, entry]));
   const changes = tokens.filter((entry) => theirs.has(entry.token))
