@@ -445,7 +445,7 @@ def test_a_page_the_product_does_not_have_is_a_404_page_and_the_api_keeps_json(w
     assert world.client.get(f"/submissions/{submission_id}").status_code == 200
     for path, says in (
         ("/no-such-page", "There is no page at /no-such-page."),
-        (f"/submissions/{submission_id + 1000}", f"submission {submission_id + 1000} does not exist"),
+        (f"/submissions/{submission_id + 1000}", f"Submission {submission_id + 1000} does not exist."),
         ("/submissions/abc", "There is no page at /submissions/abc."),
     ):
         response = world.client.get(path)

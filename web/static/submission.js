@@ -284,6 +284,13 @@ async function load() {
   $("#title").textContent = `${submission.method} (submission ${submission.id})`;
   $("#facts").textContent = `${submission.team} · phase ${submission.phase ?? "–"} · split ${submission.split} · ` +
     `${submission.status} · ${submission.seed_count} seed(s), ${submission.token_count} tokens · submitted ${when(submission.submitted_at)} UTC`;
+  const sanctions = [
+    submission.disqualified && `Disqualified by an organiser${submission.disqualified_reason ? `: ${submission.disqualified_reason}` : ""}.`,
+    submission.admin_hidden && "Hidden from the leaderboard by an organiser.",
+    submission.hidden && "Hidden from the leaderboard by its team.",
+  ].filter(Boolean);
+  $("#sanctions").textContent = sanctions.join(" ");
+  $("#sanctions").hidden = !sanctions.length;
   const mine = { team: "/submissions", admin: `/submissions?team_id=${submission.team_id}` }[mode()];
   state.others = mine ? (await read(mine)).filter((s) => s.id !== submission.id && s.status === "scored") : [];
   $("#compare").hidden = !state.others.length;

@@ -30,7 +30,15 @@ async function showTeam() {
   if (!me.quotas.length) quotas.append(Object.assign(document.createElement("li"), { textContent: "No open phase." }));
   $("#signed-out").hidden = true;
   $("#signed-in").hidden = false;
-  await Promise.all([loadPhases(), loadHistory()]);
+  const [open] = await Promise.all([loadPhases(), loadHistory()]);
+  // Said before a form is filled: who may not upload now, and why.
+  const refusal = {
+    pending: "Your team is waiting for an organiser's approval: you can upload once it is approved. Your token stays valid meanwhile.",
+    rejected: "An organiser rejected your team's registration: it cannot upload. Write to the organisers if you think this is a mistake.",
+  }[me.approval] || (open ? "" : "No phase is open for submissions now: the quota list above shows when one is.");
+  $("#cannot-upload").textContent = refusal;
+  $("#cannot-upload").hidden = !refusal;
+  $("#upload").hidden = Boolean(refusal);
 }
 
 $("#signin").addEventListener("submit", async (event) => {
@@ -77,9 +85,9 @@ async function loadPhases() {
   const phases = await api("GET", "/phases");
   const select = $("#phase");
   select.replaceChildren();
-  for (const phase of phases.filter((p) => p.open)) {
-    select.append(new Option(`${phase.name} (split ${phase.split})`, phase.name));
-  }
+  const open = phases.filter((p) => p.open);
+  for (const phase of open) select.append(new Option(`${phase.name} (split ${phase.split})`, phase.name));
+  return open.length > 0;
 }
 
 const SHOWN_PROBLEMS = 25;
@@ -102,8 +110,9 @@ function showProblems(problems, all = false) {
   table.hidden = problems.length === 0;
 }
 
-function say(text) {
+function say(text, failed = false) {
   $("#upload-status").textContent = text;
+  $("#upload-status").className = failed ? "error" : "note";
 }
 
 async function follow(id) {
@@ -148,10 +157,10 @@ $("#upload").addEventListener("submit", async (event) => {
     await follow(accepted.id);
   } catch (error) {
     if (error instanceof ApiError && Array.isArray(error.body.problems)) {
-      say(`${error.message}. Fix them and upload again; nothing was stored.`);
+      say(`${error.message}. Fix them and upload again; nothing was stored.`, true);
       showProblems(error.body.problems);
     } else {
-      say(describeError(error));
+      say(describeError(error), true);
     }
   } finally {
     $("#upload-button").disabled = false;
@@ -161,10 +170,11 @@ $("#upload").addEventListener("submit", async (event) => {
 // --- history --------------------------------------------------------------------------------------------
 
 async function edit(id, changes) {
+  $("#history-status").textContent = "";
   try {
     await api("PATCH", `/submissions/${id}`, { json: changes });
   } catch (error) {
-    say(describeError(error));
+    $("#history-status").textContent = describeError(error);
   }
   await loadHistory();
 }
@@ -190,6 +200,43 @@ function openEditor(submission) {
   };
 }
 
+// The entry's state as the organisers left it: scored (or where it is), disqualified with their reason, hidden.
+function standing(submission) {
+  const status = document.createElement("span");
+  status.className = `status ${submission.status}`;
+  status.textContent = FINAL.includes(submission.status) ? submission.status : `${submission.status} ${submission.progress}%`;
+  if (submission.error) status.title = submission.error;
+  const sanctions = [
+    submission.disqualified && `disqualified by an organiser${submission.disqualified_reason ? `: ${submission.disqualified_reason}` : ""}`,
+    submission.admin_hidden && "hidden by an organiser",
+    submission.hidden && "hidden by your team",
+  ].filter(Boolean);
+  const element = document.createElement("span");
+  element.append(status);
+  for (const text of sanctions) element.append(Object.assign(document.createElement("span"), { className: "sanction", textContent: text }));
+  return element;
+}
+
+// Whether the board shows it (the API answers with the board's own choice), and the way to make it final.
+function onBoard(submission) {
+  const shown = submission.on_leaderboard;
+  const element = document.createElement("span");
+  const why = submission.selected ? "your final entry" : "your best";
+  if (shown.length === PAGE.versions.length) element.append(`✓ shown, ${why}`);
+  else if (shown.length) element.append(`✓ shown under ${shown.map((v) => `${PAGE.score_labels[v]} ${v}`).join(", ")}, ${why} there`);
+  else if (submission.selected) element.append(Object.assign(document.createElement("span"), {
+    className: "sanction", textContent: "final, but not shown: the board shows your best other entry",
+  }));
+  if (!submission.selected && submission.status === "scored") {
+    if (submission.final_refusal === null) {
+      element.append(button("make final", () => edit(submission.id, { selected: true }), "show this entry on the leaderboard, whatever its score"));
+    } else if (!shown.length) {
+      element.append(Object.assign(document.createElement("span"), { className: "note", textContent: "cannot be final" }));
+    }
+  }
+  return element;
+}
+
 async function loadHistory() {
   const submissions = await api("GET", "/submissions");
   const body = $("#history").tBodies[0];
@@ -201,16 +248,10 @@ async function loadHistory() {
     link.textContent = submission.id;
     cell(row, link);
     cell(row, submission.method);
-    const status = document.createElement("span");
-    status.className = `status ${submission.status}`;
-    status.textContent = FINAL.includes(submission.status) ? submission.status : `${submission.status} ${submission.progress}%`;
-    if (submission.error) status.title = submission.error;
-    cell(row, status);
+    cell(row, standing(submission));
     for (const version of HISTORY_VERSIONS) cell(row, pct(scoreOf(submission, version)), "num");
     cell(row, when(submission.submitted_at));
-    cell(row, submission.selected ? "✓ final" : submission.status === "scored"
-      ? button("make final", () => edit(submission.id, { selected: true }), "show this entry on the leaderboard")
-      : "");
+    cell(row, onBoard(submission));
     const actions = document.createElement("span");
     actions.append(
       button("edit", () => openEditor(submission), "edit the method name, authors and links"),
