@@ -132,6 +132,7 @@ class SubmissionOut(BaseModel):
 
 class AdminSubmissionOut(SubmissionOut):
     team_id: int
+    queued_at: datetime = Field(description="when it was last queued: its upload, or its latest re-run")
     run: int
     attempts: int
     worker: str | None

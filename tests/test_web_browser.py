@@ -327,6 +327,8 @@ def test_the_admin_console_follows_a_rerun_and_a_rescore_without_a_reload(
     expect(row).to_contain_text("scored")
     page.evaluate("window.notReloaded = true")
     row.get_by_role("button", name="re-run").click()
+    # Every action that changes data asks first.
+    page.locator("#confirm").get_by_role("button", name="Re-run it").click()
     queue = page.locator("#queue tbody")
     expect(row.locator(".status")).not_to_have_text("scored", timeout=10_000)  # queued or running, live
     expect(row.locator(".status")).to_have_text("scored", timeout=SCORING_TIMEOUT_MS)
@@ -349,9 +351,200 @@ def test_the_admin_console_follows_a_rerun_and_a_rescore_without_a_reload(
     page.go_back()
     page.wait_for_selector("#dashboard:not([hidden])")
 
-    page.once("dialog", lambda dialog: dialog.accept())
     page.click("#rescore button[type=submit]")
+    page.locator("#confirm").get_by_role("button", name="Rescore all").click()
     page.get_by_role("link", name="open its rank-change report").click()
     expect(page.locator("#summary")).to_contain_text("complete", timeout=SCORING_TIMEOUT_MS)
     expect(page.locator("#summary")).to_contain_text("Kendall's tau")
     _screenshot(page, "rescore-report")
+
+
+DESKTOP, PHONE = 1366, 390
+
+
+def _api(demo: Demo, method: str, path: str, token: str, **kwargs: object) -> httpx.Response:
+    headers = {"Authorization": f"Bearer {token}"}
+    return httpx.request(method, f"{demo.url}/api/v1{path}", headers=headers, timeout=10, **kwargs)  # type: ignore[arg-type]
+
+
+def _fits(page: Page) -> None:
+    assert page.evaluate("document.documentElement.scrollWidth") <= page.viewport_size["width"]  # type: ignore[index]
+
+
+def _team_page(browser: Browser, demo: Demo, width: int, token: str) -> Page:
+    page = _page(browser, width)
+    page.goto(f"{demo.url}/team")
+    page.fill("#token", token)
+    page.click("#signin button[type=submit]")
+    page.wait_for_selector("#signed-in:not([hidden])")
+    return page
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_a_team_sees_a_disqualification_with_its_reason_and_the_entry_the_board_counts(
+    demo: Demo, browser: Browser, width: int
+) -> None:
+    entries = [
+        s for s in _api(demo, "GET", "/submissions", demo.team_token).json() if s["status"] == "scored"
+    ]
+    sanctioned = entries[0]["id"]
+    reason = "its trajectories copy the logged future"
+    moderate = f"/admin/submissions/{sanctioned}/disqualify"
+    assert _api(demo, "POST", moderate, demo.admin_token, json={"reason": reason}).status_code == 200
+    try:
+        page = _team_page(browser, demo, width, demo.team_token)
+        row = page.locator("#history tbody tr", has_text=f"{sanctioned}").first
+        expect(row.locator(".sanction")).to_have_text(f"disqualified by an organiser: {reason}")
+        expect(row).to_contain_text("cannot be final")
+        assert row.get_by_role("button", name="make final").count() == 0
+        # The row the team page says is shown is the one the board ranks.
+        board = httpx.get(f"{demo.url}/api/v1/leaderboard", timeout=10).json()["rows"]
+        counted = [r["submission_id"] for r in board if r["team"] == "demo-team"]
+        shown = page.locator("#history tbody tr", has_text="✓ shown")
+        expect(shown).to_have_count(len(counted))
+        assert [int(text) for text in shown.locator("td:first-child").all_inner_texts()] == counted
+        assert sanctioned not in counted
+        _fits(page)
+        _screenshot(page, f"team-sanction-{width}")
+        page.goto(f"{demo.url}/submissions/{sanctioned}")
+        expect(page.locator("#sanctions")).to_have_text(f"Disqualified by an organiser: {reason}.")
+        _screenshot(page, f"submission-sanction-{width}")
+    finally:
+        _api(demo, "POST", moderate, demo.admin_token, json={"disqualified": False, "reason": "lifted"})
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_a_pending_team_is_told_before_it_fills_a_form(demo: Demo, browser: Browser, width: int) -> None:
+    registered = httpx.post(f"{demo.url}/api/v1/teams", json={"name": f"pending-{width}"}, timeout=10).json()
+    page = _team_page(browser, demo, width, registered["token"])
+    expect(page.locator("#cannot-upload")).to_contain_text("waiting for an organiser's approval")
+    assert page.locator("#upload").is_hidden()
+    _fits(page)
+    _screenshot(page, f"team-pending-{width}")
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_an_unknown_page_or_submission_is_a_404_page(demo: Demo, browser: Browser, width: int) -> None:
+    page = _page(browser, width)
+    for path in ("/no-such-page", "/submissions/99999"):
+        response = page.goto(f"{demo.url}{path}")
+        assert response is not None and response.status == 404
+        expect(page.locator("h1")).to_have_text("Page not found")
+        expect(page.get_by_role("link", name="leaderboard").last).to_be_visible()
+    expect(page.locator("main")).to_contain_text("Submission 99999 does not exist.")
+    _fits(page)
+    _screenshot(page, f"not-found-{width}")
+
+
+def test_every_page_writes_a_score_as_the_server_does(demo: Demo, browser: Browser) -> None:
+    from server.numbers import percent
+
+    page = _page(browser, DESKTOP)
+    page.goto(f"{demo.url}/admin")
+    # Halves (95.25 is exact), near-halves, ends and undefined values, through common.js's pct.
+    values = [0.9525, 0.95249999, 0.12345, 0.0005, 1.0, 0.0, -0.0004, 1 / 3, 2 / 3, 0.8875, 0.1235]
+    assert page.evaluate("values => values.map(pct)", values) == [percent(v) for v in values]
+    assert page.evaluate("[pct(null), pct(undefined), counted(1, 'entry', 'entries')]") == [
+        "–",
+        "–",
+        "1 entry",
+    ]
+    # The board and the submission page show the same figure for the same entry.
+    page.goto(demo.url)
+    row = page.locator("#leaderboard tbody tr", has_text="demo-team").first
+    on_board = row.locator("td.score").inner_text()
+    team = _team_page(browser, demo, DESKTOP, demo.team_token)
+    board = httpx.get(f"{demo.url}/api/v1/leaderboard", timeout=10).json()["rows"]
+    counted = next(r for r in board if r["team"] == "demo-team")
+    assert on_board == percent(counted["score"])
+    team.goto(f"{demo.url}/submissions/{counted['submission_id']}")
+    team.wait_for_selector("#breakdown tbody tr")
+    assert team.locator("#breakdown tbody tr").first.locator(".meter").first.inner_text() == on_board
+
+
+def _admin(browser: Browser, demo: Demo, width: int) -> Page:
+    page = _page(browser, width)
+    page.goto(f"{demo.url}/admin")
+    page.fill("#token", demo.admin_token)
+    page.click("#login button[type=submit]")
+    page.wait_for_selector("#dashboard:not([hidden])")
+    return page
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_the_admin_console_asks_before_it_changes_anything(demo: Demo, browser: Browser, width: int) -> None:
+    page = _admin(browser, demo, width)
+    row = page.locator("#submissions tbody tr", has_text="Noisy human (demo)")
+    submission_id = int(row.locator("td").first.inner_text().split()[-1])
+    dialog = page.locator("#confirm")
+
+    def admin_view() -> dict:
+        return _api(demo, "GET", f"/admin/submissions/{submission_id}", demo.admin_token).json()
+
+    row.get_by_role("button", name="hide").click()
+    expect(dialog).to_be_visible()
+    expect(dialog).to_contain_text(f"Hide submission {submission_id}?")
+    _screenshot(page, f"admin-confirm-{width}")
+    dialog.get_by_role("button", name="Keep it as it is").click()
+    expect(dialog).to_be_hidden()
+    assert admin_view()["admin_hidden"] is False  # nothing changed
+    row.get_by_role("button", name="hide").click()
+    dialog.get_by_role("button", name="Hide it").click()
+    expect(row).to_contain_text("hidden")
+    assert admin_view()["admin_hidden"] is True
+    row.get_by_role("button", name="show").click()
+    dialog.get_by_role("button", name="Show it").click()
+    expect(row.get_by_role("button", name="hide")).to_be_visible()
+
+    # A disqualification needs its reason, which the audit log then shows readably.
+    row.get_by_role("button", name="disqualify").click()
+    dialog.get_by_role("button", name="Disqualify it").click()
+    expect(dialog).to_be_visible()  # refused without a reason
+    reason = f"a reason long enough to wrap in the audit log at {width} px, not run off the table"
+    dialog.locator("textarea").fill(reason)
+    dialog.get_by_role("button", name="Disqualify it").click()
+    expect(row).to_contain_text(f"disqualified: {reason}")
+    audit = page.locator("#audit tbody tr", has_text="disqualify").first
+    expect(audit.locator("dd", has_text=reason)).to_be_visible()
+    box, table = audit.locator("dd", has_text=reason).bounding_box(), page.locator("#audit").bounding_box()
+    assert box is not None and table is not None and box["x"] + box["width"] <= table["x"] + table["width"]
+    row.get_by_role("button", name="requalify").click()
+    dialog.get_by_role("button", name="Lift it").click()
+    expect(row.get_by_role("button", name="disqualify")).to_be_visible()
+    assert admin_view()["disqualified"] is False
+    _fits(page)
+    _screenshot(page, f"admin-{width}")
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_a_new_token_is_shown_once_in_a_dialog_with_a_copy_button(
+    demo: Demo, browser: Browser, width: int
+) -> None:
+    page = _admin(browser, demo, width)
+    page.locator("#teams tbody tr", has_text="demo-team").get_by_role(
+        "button", name="tokens and quotas"
+    ).click()
+    page.get_by_role("button", name="new token").click()
+    dialog = page.locator("#token-dialog")
+    expect(dialog).to_be_visible()
+    secret = dialog.locator("#token-value").inner_text()
+    assert secret.startswith("nlb_")
+    dialog.get_by_role("button", name="Copy").click()
+    expect(dialog.locator("#token-copied")).to_contain_text("not shown again")
+    _fits(page)
+    _screenshot(page, f"admin-new-token-{width}")
+    dialog.get_by_role("button", name="Done").click()
+    expect(dialog).to_be_hidden()
+    assert page.locator("#token-value").inner_text() == ""  # shown once
+    assert secret not in page.content()
+    assert _api(demo, "GET", "/me", secret).json()["team"] == "demo-team"
+
+
+def test_the_rescore_report_fits_a_phone(demo: Demo, browser: Browser) -> None:
+    page = _admin(browser, demo, PHONE)
+    page.click("#rescore button[type=submit]")
+    page.locator("#confirm").get_by_role("button", name="Rescore all").click()
+    page.get_by_role("link", name="open its rank-change report").click()
+    expect(page.locator("#summary")).to_contain_text("complete", timeout=SCORING_TIMEOUT_MS)
+    _fits(page)
+    _screenshot(page, "rescore-report-390")

@@ -137,6 +137,7 @@ def _submission_fields(submission: Submission, admin: bool) -> dict[str, Any]:
     if admin:
         fields.update(
             team_id=submission.team_id,
+            queued_at=submission.queued_at,
             run=submission.run,
             attempts=submission.attempts,
             worker=submission.worker,

@@ -17,11 +17,64 @@ function age(since) {
   return `${(seconds / 3600).toFixed(1)} h`;
 }
 
-function act(label, action, title) {
+// Every action that changes or hides data asks first, saying what it will do; with `reason`, it asks for one
+// (the team reads it). Answers the reason ("" without one), or null when the organiser keeps things as they are.
+async function ask({ title, text, confirm, reason = false }) {
+  const dialog = $("#confirm");
+  $("#confirm-title").textContent = title;
+  $("#confirm-text").textContent = text;
+  $("#confirm-ok").textContent = confirm;
+  $("#confirm-reason-label").hidden = !reason;
+  $("#confirm-reason").required = reason;
+  $("#confirm-reason").value = "";
+  dialog.returnValue = "";
+  dialog.showModal();
+  await new Promise((resolve) => dialog.addEventListener("close", resolve, { once: true }));
+  return dialog.returnValue === "confirm" ? $("#confirm-reason").value.trim() : null;
+}
+
+function act(label, question, action, title) {
   return button(label, async () => {
-    try { await action(); await refresh(); } catch (error) { say(describeError(error)); }
+    const reason = await ask(question);
+    if (reason === null) return;
+    try { await action(reason); await refresh(); } catch (error) { say(describeError(error)); }
   }, title);
 }
+
+// A new token's secret, shown once in a dialog with a copy button; gone from the page when it closes.
+async function showSecret(title, text, secret) {
+  const dialog = $("#token-dialog");
+  $("#token-title").textContent = title;
+  $("#token-text").textContent = text;
+  $("#token-value").textContent = secret;
+  $("#token-copied").textContent = "";
+  dialog.showModal();
+  await new Promise((resolve) => dialog.addEventListener("close", resolve, { once: true }));
+  $("#token-value").textContent = "";
+}
+
+$("#copy-token").addEventListener("click", async () => {
+  const secret = $("#token-value").textContent;
+  let copied = false;
+  try {
+    await navigator.clipboard.writeText(secret);
+    copied = true;
+  } catch {  // no clipboard API (a page served over plain HTTP to another host): select it and copy
+    const range = document.createRange();
+    range.selectNodeContents($("#token-value"));
+    getSelection().removeAllRanges();
+    getSelection().addRange(range);
+    copied = document.execCommand("copy");
+  }
+  $("#token-copied").textContent = copied ? "Copied. It is not shown again: store it now."
+    : "Selected: copy it with Ctrl+C (⌘C). It is not shown again.";
+});
+
+const cancelling = (s) => ({
+  title: `Cancel submission ${s.id}?`,
+  text: `${s.team}'s “${s.method}” stops being scored and is refunded to the team's quota. It cannot be resumed: a re-run would score it from the start.`,
+  confirm: "Cancel it",
+});
 
 function group(...elements) {
   const span = document.createElement("span");
@@ -43,11 +96,11 @@ function fillQueue() {
   const active = state.submissions.filter((s) => ACTIVE.includes(s.status)).sort((a, b) => a.id - b.id);
   for (const s of active) {
     const row = body.insertRow();
-    [s.id, s.team, s.method, s.status, age(s.submitted_at)].forEach((v, i) => cell(row, v, i === 4 ? "num" : ""));
+    [s.id, s.team, s.method, s.status, age(s.queued_at)].forEach((v, i) => cell(row, v, i === 4 ? "num" : ""));
     cell(row, progress(s));
     cell(row, s.worker || "–");
     cell(row, s.attempts, "num");
-    cell(row, act("cancel", () => api("POST", `${ADMIN}/submissions/${s.id}/cancel`)));
+    cell(row, act("cancel", cancelling(s), () => api("POST", `${ADMIN}/submissions/${s.id}/cancel`)));
   }
   if (!active.length) cell(body.insertRow(), "Nothing is waiting.", "empty").colSpan = 9;
 }
@@ -101,16 +154,38 @@ function fillSubmissions() {
     cell(row, flags);
     cell(row, when(s.submitted_at));
     const active = ACTIVE.includes(s.status);
+    const path = `${ADMIN}/submissions/${s.id}`;
+    const entry = `${s.team}'s “${s.method}”`;
     cell(row, group(
-      !active && act("re-run", () => api("POST", `${ADMIN}/submissions/${s.id}/rerun`), "score it again under a new run"),
-      active && act("cancel", () => api("POST", `${ADMIN}/submissions/${s.id}/cancel`)),
-      act(s.admin_hidden ? "show" : "hide", () => api("POST", `${ADMIN}/submissions/${s.id}/hide`, { json: { hidden: !s.admin_hidden } })),
+      !active && act("re-run", {
+        title: `Re-run submission ${s.id}?`,
+        text: `${entry} is scored again from the start under a new run; its current results stay shown until the new run is scored.`,
+        confirm: "Re-run it",
+      }, () => api("POST", `${path}/rerun`), "score it again under a new run"),
+      active && act("cancel", cancelling(s), () => api("POST", `${path}/cancel`)),
+      s.admin_hidden
+        ? act("show", {
+          title: `Show submission ${s.id} again?`,
+          text: `${entry} may return to the leaderboard, and its team may make it final again.`,
+          confirm: "Show it",
+        }, () => api("POST", `${path}/hide`, { json: { hidden: false } }))
+        : act("hide", {
+          title: `Hide submission ${s.id}?`,
+          text: `${entry} leaves the leaderboard. Its team sees that an organiser hid it, and cannot show it or make it final.`,
+          confirm: "Hide it",
+        }, () => api("POST", `${path}/hide`, { json: { hidden: true } })),
       s.disqualified
-        ? act("requalify", () => api("POST", `${ADMIN}/submissions/${s.id}/disqualify`, { json: { disqualified: false, reason: "lifted" } }))
-        : act("disqualify", async () => {
-          const reason = window.prompt("Reason for the disqualification:");
-          if (reason) await api("POST", `${ADMIN}/submissions/${s.id}/disqualify`, { json: { disqualified: true, reason } });
-        }),
+        ? act("requalify", {
+          title: `Lift the disqualification of submission ${s.id}?`,
+          text: `${entry} may return to the leaderboard (reason given: ${s.disqualified_reason || "none"}).`,
+          confirm: "Lift it",
+        }, () => api("POST", `${path}/disqualify`, { json: { disqualified: false, reason: "lifted" } }))
+        : act("disqualify", {
+          title: `Disqualify submission ${s.id}?`,
+          text: `${entry} leaves the leaderboard and cannot be its team's final entry. The team reads the reason you give.`,
+          confirm: "Disqualify it",
+          reason: true,
+        }, (reason) => api("POST", `${path}/disqualify`, { json: { disqualified: true, reason } })),
     ));
   }
 }
@@ -123,8 +198,16 @@ function fillTeams() {
     [team.id, team.name, team.affiliation, team.members.join(", ")].forEach((v) => cell(row, v));
     cell(row, Object.assign(document.createElement("span"), { className: `status ${team.approval}`, textContent: team.approval }));
     cell(row, group(
-      team.approval !== "approved" && act("approve", () => api("POST", `${ADMIN}/teams/${team.id}/approve`)),
-      team.approval !== "rejected" && act("reject", () => api("POST", `${ADMIN}/teams/${team.id}/reject`)),
+      team.approval !== "approved" && act("approve", {
+        title: `Approve team ${team.name}?`,
+        text: "Its tokens may upload submissions from now on, within the phase's quotas.",
+        confirm: "Approve it",
+      }, () => api("POST", `${ADMIN}/teams/${team.id}/approve`)),
+      team.approval !== "rejected" && act("reject", {
+        title: `Reject team ${team.name}?`,
+        text: "Its tokens can no longer upload; its entries stay as they are (hide or disqualify them one by one).",
+        confirm: "Reject it",
+      }, () => api("POST", `${ADMIN}/teams/${team.id}/reject`)),
       button("tokens and quotas", () => openTeam(team)),
     ));
   }
@@ -141,16 +224,22 @@ async function openTeam(team) {
     const row = body.insertRow();
     [t.id, t.name, t.prefix, when(t.created_at), when(t.last_used_at)].forEach((v) => cell(row, v));
     cell(row, t.revoked_at ? `revoked ${when(t.revoked_at)}` : t.expires_at ? `expires ${when(t.expires_at)}` : "active");
-    cell(row, t.revoked_at ? "" : act("revoke", async () => {
-      if (window.confirm(`Revoke token ${t.prefix}… of ${team.name}?`)) await api("DELETE", `${ADMIN}/tokens/${t.id}`);
+    cell(row, t.revoked_at ? "" : act("revoke", {
+      title: `Revoke token ${t.prefix}… of ${team.name}?`,
+      text: "Whatever uses it is refused from now on. A revoked token cannot be restored; the team needs a new one.",
+      confirm: "Revoke it",
+    }, async () => {
+      await api("DELETE", `${ADMIN}/tokens/${t.id}`);
       await openTeam(team);
     }));
   }
   const add = body.insertRow();
-  cell(add, act("new token", async () => {
-    const created = await api("POST", `${ADMIN}/teams/${team.id}/tokens`, { json: { name: "console" } });
-    window.prompt(`Token for ${team.name} (shown once, copy it now):`, created.token);
-    await openTeam(team);
+  cell(add, button("new token", async () => {
+    try {
+      const created = await api("POST", `${ADMIN}/teams/${team.id}/tokens`, { json: { name: "console" } });
+      await openTeam(team);
+      await showSecret(`New token for ${team.name}`, "Give it to the team. It is shown this once: the server keeps only its hash.", created.token);
+    } catch (error) { say(describeError(error)); }
   })).colSpan = 7;
   $("#quota-phase").replaceChildren(...state.phases.map((phase) => new Option(phase.name, phase.name)));
 }
@@ -159,6 +248,13 @@ $("#quota").addEventListener("submit", async (event) => {
   event.preventDefault();
   const data = new FormData(event.target);
   const number = (name) => (data.get(name) === "" ? null : Number(data.get(name)));
+  const shown = (name) => (data.get(name) === "" ? "the phase default" : data.get(name));
+  const answer = await ask({
+    title: `Set the quotas of ${state.team.name} in ${data.get("phase")}?`,
+    text: `Per day: ${shown("per_day")}; total: ${shown("total")}; in flight: ${shown("in_flight")}. They apply to the team's next upload.`,
+    confirm: "Set them",
+  });
+  if (answer === null) return;
   try {
     await api("PUT", `${ADMIN}/teams/${state.team.id}/quotas`, {
       json: { phase: data.get("phase"), per_day: number("per_day"), total: number("total"), in_flight: number("in_flight") },
@@ -176,9 +272,22 @@ function fillAudit() {
     const text = [e.actor, e.action, e.target_type, e.target_id].join(" ").toLowerCase();
     if (filter && !text.includes(filter)) continue;
     const row = body.insertRow();
-    [e.at.slice(0, 19).replace("T", " "), e.actor, e.action, `${e.target_type} ${e.target_id}`, JSON.stringify(e.details)]
-      .forEach((v) => cell(row, v));
+    [e.at.slice(0, 19).replace("T", " "), e.actor, e.action, `${e.target_type} ${e.target_id}`].forEach((v) => cell(row, v));
+    cell(row, detailList(e.details), "details");
   }
+}
+
+// An audit entry's details as lines a person reads ("reason: …"), wrapping where a value is long.
+function detailList(details) {
+  if (!Object.keys(details).length) return "–";
+  const list = document.createElement("dl");
+  for (const [key, value] of Object.entries(details)) {
+    const shown = value === null ? "–" : Array.isArray(value) ? value.join(", ") || "none"
+      : typeof value === "object" ? JSON.stringify(value) : String(value);
+    list.append(Object.assign(document.createElement("dt"), { textContent: key.replaceAll("_", " ") }),
+      Object.assign(document.createElement("dd"), { textContent: shown }));
+  }
+  return list;
 }
 
 async function refreshLive() {
@@ -222,7 +331,12 @@ $("#rescore").addEventListener("submit", async (event) => {
   const form = new FormData(event.target);
   const version = form.get("version");
   const compareWith = form.get("compare_with") || null;
-  if (!window.confirm(`Re-run every scored entry and report rank changes under ${version}?`)) return;
+  const answer = await ask({
+    title: `Rescore every entry under ${version}?`,
+    text: `Every scored entry of the phase, baselines included, is re-run; the board shows the old results until each new run is scored, and a report compares the ranks under ${compareWith || version} before with those after.`,
+    confirm: "Rescore all",
+  });
+  if (answer === null) return;
   try {
     const started = await api("POST", `${ADMIN}/rescore`, { json: { version, compare_with: compareWith } });
     const link = Object.assign(document.createElement("a"), { href: `/admin/rescores/${started.id}`, textContent: "open its rank-change report" });

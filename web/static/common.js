@@ -41,6 +41,9 @@ function cell(row, content, className) {
   const td = row.insertCell();
   if (content instanceof Node) td.append(content); else td.textContent = content ?? "";
   if (className) td.className = className;
+  // A phone stacks the cells of a table.stack (style.css): each names its column.
+  const header = row.closest("table")?.tHead?.rows[0]?.cells[td.cellIndex];
+  if (header) td.dataset.label = header.textContent.trim();
   return td;
 }
 
