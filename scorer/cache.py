@@ -30,6 +30,9 @@ from scorer.human import FILTERED_COLUMNS, human_future_poses, is_synthetic
 from scorer.metrics.history_comfort import past_states
 from scorer.observation import Observation, drop_tracks_on_ego, observe_scene
 from scorer.pdm_scorer import MeasureSettings, ProposalMeasures, measure_alike, score_batch
+from scorer.reactive.agents import IdmVehicle, ParkingCandidate, Rejection, StartingTraffic, build_agents
+from scorer.reactive.observation import base_observation, reacting_observation
+from scorer.reactive.paths import LanePath
 from scorer.red_lights import RedLights, observe_red_lights
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
@@ -67,14 +70,19 @@ class MetricCache:
     route_roadblocks: tuple[str, ...]
     idm_target_velocities: FloatArray
     drivable_map: DrivableMap
-    observation: Observation
-    # The PDM-Closed proposal simulated and measured (1, 1) once: every submission is scored against it.
-    reference_measures: ProposalMeasures
+    observation: (
+        Observation  # reactive traffic: without the simulated vehicles (`scorer.reactive.observation`)
+    )
+    # The PDM-Closed proposal simulated and measured (1, 1) once: every submission is scored against it. Under
+    # reactive traffic the reference is measured against each submission's traffic: its states instead.
+    reference_measures: ProposalMeasures | None
     # v2: tracks dropped for touching the ego at t = 0, and the logged human's result for the penalty filter
     # (its columns and first infraction indices; None where the version or the scene has no filter).
     dropped_tracks: tuple[str, ...] = ()
     human: dict[str, float] | None = None
     past_states: FloatArray | None = None  # v2's history comfort: the logged past (n, 11)
+    reference_states: FloatArray | None = None  # reactive traffic: PDM-Closed's simulated states (41, 11)
+    starting_traffic: StartingTraffic | None = None  # reactive traffic: the vehicles at the start
 
 
 def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, MetricCache]:
@@ -132,9 +140,22 @@ def build_cache_batch(
         pasts = None
         if "history_comfort" in version.evaluation.weights:
             pasts = [past_states(scene) for scene in scenes]
+        traffic: list[StartingTraffic | None] = [None] * len(scenes)
+        if version.reactive_traffic is not None:
+            traffic = [
+                build_agents(
+                    scene.current_frame, scene.map, _initial_ego_box(scene), version.reactive_traffic
+                )
+                for scene in scenes
+            ]
         human_results: list[dict[str, float] | None] = [None] * len(scenes)
         if version.human_penalty_filter:
-            human_results = score_humans(humans, simulated[count:], len(scenes), *inputs, version)
+            human_observations = _human_observations(
+                humans, simulated[count:], observations[column], traffic, version
+            )
+            human_results = score_humans(
+                humans, simulated[count:], len(scenes), human_observations, *inputs[1:], version
+            )
         for index, (scene, plan) in enumerate(zip(scenes, version_plans, strict=True)):
             caches[index][version.name] = MetricCache(
                 token=scene.token,
@@ -153,35 +174,67 @@ def build_cache_batch(
                 dropped_tracks=observed[keys[column]][index][1],
                 human=human_results[index],
                 past_states=None if pasts is None else pasts[index],
+                reference_states=None if traffic[index] is None else states[column, index, 0],
+                starting_traffic=traffic[index],
             )
     return caches
 
 
-def observation_key(version: MetricVersion) -> tuple[int, bool, bool]:
-    """Return how a version observes a scene: future frames, red lights read, tracks on the ego dropped."""
+def _human_observations(
+    humans: Sequence[int],
+    states: FloatArray,
+    observations: Sequence[Observation],
+    traffic: Sequence[StartingTraffic | None],
+    version: MetricVersion,
+) -> list[Observation]:
+    """Return what the logged human of each scene is scored against: under reactive traffic, a second
+    simulation whose vehicles react to the human's simulated states (H, 41, 11), else the observation (also
+    where the traffic could not be built: the scene's tokens are unscorable)."""
+    seen = list(observations)
+    for row, index in enumerate(humans):
+        scene_traffic = traffic[index]
+        if (
+            scene_traffic is not None
+            and scene_traffic.failure is None
+            and version.reactive_traffic is not None
+        ):
+            seen[index] = reacting_observation(
+                scene_traffic, seen[index], states[row], version.reactive_traffic
+            )
+    return seen
+
+
+ObservationKey = tuple[int, bool, bool, bool]
+
+
+def observation_key(version: MetricVersion) -> ObservationKey:
+    """Return how a version observes a scene: future frames, red lights read, tracks on the ego dropped,
+    reactive traffic."""
     reads_lights = "traffic_light_compliance" in version.evaluation.multiplier_rows
-    return version.observation_frames, reads_lights, version.drops_tracks_on_ego
+    reactive = version.reactive_traffic is not None
+    return version.observation_frames, reads_lights, version.drops_tracks_on_ego, reactive
 
 
 def _reference_measures(
     states: FloatArray,
     versions: Sequence[MetricVersion],
-    keys: Sequence[tuple[int, bool, bool]],
+    keys: Sequence[ObservationKey],
     observations: Sequence[Sequence[Observation]],
     drivable_maps: Sequence[DrivableMap],
     plans: Sequence[Sequence[PlannerOutput]],
-) -> list[list[ProposalMeasures]]:
+) -> list[list[ProposalMeasures | None]]:
     """Return each version's measures (1, 1) of each scene's simulated reference (V, S, 1, 41, 11), the
-    versions observing as `keys` say.
+    versions observing as `keys` say; None under reactive traffic, whose vehicles react to each submission.
 
     A token's measures read its own inputs only, so the versions that observe alike are measured in one call
     (`measure_alike`), and a scene's reference they share (the same proposal selected, the same centerline
     and route) is measured once.
     """
-    measures: list[list[ProposalMeasures]] = [[] for _ in versions]
-    groups: dict[tuple[int, bool, bool], list[int]] = {}  # versions by how they observe (`observation_key`)
+    measures: list[list[ProposalMeasures | None]] = [[None] * len(plans) for _ in versions]
+    groups: dict[ObservationKey, list[int]] = {}  # versions by how they observe (`observation_key`)
     for column, key in enumerate(keys):
-        groups.setdefault(key, []).append(column)
+        if versions[column].reactive_traffic is None:
+            groups.setdefault(key, []).append(column)
     for columns in groups.values():
         token_of: dict[tuple[int, bytes, bytes, tuple[str, ...]], int] = {}  # a scene's inputs -> token
         tokens: list[tuple[int, int]] = []  # (column, scene) measured
@@ -213,18 +266,26 @@ def _reference_measures(
 
 
 def evaluation_observation(
-    scene: Scene, future_frames: int, reads_lights: bool, drops_tracks_on_ego: bool
+    scene: Scene, future_frames: int, reads_lights: bool, drops_tracks_on_ego: bool, reactive: bool
 ) -> tuple[Observation, tuple[str, ...]]:
-    """Return a version's evaluation observation of `scene` and the tracks it dropped for touching the ego."""
+    """Return a version's evaluation observation of `scene` and the tracks it dropped for touching the ego;
+    under reactive traffic, the observation without its simulated vehicles."""
     observation = observe_scene(scene, future_frames)
     if reads_lights:
         observation = replace(observation, red_lights=observe_red_lights(scene, future_frames))
+    if reactive:
+        return base_observation(scene.current_frame, observation), ()
     if not drops_tracks_on_ego:
         return observation, ()
+    return drop_tracks_on_ego(observation, _initial_ego_box(scene))
+
+
+def _initial_ego_box(scene: Scene) -> shapely.Polygon:
+    """Return the ego's true box at the current frame."""
     from scorer.pdm_closed import ego_polygons  # see build_cache_batch
 
     ego = scene.current_frame.ego
-    return drop_tracks_on_ego(observation, ego_polygons(np.array([[ego.x, ego.y, ego.heading]]))[0])
+    return ego_polygons(np.array([[ego.x, ego.y, ego.heading]]))[0]
 
 
 def score_humans(
@@ -351,12 +412,63 @@ def _cache_section(cache: MetricCache) -> tuple[dict[str, Any], dict[str, np.nda
         "object_corners": observation.corners[observation.present],
         **_red_light_arrays(red_lights),
         **({} if cache.past_states is None else {"past_states": cache.past_states}),
-        **{
-            _MEASURES_PREFIX + f.name: getattr(cache.reference_measures, f.name)
-            for f in fields(ProposalMeasures)
-        },
+        **({} if cache.reference_states is None else {"reference_states": cache.reference_states}),
+        **(
+            {}
+            if cache.reference_measures is None
+            else {
+                _MEASURES_PREFIX + f.name: getattr(cache.reference_measures, f.name)
+                for f in fields(ProposalMeasures)
+            }
+        ),
     }
+    if cache.starting_traffic is not None:
+        meta["starting_traffic"] = _traffic_meta(cache.starting_traffic)
     return meta, arrays
+
+
+def _traffic_meta(traffic: StartingTraffic) -> dict[str, Any]:
+    """Return the vehicles at the start as JSON (floats round-trip exactly through their shortest repr)."""
+    return {
+        "agents": [
+            {
+                **{f.name: getattr(agent, f.name) for f in fields(IdmVehicle) if f.name != "path"},
+                "path": {
+                    "progress": agent.path.progress,
+                    "points": agent.path.points.tolist(),
+                    "unwrapped_heading": agent.path.unwrapped_heading,
+                },
+            }
+            for agent in traffic.agents
+        ],
+        "rejected": {track: asdict(rejection) for track, rejection in traffic.rejected.items()},
+        "parking": [asdict(candidate) for candidate in traffic.parking],
+        "failure": traffic.failure,
+    }
+
+
+def _traffic_of(meta: dict[str, Any]) -> StartingTraffic:
+    """Invert `_traffic_meta`."""
+    agents = []
+    for agent in meta["agents"]:
+        path = agent["path"]
+        agents.append(
+            IdmVehicle(
+                **{key: value for key, value in agent.items() if key not in ("path", "pose")},
+                pose=tuple(agent["pose"]),
+                path=LanePath(
+                    progress=tuple(path["progress"]),
+                    points=np.array(path["points"], dtype=np.float64),
+                    unwrapped_heading=tuple(path["unwrapped_heading"]),
+                ),
+            )
+        )
+    return StartingTraffic(
+        agents=tuple(agents),
+        rejected={track: Rejection(**rejection) for track, rejection in meta["rejected"].items()},
+        parking=tuple(ParkingCandidate(c["track"], tuple(c["box"])) for c in meta["parking"]),
+        failure=meta["failure"],
+    )
 
 
 def _red_light_arrays(red_lights: RedLights | None) -> dict[str, np.ndarray]:
@@ -512,10 +624,14 @@ def _cache_of(
             corners=corners,
             red_lights=red_lights,
         ),
-        reference_measures=ProposalMeasures(
-            **{f.name: arrays[_MEASURES_PREFIX + f.name] for f in fields(ProposalMeasures)}
+        reference_measures=(
+            ProposalMeasures(**{f.name: arrays[_MEASURES_PREFIX + f.name] for f in fields(ProposalMeasures)})
+            if "starting_traffic" not in meta
+            else None
         ),
         dropped_tracks=tuple(meta["dropped_tracks"]),
         human=meta["human"],
         past_states=arrays.get("past_states"),
+        reference_states=arrays.get("reference_states"),
+        starting_traffic=_traffic_of(meta["starting_traffic"]) if "starting_traffic" in meta else None,
     )

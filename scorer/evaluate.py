@@ -20,6 +20,7 @@ import numpy as np
 
 from scorer.cache import (
     MetricCache,
+    ObservationKey,
     build_cache_batch,
     load_caches,
     observation_key,
@@ -33,11 +34,13 @@ from scorer.observation import Observation
 from scorer.pdm_scorer import (
     RESULT_COLUMN_OF_ROW,
     MeasureSettings,
+    ProposalMeasures,
     ProposalScores,
     join_measures,
     measure_alike,
     score_measures,
 )
+from scorer.reactive.observation import reacting_observation
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state
@@ -289,17 +292,23 @@ def score_simulated_versions(
     their areas, DAC, progress) once for all of them, and what reads the observation once per way of
     observing (`observation_key`: v1.0 and v1.1 observe alike, v2.2 drops tracks on the ego).
     """
+    scores: dict[str, ProposalScores] = {
+        version.name: _score_reacting(caches[version.name], states, version)
+        for version in versions
+        if version.reactive_traffic is not None
+    }
     groups: dict[tuple[object, ...], list[MetricVersion]] = {}
     for version in versions:
+        if version.reactive_traffic is not None:
+            continue
         inputs = tuple(
             (cache.token, cache.centerline.tobytes(), cache.route_lane_ids) for cache in caches[version.name]
         )
         groups.setdefault(inputs, []).append(version)
-    scores: dict[str, ProposalScores] = {}
     for group in groups.values():
         held = caches[group[0].name]  # alike maps, centerlines and routes: any version's caches give them
         # One list per way of observing, so that the versions observing alike pass the same objects.
-        observed: dict[tuple[int, bool, bool], list[Observation]] = {}
+        observed: dict[ObservationKey, list[Observation]] = {}
         for version in group:
             if observation_key(version) not in observed:
                 observed[observation_key(version)] = [cache.observation for cache in caches[version.name]]
@@ -313,12 +322,46 @@ def score_simulated_versions(
         )
         for version, agent in zip(group, measured, strict=True):
             version_caches = caches[version.name]
-            reference = join_measures([cache.reference_measures for cache in version_caches], axis=0)
+            reference = join_measures([_reference_measures(cache) for cache in version_caches], axis=0)
             pasts = [cache.past_states for cache in version_caches]
             scores[version.name] = score_measures(
                 join_measures([reference, agent]), version.evaluation, pasts
             )
     return scores
+
+
+def _reference_measures(cache: MetricCache) -> ProposalMeasures:
+    if cache.reference_measures is None:
+        raise ValueError(f"{cache.token}: a reactive version's cache holds no reference measures")
+    return cache.reference_measures
+
+
+def _score_reacting(
+    caches: Sequence[MetricCache], states: Mapping[str, FloatArray], version: MetricVersion
+) -> ProposalScores:
+    """Return the scores (B, 2) of [PDM-Closed, agent] per token under reactive traffic: the vehicles react to
+    the agent's simulated states, and both proposals are measured against them (`pdm_score` passes the one
+    traffic simulation to the scorer for both)."""
+    config = version.reactive_traffic
+    if config is None:
+        raise ValueError(f"{version.name} has no reactive traffic")
+    observations, proposals = [], []
+    for cache in caches:
+        if cache.starting_traffic is None or cache.reference_states is None:
+            raise ValueError(f"{cache.token}: the cache of {version.name} holds no reactive traffic")
+        observations.append(
+            reacting_observation(cache.starting_traffic, cache.observation, states[cache.token], config)
+        )
+        proposals.append(np.stack([cache.reference_states, states[cache.token]]))
+    measured = measure_alike(
+        np.stack(proposals),
+        [observations],
+        [cache.drivable_map for cache in caches],
+        [cache.centerline[:, :2] for cache in caches],
+        [cache.route_lane_ids for cache in caches],
+        [MeasureSettings.of(version.evaluation)],
+    )[0]
+    return score_measures(measured, version.evaluation, [cache.past_states for cache in caches])
 
 
 def score_against_references(
@@ -342,12 +385,18 @@ def _rows_of_simulated(
     kept: dict[str, list[MetricCache]] = {}
     for version in versions:
         held = caches[version.name]
-        rows[version.name] = [
-            TokenResult(cache.token, seed, False, error=failed[cache.token])
+        errors = {cache.token: failed[cache.token] for cache in held if cache.token in failed}
+        errors |= {
+            cache.token: f"scoring failed: reactive traffic: {cache.starting_traffic.failure}"
             for cache in held
-            if cache.token in failed
+            if cache.starting_traffic is not None and cache.starting_traffic.failure is not None
+        }
+        rows[version.name] = [
+            TokenResult(cache.token, seed, False, error=errors[cache.token])
+            for cache in held
+            if cache.token in errors
         ]
-        kept[version.name] = [cache for cache in held if cache.token in states]
+        kept[version.name] = [cache for cache in held if cache.token in states and cache.token not in errors]
     measured = [version for version in versions if kept[version.name]]
     scores = score_simulated_versions(kept, states, measured)
     for version in measured:

@@ -22,6 +22,7 @@ class VersionName(StrEnum):
     V1_0 = "v1.0"
     V1_1 = "v1.1"
     V2_2 = "v2.2"
+    V2_2_TWO_STAGE = "v2.2-two-stage"
 
 
 DEFAULT_VERSION = VersionName.V1_1  # NAVSIM's current release: what a leaderboard shows unless asked
@@ -61,6 +62,22 @@ class ScorerConfig:
 
 
 @dataclass(frozen=True)
+class IdmTraffic:
+    """NAVSIM's reactive traffic (`NavsimIDMTrafficAgents`, `navsim_IDM_traffic_agents.yaml` at v2.2): the
+    current frame's vehicles follow their starting lane or connector under an IDM and react to the ego
+    (`scorer.reactive`; docs/engine.md, "Reactive traffic")."""
+
+    target_velocity: float = 10.0  # m/s where the segment has no speed limit (leaked between vehicles)
+    min_gap_to_lead_agent: float = 1.0  # m
+    headway_time: float = 1.5  # s
+    accel_max: float = 1.0  # m/s²
+    decel_max: float = 2.0  # m/s²
+    radius: float = 100.0  # m around the ego's rear axle; a vehicle beyond it leaves the simulation for good
+    idm_snap_threshold: float = 3.0  # m, the largest distance from the baseline a vehicle is snapped over
+    add_open_loop_parked_vehicles: bool = True  # vehicles that are not simulated stay at their recorded pose
+
+
+@dataclass(frozen=True)
 class MetricVersion:
     """A NAVSIM metric release: the evaluation scorer, PDM-Closed's internal scorer, what the metric cache
     observes and the result columns."""
@@ -79,6 +96,8 @@ class MetricVersion:
     human_penalty_filter: bool = False
     # v2's two-frame extended comfort between adjacent tokens of a log; None where the version has none.
     two_frame_extended_comfort_weight: float | None = None
+    # v2's reactive traffic in place of the log replay (None): the vehicles react to the scored trajectory.
+    reactive_traffic: IdmTraffic | None = None
 
     @property
     def ddc_role(self) -> str:
@@ -181,6 +200,23 @@ VERSIONS: dict[VersionName, MetricVersion] = {
         drops_tracks_on_ego=True,
         human_penalty_filter=True,
         two_frame_extended_comfort_weight=2.0,
+    ),
+    # The scoring of each token of navhard's two stages: v2.2's scorer with the vehicles reacting to the scored
+    # trajectory (and, for the human filter, to the logged human); no track is dropped at t = 0.
+    VersionName.V2_2_TWO_STAGE: MetricVersion(
+        name=VersionName.V2_2_TWO_STAGE,
+        evaluation=_V2_2_SCORER,
+        planner=_V2_2_SCORER,
+        result_columns=EPDMS_COLUMNS,
+        official_code=(
+            "NAVSIM v2.2 (tag v2.2, commit 359c7f7, two-stage, reactive IDM traffic, human filter on)"
+        ),
+        score_label="EPDMS",
+        average_row="average_all_frames",
+        observation_frames=8,
+        human_penalty_filter=True,
+        two_frame_extended_comfort_weight=2.0,
+        reactive_traffic=IdmTraffic(),
     ),
 }
 

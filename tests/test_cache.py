@@ -25,6 +25,7 @@ from scorer.cache import (
 )
 from scorer.evaluate import score_tokens
 from scorer.pdm_scorer import ProposalMeasures
+from scorer.reactive.agents import IdmVehicle, StartingTraffic
 from scorer.scene import Scene, iter_scenes, scene_file_hash, scene_paths
 from scorer.versions import VERSIONS, MetricVersion
 
@@ -49,10 +50,30 @@ def assert_same_cache(loaded: MetricCache, cache: MetricCache) -> None:
     assert loaded.observation.tokens == cache.observation.tokens
     assert np.array_equal(loaded.observation.present, cache.observation.present)
     assert np.array_equal(loaded.observation.corners, cache.observation.corners, equal_nan=True)
-    for field in fields(ProposalMeasures):
+    assert (loaded.reference_measures is None) == (cache.reference_measures is None)
+    for field in fields(ProposalMeasures) if cache.reference_measures is not None else ():
         assert np.array_equal(
             getattr(loaded.reference_measures, field.name), getattr(cache.reference_measures, field.name)
         ), field.name
+    assert (loaded.reference_states is None) == (cache.reference_states is None)
+    if cache.reference_states is not None:
+        assert np.array_equal(loaded.reference_states, cache.reference_states)
+    assert (loaded.starting_traffic is None) == (cache.starting_traffic is None)
+    if loaded.starting_traffic is not None and cache.starting_traffic is not None:
+        assert_same_traffic(loaded.starting_traffic, cache.starting_traffic)
+
+
+def assert_same_traffic(loaded: StartingTraffic, traffic: StartingTraffic) -> None:
+    """Reactive traffic at the start, every vehicle and path bit for bit."""
+    assert loaded.rejected == traffic.rejected and loaded.parking == traffic.parking
+    assert len(loaded.agents) == len(traffic.agents)
+    for loaded_agent, agent in zip(loaded.agents, traffic.agents, strict=True):
+        for field in fields(IdmVehicle):
+            if field.name != "path":
+                assert getattr(loaded_agent, field.name) == getattr(agent, field.name), field.name
+        assert loaded_agent.path.progress == agent.path.progress
+        assert loaded_agent.path.unwrapped_heading == agent.path.unwrapped_heading
+        assert np.array_equal(loaded_agent.path.points, agent.path.points)
 
 
 def test_round_trip_is_exact(tmp_path: Path, built: tuple[str, dict[str, MetricCache]]) -> None:

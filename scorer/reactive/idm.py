@@ -1,0 +1,44 @@
+"""One IDM update of one vehicle, as nuPlan's `IDMAgent.propagate` with the forward-Euler policy
+(docs/engine.md, "Reactive traffic: one step").
+
+`IDMPolicy.solve_forward_euler_idm_policy` evaluates `idm_model` on a state of progress 0 and the vehicle's
+speed v: s* = gap + v * headway + v * (v - v_lead) / (2 * sqrt(a_max * b_max)), s_alpha = max(d_lead - 0 -
+length_rear, gap), acceleration a_max * (1 - (v / v_target) ** 4 - (s* / s_alpha) ** 2); then progress
+0 + dt * v and speed v + dt * clip(acceleration, -b_max, a_max), and `propagate` adds the progress to the
+vehicle's (never clamped) and keeps max(speed, 0). Scalar on purpose: each vehicle's update reads the leads
+that earlier vehicles of the same step have just moved, and Python floats round each operation as the devkit's
+do, in its order.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from scorer.versions import IdmTraffic
+
+
+@dataclass(frozen=True)
+class Lead:
+    """What a vehicle follows: its distance ahead (m), speed along the vehicle's heading (m/s), rear length."""
+
+    distance: float
+    velocity: float
+    length_rear: float
+
+
+def idm_update(
+    progress: float, speed: float, lead: Lead, target_velocity: float, config: IdmTraffic, dt: float
+) -> tuple[float, float]:
+    """Return the vehicle's progress and speed after `dt` seconds behind `lead`."""
+    comfortable_braking = 2 * math.sqrt(config.accel_max * config.decel_max)
+    desired_gap = (
+        config.min_gap_to_lead_agent
+        + speed * config.headway_time
+        + (speed * (speed - lead.velocity)) / comfortable_braking
+    )
+    gap = max(lead.distance - 0.0 - lead.length_rear, config.min_gap_to_lead_agent)
+    acceleration = config.accel_max * (1 - (speed / target_velocity) ** 4 - (desired_gap / gap) ** 2)
+    moved = 0.0 + dt * speed
+    next_speed = speed + dt * min(max(config.decel_max * -1, acceleration), config.accel_max)
+    return progress + moved, max(next_speed, 0.0)

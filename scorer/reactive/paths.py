@@ -1,0 +1,104 @@
+"""An IDM vehicle's path: the baseline of its starting lane or lane connector, as nuPlan's IDM agent holds it
+(docs/engine.md, "Reactive traffic: building the agents").
+
+nuPlan turns the baseline into `StateSE2` vertices (`extract_discrete_polyline`: the heading of a vertex is
+numpy's `arctan2` towards the next one, the last vertex repeats the one before), measures the cumulative
+progress as numpy's `linalg.norm` of the coordinate differences (sqrt(dx * dx + dy * dy), then `cumsum`), and
+`create_path_from_se2` keeps vertex i only where progress[i + 1] - progress[i] is not `isclose` to 0: the zip
+over the n - 1 differences drops the **last vertex** always, so a path ends at the second-to-last baseline
+vertex. `InterpolatedPath` interpolates x, y and the `np.unwrap`ped headings with scipy's linear `interp1d`
+and wraps the heading with `principal_value`. The trims (`trim_path_up_to_progress`, `trim_path`) keep
+nuPlan's odd ends: with nothing left ahead, the path's last two vertices.
+
+A path is read one progress at a time (the IDM's loop is sequential, `scorer.reactive.traffic`), so the
+interpolation is scalar, in the order of scipy's `_call_linear`.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+
+import numpy as np
+
+from scorer.geometry import FloatArray, arctan2_avx512, principal_value
+
+
+class PathError(ValueError):
+    """A baseline nuPlan's IDM cannot make a path of (the official token fails)."""
+
+
+@dataclass(frozen=True, eq=False)
+class LanePath:
+    """The vertices of an IDM path: progress (n,) from 0, x, y (n, 2) and unwrapped headings (n,)."""
+
+    progress: tuple[float, ...]
+    points: FloatArray  # (n, 2)
+    unwrapped_heading: tuple[float, ...]
+
+    @classmethod
+    def of_baseline(cls, baseline: FloatArray) -> LanePath:
+        """Return the path nuPlan's IDM agent makes of a baseline (n, 2); raise PathError where it asserts."""
+        differences = np.diff(baseline, axis=0)
+        heading = arctan2_avx512(differences[:, 1], differences[:, 0])
+        heading = np.append(heading, heading[-1])
+        squares = differences * differences
+        progress = np.cumsum(np.append(0.0, np.sqrt(squares[:, 0] + squares[:, 1])))
+        kept = np.flatnonzero(~np.isclose(np.diff(progress), 0.0))
+        if len(kept) < 2:
+            raise PathError(
+                f"the IDM cannot make a path of a {len(baseline)}-vertex baseline (it keeps {len(kept)} vertex)"
+            )
+        return cls(
+            progress=tuple(progress[kept].tolist()),
+            points=np.ascontiguousarray(baseline[kept]),
+            unwrapped_heading=tuple(np.unwrap(heading[kept]).tolist()),
+        )
+
+    @property
+    def start(self) -> float:
+        """Return the progress of the path's first vertex (0)."""
+        return self.progress[0]
+
+    @property
+    def end(self) -> float:
+        """Return the progress of the path's last vertex: where an IDM vehicle stops."""
+        return self.progress[-1]
+
+    def clamp(self, progress: float) -> float:
+        """Return `progress` clamped to the path (nuPlan's `_clamp_progress`)."""
+        return max(self.start, min(progress, self.end))
+
+    def state_at(self, progress: float) -> tuple[float, float, float]:
+        """Return x, y and heading (wrapped to [-pi, pi)) at `progress` on the path, as `get_state_at_progress`."""
+        upper = min(max(bisect.bisect_left(self.progress, progress), 1), len(self.progress) - 1)
+        lower = upper - 1
+        low, high = self.progress[lower], self.progress[upper]
+        offset = progress - low
+        span = high - low
+        (x_low, y_low), (x_high, y_high) = self.points[lower].tolist(), self.points[upper].tolist()
+        heading_low, heading_high = self.unwrapped_heading[lower], self.unwrapped_heading[upper]
+        x = (x_high - x_low) / span * offset + x_low
+        y = (y_high - y_low) / span * offset + y_low
+        heading = (heading_high - heading_low) / span * offset + heading_low
+        return x, y, float(principal_value(heading))
+
+    def to_go(self, progress: float) -> FloatArray:
+        """Return the points (m, 2) of the path from `progress` (clamped) on (`trim_path_up_to_progress`)."""
+        ahead = bisect.bisect_right(self.progress, progress)
+        if ahead == len(self.progress):
+            return self.points[-2:]
+        x, y, _ = self.state_at(progress)
+        return np.concatenate([[[x, y]], self.points[ahead:]])
+
+    def between(self, start: float, end: float) -> FloatArray:
+        """Return the points (m, 2) of the path from `start` to `end` (both clamped; nuPlan's `trim_path`)."""
+        first = bisect.bisect_right(self.progress, start)
+        if first == len(self.progress):
+            return self.points[-2:]
+        last = bisect.bisect_left(self.progress, end) - 1
+        if last < 0:
+            return self.points[:2]
+        x_start, y_start, _ = self.state_at(start)
+        x_end, y_end, _ = self.state_at(end)
+        return np.concatenate([[[x_start, y_start]], self.points[first : last + 1], [[x_end, y_end]]])
