@@ -54,11 +54,11 @@ def _split_dir(data_dir: Path, scenes: int) -> Path:
 def _warm_cache(split_dir: Path, cache_dir: Path, scenes: int) -> None:
     """Build the split's metric caches (v1.0, v1.1, v2.2) on every core, as an operator would beforehand."""
     from scorer.evaluate import build_split_cache
-    from scorer.versions import VERSIONS
+    from scorer.versions import LOG_REPLAY_VERSIONS
 
     with progress_bar("building the metric cache", scenes) as advance:
         failures = build_split_cache(
-            split_dir, cache_dir, list(VERSIONS), workers=os.cpu_count() or 1, progress=advance
+            split_dir, cache_dir, list(LOG_REPLAY_VERSIONS), workers=os.cpu_count() or 1, progress=advance
         )
     if failures:
         raise fail(f"{len(failures)} demo scenes cannot be cached, e.g. {next(iter(failures.items()))}")

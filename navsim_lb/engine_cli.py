@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from navsim_lb.terminal import console, fail, output, progress_bar, warn, warn_about_kernels
-from scorer.versions import DEFAULT_VERSION, VERSIONS, VersionName
+from scorer.versions import DEFAULT_VERSION, LOG_REPLAY_VERSIONS, VERSIONS, VersionName, cached_together
 
 if TYPE_CHECKING:
     from scorer.submission import Submission
@@ -66,7 +66,8 @@ def baseline(
 def cache(
     split: Annotated[Path, typer.Argument(help="split directory")],
     version: Annotated[
-        VersionName | None, typer.Option(help="one metric version (default: every one)")
+        VersionName | None,
+        typer.Option(help="a metric version and those cached with it (default: v1.0, v1.1, v2.2)"),
     ] = None,
     workers: Annotated[int, typer.Option(help="processes")] = 1,
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
@@ -75,7 +76,7 @@ def cache(
     from scorer.evaluate import build_split_cache
     from scorer.scene import SceneFormatError, scene_paths
 
-    versions = list(VERSIONS) if version is None else [version]
+    versions = list(LOG_REPLAY_VERSIONS) if version is None else cached_together([version])
     try:
         total = len(scene_paths(split))
     except SceneFormatError as error:

@@ -44,7 +44,7 @@ from scorer.reactive.observation import reacting_observation
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state
-from scorer.versions import METRIC_COLUMNS, VERSIONS, MetricVersion, get_version
+from scorer.versions import METRIC_COLUMNS, VERSIONS, MetricVersion, cached_together, get_version
 
 POSES_SHAPE = (8, 3)
 CHUNK_SIZE = 256  # tokens per batched simulation; bounds memory on large splits
@@ -547,7 +547,8 @@ def _score_chunk(
         if len(loaded) < len(versions):
             unbuilt.append(token)
     # Every version at once: one PDM-Closed unroll serves them all.
-    built, errors = build_missing_caches([paths[token] for token in unbuilt], cache_dir, list(VERSIONS))
+    together = cached_together(version.name for version in versions)
+    built, errors = build_missing_caches([paths[token] for token in unbuilt], cache_dir, together)
     for token in unbuilt:
         name = paths[token].name
         missing = [version for version in versions if token not in caches[version.name]]

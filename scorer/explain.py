@@ -27,7 +27,7 @@ from scorer.metrics.ego_areas import EgoArea
 from scorer.scene import load_scene, scene_file_hash
 from scorer.simulation import simulate
 from scorer.trajectory import SCORING_INTERVAL_S, initial_state, pdm_references
-from scorer.versions import VERSIONS, VersionName, get_version
+from scorer.versions import VersionName, cached_together, get_version
 
 AGENT = 1  # proposal 0 is the PDM-Closed reference
 
@@ -60,7 +60,7 @@ def _cache(scene: Path, cache_dir: Path, token: str, version: VersionName) -> Me
     cache = load_cache(Path(cache_dir), version, token, scene_file_hash(scene))
     if cache is not None:
         return cache
-    built, errors = build_missing_caches([scene], Path(cache_dir), list(VERSIONS))
+    built, errors = build_missing_caches([scene], Path(cache_dir), cached_together([version]))
     if version not in built.get(scene.name, {}):
         raise TokenError(f"the metric cache of {token} could not be built: {errors[scene.name]}")
     return built[scene.name][version]

@@ -7,6 +7,7 @@ and then on a field of this config (e.g. `ddc_window_axis`), never on the versio
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import Literal
@@ -236,3 +237,16 @@ def get_version(name: str) -> MetricVersion:
         return VERSIONS[VersionName(name)]
     except ValueError:
         raise ValueError(f"unknown metric version {name!r}; known: {', '.join(VERSIONS)}") from None
+
+
+def cached_together(names: Iterable[str]) -> list[VersionName]:
+    """Return the versions whose metric caches are built with those of `names`: every version that sees the
+    traffic as one of them does. One PDM-Closed unroll serves all of them; a reactive version's cache adds a
+    simulation of the human per scene (about twice the rest of a scene's cache), so it is built only where a
+    reactive version is asked for."""
+    reactive = {get_version(name).reactive_traffic is not None for name in names}
+    return [name for name, version in VERSIONS.items() if (version.reactive_traffic is not None) in reactive]
+
+
+# The versions whose other agents replay the log: what a one-stage split is cached and scored under.
+LOG_REPLAY_VERSIONS = tuple(cached_together([DEFAULT_VERSION]))

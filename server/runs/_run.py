@@ -14,12 +14,13 @@ from collections.abc import Collection
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from scorer.versions import VERSIONS
+from scorer.versions import LOG_REPLAY_VERSIONS
 from server.models import ACTIVE_STATUSES, Submission, TokenResultRow
 from server.services.errors import NotFound
 
-# The versions every submission is scored under and the board shows: all the engine has.
-BOARD_VERSIONS = tuple(VERSIONS)
+# The versions every submission is scored under and the board shows: those whose traffic replays the log (a
+# two-stage split's reactive version has no board yet).
+BOARD_VERSIONS = LOG_REPLAY_VERSIONS
 
 
 def locked_submission(session: Session, submission_id: int) -> Submission:
