@@ -1,7 +1,9 @@
 """Read submissions without trusting them: `navsim-lb/submission` JSON and NAVSIM's submission pickle.
 
 The format is decided by the bytes, not the file name (NAVSIM pickles are often xz streams named
-`.pkl`). Pickles are read by a restricted unpickler that maps the few globals a NAVSIM submission
+`.pkl`), and a file of another kind is named by them (zip, bzip2, text, ...). Compressed files are inflated as a
+stream: refused as soon as their first bytes show neither JSON nor a pickle (compressed twice, say), or once
+they pass what a valid submission of the split can take (ContentLimit), holding little of them in memory. Pickles are read by a restricted unpickler that maps the few globals a NAVSIM submission
 holds to inert records and refuses every other one, so a hostile file can never execute code.
 Every problem names the seed, token and field it is about; loading collects all of them.
 """
@@ -14,8 +16,9 @@ import lzma
 import math
 import pickle
 import re
+import tempfile
 import zlib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple, cast
 
@@ -31,7 +34,16 @@ STAGE_FIELDS = ("first_stage_predictions", "second_stage_predictions")
 NUM_POSES = 8
 TIME_HORIZON_S = 4.0
 INTERVAL_LENGTH_S = 0.5
-MAX_DECOMPRESSED_BYTES = 1 << 30
+# A submission holds at most MAX_SEEDS seeds; with the split's tokens this bounds the bytes a valid one can take
+# (ContentLimit), which is where a decompression bomb is stopped. Per token and seed, 8 poses take at most
+# POSES_BYTES_BOUND in any form the loader reads: about 660 bytes as compact JSON at full precision (a float64 is
+# at most 24 characters), 1,440 as JSON indented by 4, 430 as a protocol-2 pickle of float64 (less in later
+# protocols). The token itself comes on top: JSON may escape each character as a 12-byte surrogate pair. The
+# metadata (8 fields of at most 1,000 characters, escaped), format and sampling fit in HEADER_BYTES_BOUND.
+MAX_SEEDS = 32
+POSES_BYTES_BOUND = 2048
+TOKEN_CHAR_BYTES_BOUND = 12
+HEADER_BYTES_BOUND = 1 << 20
 MAX_ARRAY_ELEMENTS = 1 << 20
 MAX_METADATA_CHARS = 1000
 MAX_PROBLEMS = 50
@@ -44,8 +56,6 @@ PICKLE_METADATA_KEYS = {
     "institution": "institution",
     "country / region": "country",
 }
-_XZ_MAGIC = b"\xfd7zXZ\x00"
-_GZIP_MAGIC = b"\x1f\x8b"
 _HTML_LINK = re.compile(
     r"""^\s*<a\s+href\s*=\s*["']?([^"'>\s]+)["']?[^>]*>(.*?)</a>\s*$""", re.IGNORECASE | re.DOTALL
 )
@@ -618,54 +628,198 @@ def _read_two_stage(content: bytes, form: _Form) -> TwoStageSubmission:
 # Entry points -------------------------------------------------------------------------------------
 
 
-def _decompress(data: bytes) -> bytes:
-    """Undo xz or gzip compression, refusing to inflate past MAX_DECOMPRESSED_BYTES."""
-    if data.startswith(_XZ_MAGIC):
-        decompressor: Any = lzma.LZMADecompressor()
-    elif data.startswith(_GZIP_MAGIC):
-        decompressor = zlib.decompressobj(wbits=31)
-    else:
-        return data
-    try:
-        if isinstance(decompressor, lzma.LZMADecompressor):
-            inflated = decompressor.decompress(data, max_length=MAX_DECOMPRESSED_BYTES + 1)
-        else:
-            inflated = decompressor.decompress(data, MAX_DECOMPRESSED_BYTES + 1)
-    except (lzma.LZMAError, zlib.error) as error:
-        raise SubmissionError([Problem(None, None, f"corrupt compressed file: {error}")]) from None
-    if len(inflated) > MAX_DECOMPRESSED_BYTES:
-        raise SubmissionError(
-            [Problem(None, None, f"decompresses to more than {MAX_DECOMPRESSED_BYTES} bytes")]
+class ContentLimit(NamedTuple):
+    """The most bytes a submission's content (decompressed) may take, and why that many."""
+
+    bytes: int
+    reason: str
+
+    @classmethod
+    def for_tokens(cls, tokens: Iterable[str], seeds: int = MAX_SEEDS) -> ContentLimit:
+        """The most a valid submission of `tokens` (every token a seed holds; a two-stage one's of both stages)
+        with up to `seeds` seeds can take, in JSON or in pickle form."""
+        tokens = list(tokens)
+        per_seed = sum(POSES_BYTES_BOUND + TOKEN_CHAR_BYTES_BOUND * len(token) for token in tokens)
+        return cls(
+            HEADER_BYTES_BOUND + seeds * per_seed,
+            f"the most a submission of this split can take: {len(tokens)} tokens x at most {seeds} seeds x "
+            f"{NUM_POSES} poses, at most {POSES_BYTES_BOUND:,} bytes per token and seed as JSON or pickle, "
+            f"and {HEADER_BYTES_BOUND / 2**20:.0f} MiB for the rest",
         )
-    return inflated
 
 
-def _content(data: bytes, filename: str) -> tuple[bytes, bool]:
+# For a file read without its split (the engine's own commands, a stored file read again).
+UNSPLIT_LIMIT = ContentLimit(1 << 30, "the most the loader reads of a file without knowing its split")
+# The kinds of file the loader reads: a JSON document or a pickle, either optionally compressed once.
+_COMPRESSED = {b"\x1f\x8b": "gzip", b"\xfd7zXZ\x00": "xz"}
+# Kinds it names to say what a file is instead, by their first bytes.
+_OTHER_KINDS = {
+    b"PK\x03\x04": "a zip archive",
+    b"PK\x05\x06": "a zip archive",
+    b"BZh": "bzip2",
+    b"\x28\xb5\x2f\xfd": "zstd",
+    b"7z\xbc\xaf\x27\x1c": "a 7z archive",
+    b"\x93NUMPY": "a numpy array (.npy)",
+}
+_JSON_BLANK = b" \t\r\n"
+_NON_BLANK = re.compile(rb"[^ \t\r\n]")
+# JSON in UTF-16 or UTF-32 starts with a byte-order mark; the json module reads it.
+_WIDE_BOMS = (b"\xff\xfe", b"\xfe\xff", b"\x00\x00\xfe\xff")
+_HEAD_BYTES = 64  # enough of a file's start to name its kind
+_INPUT_BYTES = 1 << 16  # compressed bytes fed to a decompressor at a time
+_OUTPUT_BYTES = 1 << 20  # and the most it gives back at a time
+_SPOOL_BYTES = 1 << 20  # inflated content kept in memory while it inflates; the rest waits on disk
+_READS = "the server reads navsim-lb JSON or a NAVSIM submission pickle, either one optionally gzip- or xz-compressed"
+
+
+def _is_pickle(head: bytes) -> bool:
+    return head[:1] == b"\x80"  # pickle protocol 2 and later start with the PROTO opcode
+
+
+def _is_json(head: bytes) -> bool:
+    if head.startswith(_WIDE_BOMS):
+        return True
+    return head.removeprefix(b"\xef\xbb\xbf").lstrip(_JSON_BLANK)[:1] in (b"{", b"[")
+
+
+def file_kind(head: bytes) -> str:
+    """Name what a file is from its first bytes: gzip, xz, zip, ..., a pickle of protocol N, JSON, text."""
+    for magic, kind in (*_COMPRESSED.items(), *_OTHER_KINDS.items()):
+        if head.startswith(magic):
+            return kind
+    if _is_pickle(head):
+        return f"a pickle (protocol {head[1]})" if len(head) > 1 else "a pickle"
+    if _is_json(head):
+        return "JSON"
+    start = head[:_HEAD_BYTES]
+    text = start.decode("utf-8", errors="replace")
+    if "\ufffd" not in text and all(c.isprintable() or c in "\t\r\n" for c in text):
+        return f"text starting {text[:24]!r}"
+    return f"data starting with the bytes {start[:8].hex(' ')}"
+
+
+def _not_a_submission(filename: str, kind: str) -> SubmissionError:
+    return SubmissionError([Problem(None, None, f"{filename} is {kind}, not a submission: {_READS}")])
+
+
+def _too_large(filename: str, verb: str, limit: ContentLimit) -> SubmissionError:
+    size = f"{limit.bytes:,} bytes ({limit.bytes / 2**20:.1f} MiB)"
+    message = f"{filename} {verb} more than {size}, {limit.reason}; it was refused at that size"
+    return SubmissionError([Problem(None, None, message)])
+
+
+def _gunzip(data: bytes) -> Iterator[bytes]:
+    """Yield what a gzip stream inflates to, at most _OUTPUT_BYTES at a time."""
+    decompressor = zlib.decompressobj(wbits=31)
+    view = memoryview(data)
+    for start in range(0, len(data), _INPUT_BYTES):
+        pending: bytes | memoryview = view[start : start + _INPUT_BYTES]
+        while not decompressor.eof:
+            inflated = decompressor.decompress(pending, _OUTPUT_BYTES)
+            pending = decompressor.unconsumed_tail
+            yield inflated
+            # A full output may leave more behind even when every input byte was taken.
+            if not pending and len(inflated) < _OUTPUT_BYTES:
+                break
+        if decompressor.eof:
+            return
+    raise zlib.error("the stream ends early: the file was cut short")
+
+
+def _unxz(data: bytes) -> Iterator[bytes]:
+    """Yield what an xz stream inflates to, at most _OUTPUT_BYTES at a time."""
+    decompressor = lzma.LZMADecompressor()
+    view = memoryview(data)
+    for start in range(0, len(data), _INPUT_BYTES):
+        pending: bytes | memoryview = view[start : start + _INPUT_BYTES]
+        while not decompressor.eof:
+            yield decompressor.decompress(pending, _OUTPUT_BYTES)
+            pending = b""
+            if decompressor.needs_input:
+                break
+        if decompressor.eof:
+            return
+    raise lzma.LZMAError("the stream ends early: the file was cut short")
+
+
+_INFLATERS: dict[str, Callable[[bytes], Iterator[bytes]]] = {"gzip": _gunzip, "xz": _unxz}
+
+
+def _inflate(data: bytes, kind: str, filename: str, limit: ContentLimit) -> bytes:
+    """Return what a gzip or xz file inflates to, refused as it inflates: past `limit`, or as soon as its first
+    bytes show that it holds neither JSON nor a pickle (compressed again, say). What inflates past _SPOOL_BYTES
+    waits on disk until the end, so a bomb costs the API no more memory than that, whatever the split's limit."""
+    head = b""
+    size = 0
+    try:
+        with tempfile.SpooledTemporaryFile(max_size=_SPOOL_BYTES) as inflated:
+            for chunk in _INFLATERS[kind](data):
+                size += len(chunk)
+                if size > limit.bytes:
+                    raise _too_large(filename, f"({kind}) decompresses to", limit)
+                inflated.write(chunk)
+                if len(head) < _HEAD_BYTES:
+                    head += chunk[: _HEAD_BYTES - len(head)]
+                    if len(head) == _HEAD_BYTES:  # once; a blank start is looked past at the end
+                        _check_content_kind(head, filename, kind)
+            inflated.seek(0)
+            return inflated.read()
+    except (lzma.LZMAError, zlib.error) as error:
+        raise SubmissionError([Problem(None, None, f"corrupt {kind} file: {error}")]) from None
+
+
+def _check_content_kind(content: bytes, filename: str, compression: str | None) -> None:
+    """Refuse content that is neither JSON nor a pickle, naming what it is (and in what compression)."""
+    first = _NON_BLANK.search(content)
+    if first is None:  # blank so far: JSON may follow
+        return
+    head = content[first.start() : first.start() + _HEAD_BYTES]
+    if _is_pickle(head) or _is_json(head):
+        return
+    kind = file_kind(head)
+    if compression is None:
+        raise _not_a_submission(filename, kind)
+    again = " (compress the file once)" if kind in _COMPRESSED.values() else ""
+    raise _not_a_submission(filename, f"{compression} holding {kind}{again}")
+
+
+def _content(data: bytes, filename: str, limit: ContentLimit) -> tuple[bytes, bool]:
     """Return the decompressed bytes of a submission file and whether they are a pickle."""
     if not data:
         raise SubmissionError([Problem(None, None, f"{filename} is empty")])
-    content = _decompress(data)
-    # Pickle protocol 2+ streams start with the PROTO opcode.
-    return content, content[:1] == b"\x80"
+    compression = next((kind for magic, kind in _COMPRESSED.items() if data.startswith(magic)), None)
+    if compression is None:
+        if len(data) > limit.bytes:
+            raise _too_large(filename, "is", limit)
+        content = data
+    else:
+        content = _inflate(data, compression, filename, limit)
+    _check_content_kind(content, filename, compression)
+    return content, _is_pickle(content)
 
 
-def load_submission(data: bytes, filename: str = "submission") -> Submission:
+def load_submission(
+    data: bytes, filename: str = "submission", limit: ContentLimit = UNSPLIT_LIMIT
+) -> Submission:
     """Read a submission (JSON or NAVSIM pickle, optionally xz- or gzip-compressed) from its bytes.
 
-    Raises SubmissionError listing every problem; `filename` only labels messages.
+    Raises SubmissionError listing every problem; `filename` only labels messages. Content past `limit`
+    (decompressed) is refused as it inflates.
     """
-    content, is_pickle = _content(data, filename)
+    content, is_pickle = _content(data, filename, limit)
     return _read(content, _PICKLE if is_pickle else _JSON)
 
 
-def load_two_stage_submission(data: bytes, filename: str = "submission") -> TwoStageSubmission:
+def load_two_stage_submission(
+    data: bytes, filename: str = "submission", limit: ContentLimit = UNSPLIT_LIMIT
+) -> TwoStageSubmission:
     """Read a two-stage submission (`navsim-lb/submission-two-stage` JSON or NAVSIM v2's pickle with
     `first_stage_predictions` and `second_stage_predictions`, optionally xz- or gzip-compressed).
 
     Several seeds are allowed (the official script refuses them): seed i is the i-th dict of both lists.
-    Raises SubmissionError listing every problem.
+    Raises SubmissionError listing every problem; content past `limit` (decompressed) is refused as it inflates.
     """
-    content, is_pickle = _content(data, filename)
+    content, is_pickle = _content(data, filename, limit)
     return _read_two_stage(content, _PICKLE if is_pickle else _JSON)
 
 
@@ -707,8 +861,13 @@ def two_stage_coverage_problems(
 
 
 def validate_submission(submission: Submission, tokens: Iterable[str]) -> list[Problem]:
-    """Return what keeps `submission` from covering the split `tokens` exactly once per seed."""
-    return coverage_problems([list(seed) for seed in submission.seeds], tokens)
+    """Return what keeps `submission` from covering the split `tokens` exactly once per seed, with at most
+    MAX_SEEDS seeds."""
+    problems = coverage_problems([list(seed) for seed in submission.seeds], tokens)
+    if len(submission.seeds) > MAX_SEEDS:
+        message = f"{len(submission.seeds)} seeds: a submission holds at most {MAX_SEEDS}"
+        problems.insert(0, Problem(None, "predictions", message))
+    return problems
 
 
 def dump_submission_json(submission: Submission) -> bytes:

@@ -1,35 +1,39 @@
 """Hostile uploads over HTTP: each is answered 4xx with a message that says what is wrong, nothing is stored or
 queued, and nothing the file names is executed: pickles that call os.system, eval or subprocess or import other
-modules, unknown classes, object arrays, gzip, xz and zip bombs, NaN and Inf, wrong shapes and dtypes, missing,
-extra and duplicate tokens, invalid UTF-8, deeply nested or huge JSON; hostile file names are only labels."""
+modules, unknown classes, object arrays, gzip, xz, zip and nested bombs (refused as they inflate, the API's
+memory flat), files that are no submission at all (named by what they are), NaN and Inf, wrong shapes and
+dtypes, missing, extra and duplicate tokens, invalid UTF-8, deeply nested or huge JSON; hostile file names are
+only labels."""
 
 from __future__ import annotations
 
 import hashlib
 import importlib
-import io
 import json
-import lzma
 import os
 import pickle
-import re
-import socket
 import subprocess
-import zipfile
-import zlib
 from collections import OrderedDict
-from collections.abc import Callable
-from functools import cache
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from select import select as wait_readable
 
+import httpx
 import numpy as np
 import pytest
+from hostile import (
+    BOMBS,
+    connect,
+    memory_bytes,
+    read_response,
+    reset_peak_memory,
+    upload_head,
+)
 from server_testing import REFERENCE_SUBMISSIONS, World
 from sqlalchemy import func, select
 from worker_testing import Service, SplitFixture, running_service
 
-from scorer.submission import MAX_DECOMPRESSED_BYTES
 from server.models import AuditEntry, Submission
 
 HUMAN = (REFERENCE_SUBMISSIONS / "human.json").read_bytes()
@@ -58,37 +62,6 @@ def _document(edit: Callable[[dict], None]) -> bytes:
 
 def _first_token(document: dict) -> str:
     return min(document["predictions"])
-
-
-def _bomb(compressor: object, flush: Callable[[], bytes]) -> bytes:
-    """Return a small file that inflates past the decompression limit (zeros, chunk by chunk)."""
-    block = bytes(1 << 20)
-    parts = [compressor.compress(block) for _ in range(MAX_DECOMPRESSED_BYTES // len(block) + 8)]  # type: ignore[attr-defined]
-    return b"".join([*parts, flush()])
-
-
-@cache
-def _gzip_bomb() -> bytes:
-    compressor = zlib.compressobj(1, wbits=31)
-    return _bomb(compressor, compressor.flush)
-
-
-@cache
-def _xz_bomb() -> bytes:
-    compressor = lzma.LZMACompressor(preset=0)
-    return _bomb(compressor, compressor.flush)
-
-
-@cache
-def _zip_bomb() -> bytes:
-    buffer = io.BytesIO()
-    with (
-        zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive,
-        archive.open("submission.json", "w", force_zip64=True) as member,
-    ):
-        for _ in range(64):
-            member.write(bytes(1 << 20))
-    return buffer.getvalue()
 
 
 def _nested(depth: int) -> bytes:
@@ -122,9 +95,8 @@ HOSTILE: list[tuple[str, Callable[[], bytes], str]] = [
         lambda: _in_submission(np.array([[0.0] * 3] * 8, dtype=object)),
         "dtype 'O8' is not allowed",
     ),
-    ("gzip bomb", _gzip_bomb, "decompresses to more than"),
-    ("xz bomb", _xz_bomb, "decompresses to more than"),
-    ("zip bomb", _zip_bomb, "not valid JSON"),
+    *((name, bomb.make, bomb.words) for name, bomb in BOMBS.items()),
+    ("a .pkl of no pickle", lambda: b"token,x,y,heading\n", "is text starting 'token,x,y,heading"),
     (
         "NaN pose",
         lambda: _document(lambda d: d["predictions"][_first_token(d)][0].__setitem__(0, float("nan"))),
@@ -154,7 +126,8 @@ HOSTILE: list[tuple[str, Callable[[], bytes], str]] = [
     ("duplicate token", _duplicate_token, "more than once"),
     ("invalid UTF-8", lambda: HUMAN.replace(b'"format"', b'"form\xff\xfet"', 1), "not valid JSON"),
     ("deeply nested JSON", lambda: _nested(100_000), "nested too deeply"),
-    ("huge JSON of no submission", lambda: b"[" + b"0," * 20_000_000 + b"0]", "must be an object"),
+    # Past what a submission of the split can take, it is not parsed.
+    ("huge JSON of no submission", lambda: b"[" + b"0," * 20_000_000 + b"0]", "is more than"),
 ]
 
 
@@ -171,9 +144,7 @@ def test_a_hostile_upload_is_refused_with_its_reason_and_changes_nothing(
     world: World, case: str, make: Callable[[], bytes], words: str
 ) -> None:
     before = _state(world)
-    # A bomb takes seconds to inflate up to the limit: the upload route only (the dry run shares its checks).
-    routes = ("/api/v1/submissions",) + (() if "bomb" in case else ("/api/v1/submissions:validate",))
-    for route in routes:
+    for route in ("/api/v1/submissions", "/api/v1/submissions:validate"):
         response = world.client.post(
             route,
             headers=world.team_headers(),
@@ -204,10 +175,16 @@ def test_hostile_file_names_and_metadata_are_labels_only(world: World) -> None:
     assert (detail["method"], detail["authors"]) == ("../../etc/passwd", "<script>alert(1)</script>")
 
 
-def _rss_bytes(pid: int) -> int:
-    """Return the resident memory of process `pid` and its children (uvicorn runs the app in-process)."""
-    status = Path(f"/proc/{pid}/status").read_text()
-    return int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:"))) * 1024
+UPLOAD_LIMIT = 32 << 20  # MAX_UPLOAD_BYTES of the service below
+FLAT_BYTES = 100 << 20  # what hostile uploads may add to the API's peak memory
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory, synthetic_split: SplitFixture) -> Iterator[Service]:
+    """A real API process (and its worker), whose memory and sockets the tests watch from outside."""
+    root = tmp_path_factory.mktemp("hostile-service")
+    with running_service(root, synthetic_split, {"MAX_UPLOAD_BYTES": str(UPLOAD_LIMIT)}) as running:
+        yield running
 
 
 def _stream_until_answered(service: Service, limit: int, declared: int | None = None) -> tuple[int, bytes]:
@@ -215,12 +192,8 @@ def _stream_until_answered(service: Service, limit: int, declared: int | None = 
 
     With `declared`, the request says it holds that many bytes (Content-Length); otherwise it is chunked.
     """
-    host, port = service.url.removeprefix("http://").split(":")
     framing = f"Content-Length: {declared}" if declared else "Transfer-Encoding: chunked"
-    head = (
-        f"POST /api/v1/submissions HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer {service.team_token}\r\n"
-        f"Content-Type: multipart/form-data; boundary=x\r\n{framing}\r\n\r\n"
-    )
+    head = upload_head(service.url, "/api/v1/submissions", f"Bearer {service.team_token}", framing)
     preamble = b'--x\r\nContent-Disposition: form-data; name="file"; filename="big.json"\r\n\r\n'
     block = b"0" * (1 << 20)
     if declared:
@@ -231,42 +204,52 @@ def _stream_until_answered(service: Service, limit: int, declared: int | None = 
             b"%x\r\n" % len(block) + block + b"\r\n",
         )
     sent = 0
-    with socket.create_connection((host, int(port)), timeout=10) as connection:
-        connection.sendall(head.encode() + first)
+    with connect(service.url) as connection:
+        connection.sendall(head + first)
         while sent < 8 * limit and not wait_readable([connection], [], [], 0)[0]:
             try:
                 connection.sendall(frame)
             except (BrokenPipeError, ConnectionResetError, TimeoutError):
                 break
             sent += len(block)
-        return sent, _response(connection)
+        return sent, read_response(connection)
 
 
-def _response(connection: socket.socket) -> bytes:
-    """Read one HTTP response: its head, then as many body bytes as its Content-Length says."""
-    answer = b""
-    while b"\r\n\r\n" not in answer:
-        answer += connection.recv(1 << 16)
-    head, _, body = answer.partition(b"\r\n\r\n")
-    length = int(re.search(rb"content-length: (\d+)", head, re.IGNORECASE).group(1))  # type: ignore[union-attr]
-    while len(body) < length:
-        body += connection.recv(1 << 16)
-    return head + b"\r\n\r\n" + body
+def test_an_oversized_upload_is_refused_while_it_streams(service: Service) -> None:
+    before = memory_bytes(service.api.pid)
+    # Declared too large: refused before the body is read. Not declared (chunked): counted as it
+    # streams and refused at the limit, not at its end.
+    for declared in (8 * UPLOAD_LIMIT, None):
+        sent, answer = _stream_until_answered(service, UPLOAD_LIMIT, declared)
+        assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
+        assert f"limit of {UPLOAD_LIMIT} bytes".encode() in answer
+        assert sent < 2 * UPLOAD_LIMIT, (
+            f"the API read {sent / 2**20:.0f} MiB of {UPLOAD_LIMIT / 2**20:.0f} MiB"
+        )
+    grown = memory_bytes(service.api.pid) - before
+    assert grown < UPLOAD_LIMIT // 2, f"the API grew by {grown / 2**20:.0f} MiB"
+    assert service.rows(1) == 0 and not any(service.settings.storage_dir.iterdir())
 
 
-def test_an_oversized_upload_is_refused_while_it_streams(
-    tmp_path: Path, synthetic_split: SplitFixture
-) -> None:
-    limit = 32 << 20
-    with running_service(tmp_path, synthetic_split, {"MAX_UPLOAD_BYTES": str(limit)}) as service:
-        before = _rss_bytes(service.api.pid)
-        # Declared too large: refused before the body is read. Not declared (chunked): counted as it
-        # streams and refused at the limit, not at its end.
-        for declared in (8 * limit, None):
-            sent, answer = _stream_until_answered(service, limit, declared)
-            assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
-            assert f"limit of {limit} bytes".encode() in answer
-            assert sent < 2 * limit, f"the API read {sent / 2**20:.0f} MiB of a {limit / 2**20:.0f} MiB limit"
-        grown = _rss_bytes(service.api.pid) - before
-        assert grown < limit // 2, f"the API grew by {grown / 2**20:.0f} MiB"
-        assert service.rows(1) == 0 and not any(service.settings.storage_dir.iterdir())
+def test_bombs_are_refused_as_they_inflate_and_the_api_memory_stays_flat(service: Service) -> None:
+    bombs = {name: bomb.make() for name, bomb in BOMBS.items()}
+
+    def upload(name: str) -> httpx.Response:
+        return client.post(
+            "/api/v1/submissions", files={"file": ("entry.pkl", bombs[name])}, data={"phase": "test"}
+        )
+
+    with service.client() as client:
+        for name in bombs:  # once first: the API's first imports and allocations are not what a bomb costs
+            upload(name)
+        reset_peak_memory(service.api.pid)
+        before = memory_bytes(service.api.pid)
+        with ThreadPoolExecutor(4) as pool:  # several at once, as a flood would come
+            answers = dict(zip([*bombs, *bombs], pool.map(upload, [*bombs, *bombs]), strict=True))
+        grown = memory_bytes(service.api.pid, "VmHWM") - before
+    inflated = 2 * sum(bomb.inflates_to for bomb in BOMBS.values())
+    assert grown < FLAT_BYTES, f"bombs of {inflated / 2**30:.1f} GiB grew the API by {grown / 2**20:.0f} MiB"
+    for name, response in answers.items():
+        assert response.status_code == 422, (name, response.text[:300])
+        assert BOMBS[name].words in response.text, (name, response.text[:500])
+    assert service.rows(1) == 0 and not any(service.settings.storage_dir.iterdir())

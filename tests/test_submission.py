@@ -2,25 +2,36 @@
 
 from __future__ import annotations
 
+import bz2
+import gzip
+import io
 import json
 import lzma
 import pickle
 import sys
+import tracemalloc
 import types
-from collections.abc import Iterator
+import zipfile
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, fields
 
 import numpy as np
 import pytest
+from hostile import JSON_START, gzip_bomb
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from scorer.submission import (
+    HEADER_BYTES_BOUND,
+    MAX_SEEDS,
+    UNSPLIT_LIMIT,
+    ContentLimit,
     Submission,
     SubmissionError,
     SubmissionMetadata,
     coverage_problems,
     dump_submission_json,
+    file_kind,
     load_submission,
     validate_submission,
 )
@@ -380,3 +391,131 @@ def test_deeply_nested_json_is_refused_with_a_problem() -> None:
     with pytest.raises(SubmissionError) as refused:
         load_submission(nested, "deep.json")
     assert "nested too deeply" in refused.value.problems[0].message
+
+
+# What a file is, and how much of it is read ------------------------------------------------------
+
+
+def _refusal(data: bytes, name: str = "entry.pkl", limit: ContentLimit = UNSPLIT_LIMIT) -> str:
+    with pytest.raises(SubmissionError) as refused:
+        load_submission(data, name, limit)
+    [problem] = refused.value.problems
+    return problem.message
+
+
+def _zip(data: bytes) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("submission.json", data)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("data", "words"),
+    [
+        (lambda: _zip(json.dumps(_document()).encode()), "entry.pkl is a zip archive, not a submission"),
+        (lambda: bz2.compress(json.dumps(_document()).encode()), "entry.pkl is bzip2, not a submission"),
+        (lambda: b"\x28\xb5\x2f\xfd" + bytes(16), "entry.pkl is zstd"),
+        (lambda: pickle.dumps({"predictions": {}}, protocol=0), "entry.pkl is text starting '(dp0"),
+        (lambda: b"token,x,y,heading\n", "entry.pkl is text starting 'token,x,y,heading"),
+        (lambda: bytes(range(256)), "entry.pkl is data starting with the bytes 00 01 02 03 04 05 06 07"),
+        (
+            lambda: gzip.compress(gzip.compress(b"{}")),
+            "entry.pkl is gzip holding gzip (compress the file once)",
+        ),
+        (
+            lambda: lzma.compress(gzip.compress(b"{}")),
+            "entry.pkl is xz holding gzip (compress the file once)",
+        ),
+        (lambda: gzip.compress(_zip(b"{}")), "entry.pkl is gzip holding a zip archive"),
+    ],
+)
+def test_a_file_of_another_kind_is_named_by_what_it_is(data: Callable[[], bytes], words: str) -> None:
+    message = _refusal(data())
+    assert message.startswith(words) and "navsim-lb JSON or a NAVSIM submission pickle" in message, message
+
+
+def test_the_kind_is_read_from_the_bytes_whatever_the_name() -> None:
+    document = json.dumps(_document()).encode()
+    for data in (
+        document,
+        b"\xef\xbb\xbf" + document,
+        document.decode().encode("utf-16"),
+        gzip.compress(document),
+    ):
+        assert list(load_submission(data, "entry.pkl").seeds[0]) == TOKENS
+    assert file_kind(pickle.dumps({}, protocol=4)) == "a pickle (protocol 4)"
+    assert file_kind(b"  \n[1]") == "JSON"
+
+
+@pytest.mark.parametrize("compress", [gzip.compress, lzma.compress])
+def test_a_compressed_file_cut_short_is_refused_as_such(compress: Callable[[bytes], bytes]) -> None:
+    data = compress(json.dumps(_document()).encode())
+    assert "the stream ends early: the file was cut short" in _refusal(data[: len(data) // 2])
+
+
+def _largest_valid_files(tokens: list[str]) -> dict[str, bytes]:
+    """MAX_SEEDS seeds of the given tokens, in the most bytes each form takes: JSON indented by 4 with every
+    number at its longest, and a protocol-2 pickle of float64 (each array's bytes written as latin-1 text)."""
+    poses = np.full((8, 3), -1.2345678901234567e-300)
+    seeds = [{token: poses.tolist() for token in tokens} for _ in range(MAX_SEEDS)]
+    rng = np.random.default_rng(0)
+    sampling = TrajectorySampling()
+    trajectories = [
+        {token: Trajectory(rng.normal(size=(8, 3)) * 1e3, sampling) for token in tokens}
+        for _ in range(MAX_SEEDS)
+    ]
+    return {
+        "json": json.dumps(_document(predictions=seeds, authors="\U0001f600" * 1000), indent=4).encode(),
+        "pickle": _navsim_pickle(trajectories, 2, authors="\U0001f600" * 1000),
+    }
+
+
+def test_the_content_limit_holds_the_largest_valid_file_of_the_split(devkit_classes: None) -> None:
+    tokens = [f"{index:016x}" for index in range(50)]
+    limit = ContentLimit.for_tokens(tokens)
+    headers = _largest_valid_files([])  # the same files without a token: metadata, format, sampling
+    for form, data in _largest_valid_files(tokens).items():
+        # Each part within its own bound (the header's slack would hide a per-token bound too small), so the
+        # whole within the limit; and such a file loads under it, compressed.
+        assert len(headers[form]) <= HEADER_BYTES_BOUND, form
+        assert len(data) - len(headers[form]) <= limit.bytes - HEADER_BYTES_BOUND, form
+        submission = load_submission(lzma.compress(data, preset=0), "entry", limit)
+        assert len(submission.seeds) == MAX_SEEDS and not validate_submission(submission, tokens), form
+    assert limit.bytes < ContentLimit.for_tokens([*tokens, "f" * 16]).bytes  # it follows the split
+
+
+def test_content_past_the_limit_is_refused_as_it_inflates_naming_the_limit_and_why() -> None:
+    tokens = [f"{index:016x}" for index in range(50)]
+    limit = ContentLimit.for_tokens(tokens)
+    blank = b'{"predictions": ' + b" " * (limit.bytes + 1)
+    for data, verb in ((blank, "is"), (gzip.compress(blank, 1), "(gzip) decompresses to")):
+        message = _refusal(data, limit=limit)
+        assert message.startswith(f"entry.pkl {verb} more than {limit.bytes:,} bytes"), message
+        assert f"50 tokens x at most {MAX_SEEDS} seeds x 8 poses" in message
+    assert load_submission(json.dumps(_document()).encode(), "entry", ContentLimit.for_tokens(TOKENS))
+
+
+def test_more_seeds_than_a_submission_holds_is_a_problem() -> None:
+    seeds = [{token: _poses(seed).tolist() for token in TOKENS} for seed in range(MAX_SEEDS + 1)]
+    submission = load_submission(json.dumps(_document(predictions=seeds)).encode())
+    [problem] = validate_submission(submission, TOKENS)
+    assert (problem.field, problem.message) == (
+        "predictions",
+        f"{MAX_SEEDS + 1} seeds: a submission holds at most 32",
+    )
+
+
+def test_a_bomb_shaped_like_json_is_refused_at_the_limit_holding_little_of_it_in_memory() -> None:
+    # However large the split's limit, what inflates past a small buffer waits on disk until the end: a bomb
+    # costs that buffer, not the limit (zlib's output is Python bytes, which tracemalloc sees).
+    limit = ContentLimit(256 << 20, "a limit as large as a big split's")
+    bomb = gzip_bomb(JSON_START, ord(" "), 512 << 20)
+    tracemalloc.start()
+    try:
+        message = _refusal(bomb, limit=limit)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert message.startswith("entry.pkl (gzip) decompresses to more than 268,435,456 bytes"), message
+    assert peak < 16 << 20, f"refusing the bomb held {peak / 2**20:.0f} MiB"

@@ -49,11 +49,18 @@ def validate_upload(
     data: bytes, filename: str, split_tokens: Sequence[str], form_metadata: dict[str, str] | None = None
 ) -> ValidUpload:
     """Return the checked upload, or raise Invalid listing every problem (token, field, message)."""
-    from scorer.submission import SubmissionError, coverage_problems, load_submission, validate_submission
+    from scorer.submission import (
+        ContentLimit,
+        SubmissionError,
+        coverage_problems,
+        load_submission,
+        validate_submission,
+    )
 
     filename = PurePath(filename or "submission").name
     try:
-        submission = load_submission(data, filename)
+        # What a valid file of the split can take bounds what it may inflate to (a bomb stops there).
+        submission = load_submission(data, filename, ContentLimit.for_tokens(split_tokens))
     except SubmissionError as error:
         found = error.problems + coverage_problems(error.seed_tokens, split_tokens)
         problems = [_problem(p) for p in found]
