@@ -112,6 +112,12 @@ def admin_token(token: TokenDep) -> ApiToken:
     return token
 
 
+def approved_team_of(request: Request, session: Session) -> Team:
+    """Return the approved team of the request's token: ApprovedTeamDep's checks, outside of a route
+    (server.upload_gate runs them before an upload's body is read)."""
+    return approved_team(current_team(team_token(current_token(request, session))))
+
+
 TeamDep = Annotated[Team, Depends(current_team)]
 ApprovedTeamDep = Annotated[Team, Depends(approved_team)]
 AdminDep = Annotated[ApiToken, Depends(admin_token)]

@@ -30,6 +30,7 @@ from server.services.admin import add_split
 from server.services.errors import ServiceError
 from server.settings import Settings, get_settings
 from server.ttl_cache import TTLCache
+from server.upload_gate import UploadGate
 
 log = logging.getLogger(__name__)
 API_PREFIX = "/api/v1"
@@ -137,6 +138,9 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_middleware(BodySizeLimit, upload_limit=lambda: app.state.settings.max_upload_bytes)
+    # Outermost: an upload with a wrong token is refused before anything reads its body.
+    upload_checks = {API_PREFIX + path: check for path, check in submissions.UPLOAD_CHECKS.items()}
+    app.add_middleware(UploadGate, checks=upload_checks)
     for outage in (OperationalError, InterfaceError):
         app.add_exception_handler(outage, _database_down)
     app.include_router(public.router, prefix=API_PREFIX)

@@ -3,7 +3,7 @@ queued, and nothing the file names is executed: pickles that call os.system, eva
 modules, unknown classes, object arrays, gzip, xz, zip and nested bombs (refused as they inflate, the API's
 memory flat), files that are no submission at all (named by what they are), NaN and Inf, wrong shapes and
 dtypes, missing, extra and duplicate tokens, invalid UTF-8, deeply nested or huge JSON; hostile file names are
-only labels."""
+only labels. An upload whose token is refused is answered before any of its body is sent."""
 
 from __future__ import annotations
 
@@ -34,7 +34,10 @@ from server_testing import REFERENCE_SUBMISSIONS, World
 from sqlalchemy import func, select
 from worker_testing import Service, SplitFixture, running_service
 
-from server.models import AuditEntry, Submission
+from server.db import transaction
+from server.models import Approval, AuditEntry, Scope, Submission
+from server.services.teams import create_team
+from server.services.tokens import create_token
 
 HUMAN = (REFERENCE_SUBMISSIONS / "human.json").read_bytes()
 MARKER = Path(os.environ.get("TMPDIR", "/tmp")) / f"navsim-lb-hostile-{os.getpid()}"
@@ -253,3 +256,37 @@ def test_bombs_are_refused_as_they_inflate_and_the_api_memory_stays_flat(service
         assert response.status_code == 422, (name, response.text[:300])
         assert BOMBS[name].words in response.text, (name, response.text[:500])
     assert service.rows(1) == 0 and not any(service.settings.storage_dir.iterdir())
+
+
+def _pending_team_token(service: Service) -> str:
+    with transaction(service.factory) as session:
+        team = create_team(session, "not yet approved", ["a member"], "a lab", Approval.pending)
+        return create_token(session, Scope.team, team, "test")[1]
+
+
+@pytest.mark.parametrize(
+    ("route", "authorization", "status", "words"),
+    [
+        ("/api/v1/submissions", None, 401, "missing API token"),
+        ("/api/v1/submissions", "Bearer nlb_not-a-token", 401, "unknown API token"),
+        ("/api/v1/submissions:validate", "Bearer nlb_not-a-token", 401, "unknown API token"),
+        ("/api/v1/submissions", "Basic YWxpY2U6c2VjcmV0", 401, "malformed Authorization header"),
+        ("/api/v1/submissions", "pending team", 403, "an admin must approve it first"),
+    ],
+)
+def test_an_upload_is_refused_for_its_token_before_any_of_its_body_is_sent(
+    service: Service, route: str, authorization: str | None, status: int, words: str
+) -> None:
+    if authorization == "pending team":
+        authorization = f"Bearer {_pending_team_token(service)}"
+    declared = UPLOAD_LIMIT  # within the limit: only the token can have it refused
+    head = upload_head(service.url, route, authorization, f"Content-Length: {declared}")
+    with connect(service.url) as connection:
+        connection.sendall(head)
+        # Not one byte of the body is sent until the answer is there (a deadline against hanging: an API that
+        # waits for the body never answers).
+        answered = wait_readable([connection], [], [], 20)[0]
+        assert answered, "the API waited for the body of an upload whose token it refuses"
+        answer = read_response(connection)
+    assert answer.startswith(f"HTTP/1.1 {status}".encode()), answer[:300]
+    assert words.encode() in answer and b"connection: close" in answer.lower(), answer

@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse, Response
 from sqlalchemy.orm import Session
 
 from scorer.versions import DEFAULT_VERSION, VersionName
-from server.auth import ApprovedTeamDep, SessionDep, TeamDep, counted_upload
+from server.auth import ApprovedTeamDep, SessionDep, TeamDep, approved_team_of, counted_upload, current_token
 from server.body_limit import upload_too_large
 from server.models import Phase, Status
 from server.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
@@ -20,10 +20,15 @@ from server.services.presenters import submission_views, token_result_views
 from server.services.splits import resolve_phase, split_tokens
 from server.services.submissions import create_submission, edit_submission, get_submission, list_submissions
 from server.services.validation import ValidUpload, validate_upload
+from server.upload_gate import Check
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["submissions"])
 UPLOAD_READ_BYTES = 1 << 20
+SUBMIT_PATH, VALIDATE_PATH = "/submissions", "/submissions:validate"
+# What each upload route requires of its token, checked from the headers before the body is read
+# (server.upload_gate); the routes' dependencies check the same again.
+UPLOAD_CHECKS: dict[str, Check] = {SUBMIT_PATH: approved_team_of, VALIDATE_PATH: current_token}
 
 
 def _read_upload(file: UploadFile, limit: int) -> bytes:
@@ -52,7 +57,7 @@ FormField = Annotated[str | None, Form()]
 
 
 @router.post(
-    "/submissions",
+    SUBMIT_PATH,
     dependencies=[Depends(counted_upload)],
     status_code=202,
     response_model=SubmissionAccepted,
@@ -102,7 +107,7 @@ def submit(
 
 
 @router.post(
-    "/submissions:validate",
+    VALIDATE_PATH,
     dependencies=[Depends(counted_upload)],
     response_model=ValidationReport,
     responses={
