@@ -87,13 +87,19 @@ SERVICE_TARGET = 1.25  # POST to leaderboard row against the engine alone
 STATUS_POLL_S = 0.25
 
 
-def prepared_split(tokens: int) -> tuple[Path, Path]:
-    """Return a synthetic split of `tokens` scenes and its cache directory, both built on first use."""
-    split, cache = DATA / f"server_split_{tokens}_{SPLIT_SEED}", DATA / f"server_cache_{tokens}_{SPLIT_SEED}"
+def synthesized_split(tokens: int) -> Path:
+    """Return a synthetic split of `tokens` scenes, built on first use."""
+    split = DATA / f"server_split_{tokens}_{SPLIT_SEED}"
     if not (split / "scenes").is_dir():
         started = time.perf_counter()
         synthesize_split(split, tokens, SPLIT_SEED)
         print(f"synthesised {tokens} scenes in {time.perf_counter() - started:.0f} s")
+    return split
+
+
+def prepared_split(tokens: int) -> tuple[Path, Path]:
+    """Return a synthetic split of `tokens` scenes and its cache directory, both built on first use."""
+    split, cache = synthesized_split(tokens), DATA / f"server_cache_{tokens}_{SPLIT_SEED}"
     started = time.perf_counter()
     failures = build_split_cache(split, cache, list(VERSIONS), workers=os.cpu_count() or 1)
     assert not failures, failures
@@ -337,7 +343,7 @@ def running(kind: str, workers: int, split: Path, cache: Path) -> Iterator[Runni
         client = stack.enter_context(
             httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=60)
         )
-        wait_until(lambda: _answers(client), timeout=60)
+        wait_until(lambda: answers(client), timeout=60)
         wait_until(lambda: "ready." in worker_log.read_text(errors="replace"), timeout=60)
         yield Running(root, url, client, database_url, worker.pid, api.pid, index_s)
 
@@ -484,7 +490,8 @@ def free_port() -> int:
         return int(probe.getsockname()[1])
 
 
-def _answers(client: httpx.Client) -> bool:
+def answers(client: httpx.Client) -> bool:
+    """Whether the API answers its health check with 200."""
     try:
         return client.get("/api/v1/health").status_code == 200
     except httpx.HTTPError:
