@@ -19,11 +19,12 @@ from scratch import scratch_postgres_database
 from sqlalchemy import create_engine
 from sqlalchemy.orm import Session, sessionmaker
 
-from scorer.versions import ALL_RESULT_COLUMNS, VERSIONS
+from scorer.versions import ALL_RESULT_COLUMNS
 from server.db import make_engine, make_session_factory, transaction
 from server.main import create_app
 from server.migrate import upgrade
 from server.models import Approval, Phase, Scope, Split, SplitSubset, Submission, Team, utc_now
+from server.runs import BOARD_VERSIONS
 from server.services.splits import create_phase
 from server.services.teams import create_team
 from server.services.tokens import create_token
@@ -211,7 +212,7 @@ def score_run(
     factory: sessionmaker[Session],
     submission_id: int,
     per_seed: list[dict[str, float | None]],
-    versions: tuple[str, ...] = tuple(VERSIONS),
+    versions: tuple[str, ...] = BOARD_VERSIONS,
     chunk: int = 16,
 ) -> None:
     """Play a worker: claim, write every (version, seed) in chunks through the services, then mark scored."""

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 import shapely.ops
-from scipy.spatial.distance import cdist
 
 from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, FloatArray, box_corners, principal_value
 from scorer.reactive.agents import IdmVehicle, ParkingCandidate, StartingTraffic, box_polygon
@@ -189,6 +188,9 @@ def _leave_range(
     """Remove the vehicles farther than `radius` from the ego's rear axle, from the simulation for good."""
     if not agents:
         return
+    # Imported here: scoring and caching the log-replay versions start without scipy (docs/engine.md, "Start-up").
+    from scipy.spatial.distance import cdist
+
     centres = np.array([agent.pose()[:2] for agent in agents.values()])
     distances = cdist(ego_state[None, : StateIndex.HEADING], centres)[0]
     for track in np.array(list(agents))[distances > radius].tolist():
