@@ -17,7 +17,7 @@ size, on each backend: p50/p99 latency, errors, and a check that every upload wa
 Every run starts with a header that describes the host (benchmarks/host.py). With each worker size it gives
 the CPU seconds the worker's and the API's processes used from POST to row, against the engine's (on a host
 shared with other work wall times swing, CPU times much less), and the peak RSS (VmHWM) of the worker's
-processes: its main process, and the others of its session (the scoring pool's processes and the beat), read
+processes: its supervisor, and the others of its session (the scoring consumers and the reaper), read
 from /proc just before the worker is stopped. (RUSAGE_CHILDREN would give one maximum over every process this
 benchmark ever waited for, API and workers alike.)
 
@@ -270,7 +270,7 @@ async def leaderboard_latency(url: str, rate: float, seconds: float) -> tuple[fl
 
 def session_processes(leader: int) -> dict[int, tuple[list[str], list[str]]]:
     """Return pid -> (the fields of /proc/pid/stat after the name, the lines of /proc/pid/status) of the running
-    processes of `leader`'s session (a worker: its main process, pool processes and beat); empty without /proc."""
+    processes of `leader`'s session (a worker: its supervisor, consumers and reaper); empty without /proc."""
     processes = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
@@ -291,7 +291,7 @@ def session_cpu_seconds(leader: int) -> float:
 
 def worker_peak_rss(worker_pid: int) -> tuple[float, list[float]] | None:
     """Return the peak RSS (VmHWM) in MiB of a running worker's main process and, largest first, of the other
-    processes of its session (pool processes, beat); None where there is no /proc."""
+    processes of its session (consumers, reaper); None where there is no /proc."""
     peaks: dict[int, float] = {}
     for pid, (_, status) in session_processes(worker_pid).items():
         kib = next((line.split()[1] for line in status if line.startswith("VmHWM:")), None)
@@ -306,7 +306,7 @@ def peak_rss_text(peaks: tuple[float, list[float]] | None) -> str:
     if peaks is None:
         return "n/a (no /proc)"
     main, others = peaks
-    return f"main {main:.0f}, pool and beat {' '.join(f'{peak:.0f}' for peak in others)}"
+    return f"supervisor {main:.0f}, consumers and reaper {' '.join(f'{peak:.0f}' for peak in others)}"
 
 
 @dataclass(frozen=True)
@@ -336,7 +336,7 @@ def running(kind: str, workers: int, split: Path, cache: Path) -> Iterator[Runni
         database_url = Settings(**variables).database_url  # type: ignore[arg-type]  # keys are the aliases
         token, index_s = set_up(database_url, split)
         worker_log = root / "worker.log"
-        worker = stack.enter_context(child_process(worker_command(workers, beat=True), env, worker_log))
+        worker = stack.enter_context(child_process(worker_command(workers, reaper=True), env, worker_log))
         port = free_port()
         api = stack.enter_context(child_process(api_command("127.0.0.1", port), env, root / "api.log"))
         url = f"http://127.0.0.1:{port}"

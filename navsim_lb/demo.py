@@ -1,8 +1,9 @@
 """`navsim-lb demo` (`make demo`): the whole service on one machine, with nothing to install but the venv.
 
 Migrates the configured database (an SQLite file under .navsim-lb by default), synthesises a demo split
-if there is none, registers it with its two baselines, starts one Celery worker (with the reaper of lost work)
-on the configured broker (the embedded SQLite one by default) and the API, creates a demo team and an
+if there is none, registers it with its two baselines, starts one worker (a consumer per core and the reaper of
+lost work: worker.supervisor) on the configured broker (the embedded SQLite one by default), started again if a
+signal kills it, and the API, creates a demo team and an
 admin with their tokens in `.navsim-lb/demo-tokens.json`, submits a demo entry through the API, prints
 the leaderboard URL and runs until Ctrl-C; then it stops every process it started.
 """
@@ -14,6 +15,7 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -163,12 +165,14 @@ def _watch(
     children: dict[str, subprocess.Popen[bytes]],
     logs: Path,
     until_scored: bool,
+    restart_killed_worker: Callable[[], None],
 ) -> bool:
     """Report submissions as they finish; with `until_scored`, return, once none is active, if all scored."""
     from server.models import ACTIVE_STATUSES, Status
 
     reported: dict[int, str] = {}
     while True:
+        restart_killed_worker()
         _check_alive(children, logs)
         states = _states(factory)
         for submission_id, (method, status, score) in states.items():
@@ -226,14 +230,23 @@ def demo(
     url = f"http://{host}:{port}"
     # SIGTERM (a service manager, a test) stops the children as Ctrl-C does.
     signal.signal(signal.SIGTERM, signal.default_int_handler)
+    worker = worker_command(concurrency, reaper=True)
     try:
         with ExitStack() as stack:
             children = {
-                "worker": stack.enter_context(
-                    child_process(worker_command(concurrency, beat=True), env, logs / "worker.log")
-                ),
+                "worker": stack.enter_context(child_process(worker, env, logs / "worker.log")),
                 "api": stack.enter_context(child_process(api_command(host, port), env, logs / "api.log")),
             }
+
+            def restart_killed_worker() -> None:
+                # A worker that failed by itself stops the demo (_check_alive); one a signal killed (SIGKILL,
+                # the out-of-memory killer) is started again: its consumers stop with it (worker.supervised),
+                # and the reaper sends again what they held.
+                returncode = children["worker"].poll()
+                if returncode is not None and returncode < 0:
+                    console.print(f"the worker was killed (signal {-returncode}); starting it again")
+                    children["worker"] = stack.enter_context(child_process(worker, env, logs / "worker.log"))
+
             _wait_for_api(url, children, logs)
             with factory() as session:
                 entered = session.scalar(
@@ -253,7 +266,7 @@ def demo(
                 f"tokens (team, admin): {tokens_file}   logs: {logs}\n"
                 + ("" if exit_when_scored else "press Ctrl-C to stop\n")
             )
-            all_scored = _watch(factory, children, logs, until_scored=exit_when_scored)
+            all_scored = _watch(factory, children, logs, exit_when_scored, restart_killed_worker)
             console.print("stopping the worker and the API")
     except KeyboardInterrupt:
         console.print("stopped")

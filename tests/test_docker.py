@@ -21,7 +21,7 @@ from server.settings import Settings
 
 DOCKER_DIR = Path(__file__).resolve().parent.parent / "docker"
 COMPOSE = DOCKER_DIR / "compose.yaml"
-APP_SERVICES = ("migrate", "api", "worker", "beat")
+APP_SERVICES = ("migrate", "api", "worker", "reaper")
 
 
 def _compose() -> dict[str, Any]:
@@ -96,14 +96,15 @@ def test_compose_runs_every_role_on_postgres_and_redis() -> None:
         aliases = {field.validation_alias for field in Settings.model_fields.values()}
         assert set(environment) <= aliases, f"{name} sets variables the settings do not read"
     assert services["worker"]["deploy"]["replicas"]  # a replica count, set from WORKER_REPLICAS
-    assert "--beat" not in services["worker"]["command"]  # exactly one reaper: the beat service
+    assert "--reaper" not in services["worker"]["command"]  # exactly one reaper: the reaper service
+    assert "--reaper" in services["reaper"]["command"]
 
 
 def test_compose_migrates_before_the_api_and_workers_start() -> None:
     services = _compose()["services"]
     assert services["migrate"]["command"] == ["navsim-lb", "db", "upgrade"]
     assert services["migrate"]["depends_on"]["postgres"]["condition"] == "service_healthy"
-    for name in ("api", "worker", "beat"):
+    for name in ("api", "worker", "reaper"):
         assert services[name]["depends_on"]["migrate"]["condition"] == "service_completed_successfully", name
         assert services[name]["depends_on"]["redis"]["condition"] == "service_healthy", name
 
@@ -112,7 +113,7 @@ def test_compose_commands_exist() -> None:
     registered = app.registered_commands
     commands = {command.name or command.callback.__name__ for command in registered}  # type: ignore
     groups = {group.name for group in app.registered_groups}
-    for name in ("migrate", "api", "worker"):
+    for name in ("migrate", "api", "worker", "reaper"):
         executable, subcommand, *_ = _compose()["services"][name]["command"]
         assert executable == "navsim-lb" and subcommand in commands | groups, name
 

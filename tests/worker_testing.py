@@ -200,13 +200,30 @@ def api_answers(url: str) -> bool:
         return False
 
 
-def fault_worker_command(concurrency: int, beat: bool, name: str) -> list[str]:
+def fault_worker_command(concurrency: int, reaper: bool, name: str) -> list[str]:
     """Return the command of a worker named `name` running tests/fault_worker.py's app (faults from the env)."""
-    command = [
-        "--app=fault_worker" if argument == "--app=worker.app" else argument
-        for argument in worker_command(concurrency, beat)
-    ]
-    return [*command, f"--hostname={name}@%h"]
+    return worker_command(concurrency, reaper, app="fault_worker", name=name)
+
+
+def supervised_processes(supervisor: int) -> tuple[list[int], list[int]]:
+    """Return the pids of a worker's consumers and of its reaper: its supervisor's children (Linux /proc)."""
+    consumers, reapers = [], []
+    for task in Path(f"/proc/{supervisor}/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            try:
+                command = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:  # exited meanwhile
+                continue
+            (reapers if b"worker.reaper" in command else consumers).append(int(pid))
+    return consumers, reapers
+
+
+def alive(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie, killed and not yet waited for, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 @contextmanager
@@ -217,7 +234,7 @@ def running_service(
     concurrency: int = 2,
     faults: bool = False,
 ) -> Iterator[Service]:
-    """Start worker (with beat) and API on a fresh database under `root`, configured by the environment.
+    """Start worker (with the reaper) and API on a fresh database under `root`, configured by the environment.
 
     With `faults`, the worker runs tests/fault_worker.py's app, which injects the faults `overrides` name.
     """
@@ -246,7 +263,7 @@ def running_service(
                 child_process(
                     fault_worker_command(concurrency, True, "first")
                     if faults
-                    else worker_command(concurrency, beat=True),
+                    else worker_command(concurrency, reaper=True),
                     env,
                     logs / "worker.log",
                 )

@@ -1,9 +1,9 @@
 """The workers' Celery app, configured from `server.settings` with the broker and queue the API sends to.
 
-Delivery is at least once: a task is acknowledged after it ran (`acks_late`), each process reserves one
-task at a time, and the broker's visibility timeout outlasts the hard time limit (server.queue). The
-reaper (worker.tasks) sends again what a dead process held; Celery hands it back too where that is safe
-(below). Every task is therefore idempotent.
+Each consumer is one process running one task at a time (`--pool solo`, under worker.supervisor, which keeps
+the time limits from what the consumer reports here). Delivery is at least once: a task is acknowledged after
+it ran (`acks_late`) and the broker's visibility timeout outlasts the hard time limit (server.queue); the
+reaper (worker.reaper) sends again what a dead process held. Every task is therefore idempotent.
 No result backend: results live in SQL (worker.tasks explains why no chord is needed).
 """
 
@@ -17,17 +17,17 @@ from typing import ClassVar
 for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 
-from celery import Celery, bootsteps
-from celery.signals import worker_process_init
+from celery import Celery, Task, bootsteps
+from celery.signals import task_postrun, task_prerun, worker_process_init, worker_ready
 
-from server.queue import celery_config, is_embedded_broker
+from server.queue import celery_config
 from server.settings import Settings, get_settings
 from worker import SCORING_NICENESS
 from worker.heartbeat import DatabaseHeartbeat
 from worker.logs import LOG_FORMAT, TASK_LOG_FORMAT
+from worker.supervised import become_supervised, report_busy, report_idle
 
 CHUNK_TASK = "worker.tasks.score_chunk"
-REAP_TASK = "worker.tasks.reap_lost_work"
 SOFT_LIMIT_MARGIN_S = 30.0
 EMBEDDED_POLL_S = 0.1
 
@@ -40,6 +40,21 @@ def chunk_soft_time_limit(settings: Settings) -> float:
 @worker_process_init.connect
 def _lower_priority(**_: object) -> None:
     os.nice(SCORING_NICENESS)
+
+
+@worker_ready.connect
+def _take_the_supervisors_limits(**_: object) -> None:
+    become_supervised()  # after Celery's own handlers: its SIGUSR1 one logs stacks, ours is the soft limit
+
+
+@task_prerun.connect
+def _report_task(task: Task, **_: object) -> None:
+    report_busy(task.name, task.soft_time_limit, task.time_limit or task.app.conf.task_time_limit)
+
+
+@task_postrun.connect
+def _report_done(**_: object) -> None:
+    report_idle()
 
 
 class EmbeddedBrokerPolling(bootsteps.StartStopStep):
@@ -58,33 +73,21 @@ class EmbeddedBrokerPolling(bootsteps.StartStopStep):
 
 
 def create_celery(settings: Settings) -> Celery:
-    """Return the workers' Celery app for `settings`, with the periodic reaper scheduled for beat."""
-    # The embedded broker's SQLite file and beat's schedule live there: neither creates the directory.
+    """Return the workers' Celery app for `settings`."""
+    # The embedded broker's SQLite file lives there, and kombu does not create the directory.
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     app = Celery("navsim-lb", include=["worker.tasks"])
     app.conf.update(
         celery_config(settings),
         task_acks_late=True,
-        # Handing back the task of a dead process puts its message back from the pool's supervisor thread.
-        # kombu's SQL transport shares one session between threads, so on the embedded broker that races
-        # the consumer's poll and stops the whole worker; there the reaper alone sends the chunk again.
-        task_reject_on_worker_lost=not is_embedded_broker(settings),
         worker_prefetch_multiplier=1,
+        # The supervisor (worker.supervisor) keeps both limits: the solo pool keeps none.
         task_time_limit=settings.task_time_limit,
         # Only scoring a chunk has a soft limit. It arrives as an exception raised wherever the task is: in
-        # planning or the reaper, that is inside a broker write, which can leave the embedded broker's file
-        # locked by the process for every other one. The hard limit kills the process, which frees it.
+        # planning, that is inside a broker write, which can leave the embedded broker's file locked by the
+        # process for every other one. The hard limit kills the process, which frees it.
         task_annotations={CHUNK_TASK: {"soft_time_limit": chunk_soft_time_limit(settings)}},
         task_ignore_result=True,
-        beat_schedule={
-            "reap-lost-work": {
-                "task": REAP_TASK,
-                "schedule": settings.reaper_interval,
-                # A reaper message nobody took in time is useless: the next one follows.
-                "options": {"expires": settings.reaper_interval},
-            }
-        },
-        beat_schedule_filename=str(settings.data_dir / "celerybeat-schedule"),
         worker_log_format=LOG_FORMAT,
         worker_task_log_format=TASK_LOG_FORMAT,
     )

@@ -1,4 +1,4 @@
-"""`navsim-lb worker`: run a Celery worker on the configured broker (DATABASE_URL, BROKER_URL, ...)."""
+"""`navsim-lb worker`: scoring consumers (and the reaper) on the configured broker (DATABASE_URL, BROKER_URL, ...)."""
 
 from __future__ import annotations
 
@@ -8,37 +8,49 @@ from typing import Annotated
 
 import typer
 
+DEFAULT_APP = "worker.app"
+DEFAULT_NAME = "navsim-lb"
 
-def worker_command(concurrency: int, beat: bool, loglevel: str = "info") -> list[str]:
-    """Return the command line of a Celery worker process serving the configured queue."""
+
+def worker_command(
+    concurrency: int, reaper: bool, loglevel: str = "info", app: str = DEFAULT_APP, name: str = DEFAULT_NAME
+) -> list[str]:
+    """Return the command line of `navsim-lb worker` with these options, run by this interpreter."""
     command = [
         sys.executable,
         "-m",
-        "celery",
-        "--app=worker.app",
         "worker",
         f"--concurrency={concurrency}",
         f"--loglevel={loglevel}",
-        # Gossip, mingle and heartbeats synchronise revokes and events, which nothing here uses.
-        "--without-gossip",
-        "--without-mingle",
-        "--without-heartbeat",
+        f"--app={app}",
+        f"--name={name}",
     ]
-    return command + (["--beat"] if beat else [])
+    return command + (["--reaper"] if reaper else [])
 
 
 def run_worker(
     concurrency: Annotated[
-        int, typer.Option("--concurrency", "-c", help="scoring processes (default: one per core)")
+        int,
+        typer.Option(
+            "--concurrency", "-c", help="scoring processes (default: one per core); 0 with --reaper"
+        ),
     ] = os.cpu_count() or 1,
-    beat: Annotated[
-        bool, typer.Option("--beat", help="also run the periodic reaper of lost work (in exactly one worker)")
+    reaper: Annotated[
+        bool, typer.Option("--reaper", help="also run the reaper of lost work (exactly one in a deployment)")
     ] = False,
     loglevel: Annotated[str, typer.Option(help="debug, info, warning or error")] = "info",
+    app: Annotated[str, typer.Option(help="module of the workers' Celery app")] = DEFAULT_APP,
+    name: Annotated[
+        str, typer.Option(help="consumers are named NAME-1@host, NAME-2@host, ...")
+    ] = DEFAULT_NAME,
 ) -> None:
-    """Run a scoring worker on the configured broker: chunks of submissions in v1.0, v1.1 and v2.2."""
-    command = worker_command(concurrency, beat, loglevel)
-    os.execv(command[0], command)
+    """Score chunks of submissions (v1.0, v1.1, v2.2): one consumer process per core, each started again when
+    it dies or outlasts its time limit."""
+    from worker.supervisor import supervise
+
+    if concurrency < 0 or (concurrency == 0 and not reaper):
+        raise typer.BadParameter("run at least one consumer, or the reaper alone (--concurrency 0 --reaper)")
+    raise typer.Exit(supervise(concurrency, reaper, app, name, loglevel))
 
 
 def register(app: typer.Typer) -> None:

@@ -7,8 +7,8 @@ chord support (the embedded SQLite one), a `chord_unlock` task polling it every 
 on every broker, and a lost or repeated chunk cannot produce a wrong count (rows are keyed by submission,
 version, seed and token).
 
-`reap_lost_work` (beat) sends again what server.runs' reaper decides. Database and broker outages are
-retried; every other error fails the run with a message the team may read, and the worker goes on.
+`reap_lost_work` (no task: the reaper's own process calls it, worker.reaper) sends again what server.runs'
+reaper decides. Database and broker outages are retried; every other error fails the run with a message the team may read, and the worker goes on.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from server.models import FailureKind, utc_now
 from server.queue import SCORE_TASK, prune_embedded_broker, waiting_tasks
 from server.services.errors import NotFound
 from server.settings import get_settings
-from worker.app import CHUNK_TASK, REAP_TASK, app, chunk_soft_time_limit
+from worker.app import CHUNK_TASK, app, chunk_soft_time_limit
 from worker.heartbeat import beating
 
 log = get_task_logger(__name__)
@@ -67,7 +67,7 @@ def _warn_about_kernels(**_: object) -> None:
 
 @lru_cache(maxsize=2)
 def _sessions(database_url: str) -> sessionmaker[Session]:
-    """Return this process's session factory (created after the fork, in the pool process)."""
+    """Return this process's session factory (made on first use, in the process that uses it)."""
     return make_session_factory(make_engine(database_url))
 
 
@@ -185,7 +185,6 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
     return f"submission {submission_id} run {run}: {_guarded(submission_id, run, score)}"
 
 
-@app.task(name=REAP_TASK)
 def reap_lost_work() -> dict[str, list[int]]:
     """Send again what died or what the broker lost, and fail what cannot finish (server.runs decides)."""
     settings = get_settings()
