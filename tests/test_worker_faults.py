@@ -1,5 +1,6 @@
-"""Faults with real processes: worker processes killed mid-chunk (the pool process, the main process), a token
-that kills its worker every time, a chunk past the hard time limit, a graceful shutdown, and a Redis broker
+"""Faults with real processes: worker processes killed mid-chunk (a consumer, the supervisor), a consumer killed
+idle, while it writes, or with the reaper, a consumer wedged while it holds work, a token that kills its worker
+every time, a chunk past the hard time limit, a graceful shutdown, and a Redis broker
 flushed and restarted under load. Each time the submission ends with exactly one result set, equal to the
 engine's, or fails with the reason and is refunded; nothing is lost and nothing is scored twice.
 
@@ -10,10 +11,12 @@ stops a server starts its own instance, on its own port and data directory.
 from __future__ import annotations
 
 import os
+import random
 import signal
 import time
 from collections.abc import Iterator
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from contextlib import AbstractContextManager, ExitStack, contextmanager, nullcontext
+from datetime import timedelta
 from pathlib import Path
 
 import pytest
@@ -24,19 +27,23 @@ from sqlalchemy import func, select
 from worker_testing import (
     Service,
     SplitFixture,
+    alive,
     direct_means,
     fault_worker_command,
     predictions,
     running_service,
+    supervised_processes,
     wait_for,
 )
 
 from navsim_lb.processes import child_process
 from scorer.submission import Submission as Predictions
+from server.db import transaction
 from server.main import DATABASE_DOWN
-from server.models import ChunkState, FailureKind, ScoringChunk, Status, Summary, TokenResultRow
+from server.models import ChunkState, FailureKind, ScoringChunk, Status, Summary, TokenResultRow, utc_now
 from server.runs import BOARD_VERSIONS as VERSIONS
 from server.runs._score import POISONED_TOKEN
+from server.services.workers import LIVE_WITHIN_S
 
 REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
 # The promise: a killed worker costs a submission at most two minutes, with the default settings.
@@ -133,6 +140,188 @@ def test_a_worker_process_killed_mid_chunk_costs_under_two_minutes(
             assert service.worker.poll() is None  # the worker replaced its pool process and went on
             # billiard's own report of the death is a log line like any other, with the run's fields
             assert "Logging error" not in service.worker_log()
+
+
+def _kill(*pids: int) -> None:
+    for pid in pids:
+        os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("moment", ["consumers idle", "consumer writing", "reaper and consumer scoring"])
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_kill_at_any_moment_is_recovered_within_a_minute(
+    backend: str, moment: str, tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    """No kill wedges a worker: consumers killed while they wait for work (all of them), while one writes its
+    rows (inside the transaction), or the reaper with the consumer scoring a chunk, whose re-send then waits
+    for the reaper started again. The supervisor starts each again; every row is written exactly once."""
+    marker = tmp_path / "writing"
+    faults = {"FAULT_CHUNK_SECONDS": "1", "CHUNK_SIZE": "4", "REAPER_INTERVAL": "5"}
+    if moment == "consumer writing":
+        faults |= {"FAULT_WRITE_MARKER": str(marker), "FAULT_WRITE_SECONDS": "3"}
+    with (
+        _backend(backend) as settings,
+        running_service(tmp_path, synthetic_split, settings | faults, faults=True) as service,
+    ):
+        entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method=moment)
+        consumers, reapers = supervised_processes(service.worker.pid)
+        if moment == "consumers idle":
+            before = predictions(synthetic_split.directory, seeds=1, noise=0.2, method="before the kill")
+            before_id = service.upload(before)
+            service.final(before_id)
+            killed = time.monotonic()
+            _kill(*consumers)
+            submission_id = service.upload(entry)
+        elif moment == "consumer writing":
+            submission_id = service.upload(entry)
+            victim = int(wait_for(lambda: marker.exists() and marker.read_text(), "a chunk to write"))  # type: ignore[arg-type]
+            killed = time.monotonic()
+            _kill(victim)
+        else:
+            submission_id = service.upload(entry)
+            chunk = _running_chunk(service, submission_id)
+            assert chunk.worker is not None
+            killed = time.monotonic()
+            _kill(int(chunk.worker.rsplit("/", 1)[1]), *reapers)
+        service.final(submission_id, timeout=RECOVERY_S)
+        _record(f"{moment} killed ({backend}): kill to scored", killed)
+        _assert_scored_once(service, synthetic_split, submission_id, entry)
+        if moment == "consumers idle":
+            _assert_scored_once(service, synthetic_split, before_id, before)
+        else:  # the killed chunk was handed on once: split, its tokens inheriting its one death
+            chunks = _chunks(service, submission_id)
+            assert [c.deaths for c in chunks if c.state == ChunkState.split_up] == [1]
+            assert max(c.deaths for c in chunks) == 1
+        assert service.worker.poll() is None
+        now_consumers, now_reapers = supervised_processes(service.worker.pid)
+        assert len(now_consumers) == len(consumers) and len(now_reapers) == 1
+        if moment != "consumer writing":  # which consumer wrote is not known beforehand
+            assert not set(now_consumers + now_reapers) & set(
+                consumers if moment == "consumers idle" else reapers
+            )
+
+
+def test_a_consumer_wedged_on_its_work_starves_nothing_and_is_replaced(
+    tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    """The only consumer hangs in a chunk where no soft limit reaches it: the reaper, a process of its own, still
+    hands on a chunk whose process died meanwhile; the supervisor kills the wedged consumer at the hard limit and
+    starts another, which scores the next submission."""
+    wedged = predictions(synthetic_split.directory, seeds=1, noise=0.3, method="wedged")
+    after = predictions(synthetic_split.directory, seeds=1, noise=0.4, method="after the wedge")
+    faults = {
+        "FAULT_HANG_TOKEN": min(wedged.seeds[0]),
+        "FAULT_HANG_MARKER": str(tmp_path / "hanging"),  # the next submission's chunk does not hang
+        "CHUNK_SIZE": "4",
+        "TASK_TIME_LIMIT": "35",
+        "REAPER_INTERVAL": "2",
+    }
+    with running_service(tmp_path, synthetic_split, faults, concurrency=1, faults=True) as service:
+        wedged_id = service.upload(wedged)
+        hung: ScoringChunk = wait_for(  # type: ignore[assignment]
+            lambda: next(
+                (
+                    c
+                    for c in _chunks(service, wedged_id)
+                    if c.state == ChunkState.running and faults["FAULT_HANG_TOKEN"] in c.tokens
+                ),
+                None,
+            ),
+            "the chunk that hangs to run",
+        )
+        assert hung.worker is not None
+        consumer = int(hung.worker.rsplit("/", 1)[1])
+        after_id = service.upload(after)  # waits in the queue behind the wedged consumer
+        with transaction(service.factory) as session:  # another chunk, as if its process died a while ago
+            lost = session.scalar(
+                select(ScoringChunk)
+                .where(ScoringChunk.submission_id == wedged_id, ScoringChunk.id != hung.id)
+                .order_by(ScoringChunk.id)
+                .limit(1)
+            )
+            assert lost is not None
+            long_ago = utc_now() - timedelta(seconds=LIVE_WITHIN_S + 5)
+            lost.state, lost.worker, lost.started_at, lost.beat_at = (
+                ChunkState.running,
+                "gone/1",
+                long_ago,
+                long_ago,
+            )
+            lost_id = lost.id
+        forged = time.monotonic()
+        wait_for(
+            lambda: any(c.id == lost_id and c.deaths == 1 for c in _chunks(service, wedged_id)),
+            "the reaper to hand on the dead chunk",
+        )
+        _record("reaper while the only consumer is wedged: dead chunk to re-sent", forged)
+        assert alive(consumer)  # the reaper did not wait for it
+        assert {c.state for c in _chunks(service, wedged_id) if c.id == hung.id} == {ChunkState.running}
+        wait_for(lambda: not alive(consumer), "the supervisor to kill the wedged consumer")
+        replaced = time.monotonic()
+        failed = service.final(wedged_id, timeout=RECOVERY_S)
+        assert (failed.status, failed.charged) == (Status.failed, False)
+        assert "hard time limit of 35 s" in (failed.error or "")
+        service.final(after_id, timeout=RECOVERY_S)
+        _record("wedged consumer killed at the hard limit: kill to the next submission scored", replaced)
+        _assert_scored_once(service, synthetic_split, after_id, after)
+        assert service.worker.poll() is None
+
+
+CHAOS_SUBMISSIONS = 3
+CHAOS_KILLS = 6
+CHAOS_GAP_S = (1.0, 5.0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_chaos_random_kills_while_several_submissions_are_scored(
+    backend: str, tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    """Consumers, the reaper and the supervisor itself SIGKILLed at random moments while three submissions are
+    scored (a killed supervisor is started again, as its own supervisor would): at the end each is scored once,
+    every row exactly once, no chunk left running. CHAOS_SEED replays a run; a failure names its seed."""
+    seed = int(os.environ.get("CHAOS_SEED", str(random.SystemRandom().randrange(2**32))))
+    rng = random.Random(seed)
+    replay = f"replay with CHAOS_SEED={seed}"
+    print(replay)  # pytest shows it beside any failure
+    faults = {"FAULT_CHUNK_SECONDS": "1.5", "CHUNK_SIZE": "4", "REAPER_INTERVAL": "3"}
+    entries = [
+        predictions(synthetic_split.directory, seeds=2, noise=0.2 + 0.1 * index, method=f"chaos {index}")
+        for index in range(CHAOS_SUBMISSIONS)
+    ]
+    with (
+        _backend(backend) as settings,
+        running_service(tmp_path, synthetic_split, settings | faults, faults=True) as service,
+        ExitStack() as restarted,
+    ):
+        supervisor = service.worker
+        ids = [service.upload(entry) for entry in entries]
+        kills = []
+        for index in range(CHAOS_KILLS):
+            time.sleep(rng.uniform(*CHAOS_GAP_S))
+            consumers, reapers = supervised_processes(supervisor.pid)
+            victim = rng.choice(["consumer", "consumer", "reaper", "supervisor"])
+            kills.append(victim)
+            if victim == "supervisor":
+                supervisor.kill()
+                supervisor.wait()
+                command = fault_worker_command(2, True, f"chaos{index}")
+                log = service.logs / f"chaos-worker-{index}.log"
+                supervisor = restarted.enter_context(child_process(command, service.env, log))
+            else:
+                candidates = consumers if victim == "consumer" else reapers
+                if candidates:  # none while the supervisor starts them again
+                    os.kill(rng.choice(candidates), signal.SIGKILL)
+        last_kill = time.monotonic()
+        for submission_id in ids:
+            service.final(submission_id, timeout=RECOVERY_S)
+        _record(f"chaos ({backend}, {', '.join(kills)}): last kill to all scored", last_kill)
+        for submission_id, entry in zip(ids, entries, strict=True):
+            try:
+                _assert_scored_once(service, synthetic_split, submission_id, entry)
+            except AssertionError as error:
+                raise AssertionError(f"{replay}: submission {submission_id}: {error}") from error
+        running = [c.id for i in ids for c in _chunks(service, i) if c.state == ChunkState.running]
+        assert running == [], replay
 
 
 # On PostgreSQL + Redis, where Celery also hands the killed chunk back at once: a duplicate that must drop.
