@@ -322,7 +322,7 @@ def test_the_admin_console_follows_a_rerun_and_a_rescore_without_a_reload(
     page.click("#login button[type=submit]")
     page.wait_for_selector("#dashboard:not([hidden])")
     expect(page.locator("#workers")).to_contain_text("Broker: answers")
-    expect(page.locator("#workers")).to_contain_text("alive (heartbeats in the database): celery@")
+    expect(page.locator("#workers")).to_contain_text("alive (heartbeats in the database): navsim-lb-1@")
     row = page.locator("#submissions tbody tr", has_text="Noisy human (demo)")
     expect(row).to_contain_text("scored")
     page.evaluate("window.notReloaded = true")
