@@ -474,9 +474,8 @@ def score_seeds(
     context: Sequence[str] = (),
 ) -> dict[str, list[TokenResult]]:
     """Return, per metric version, one result per token (all tokens of the split by default) and seed, seed by
-    seed in the order of `seeds` (seed -> predictions), building whatever the cache lacks. A token's caches are
-    read once for every seed, and each trajectory is simulated once for every version; a chunk's trajectories
-    of every seed go through one simulation.
+    seed in the order of `seeds` (seed -> predictions), building whatever the cache lacks (`score_rows`), with
+    two-frame comfort between adjacent frames of a log.
 
     `context` tokens are scored too, under a version with two-frame comfort, for their rows to pair with
     `tokens` of the same seed (`pairing_contexts`), and are not returned.
@@ -488,27 +487,52 @@ def score_seeds(
         context = ()
     requested = set(tokens)
     scored_tokens = tokens + [token for token in dict.fromkeys(context) if token not in requested]
-    results: dict[tuple[int | None, str], list[TokenResult | ScoredToken]] = {
-        (seed, version.name): [] for seed in seeds for version in metric_versions
-    }
-    for start in range(0, len(scored_tokens), CHUNK_SIZE):
-        chunk = scored_tokens[start : start + CHUNK_SIZE]
-        for key, scored_rows in _score_chunk(paths, Path(cache_dir), seeds, metric_versions, chunk).items():
-            results[key] += scored_rows
-        if progress is not None:
-            progress(len(chunk) * len(seeds))
+    results = score_rows(split_dir, cache_dir, seeds, versions, scored_tokens, progress)
     order = {token: index for index, token in enumerate(tokens)}
     joined: dict[str, list[TokenResult]] = {version.name: [] for version in metric_versions}
     for seed in seeds:
         for version in metric_versions:
-            seed_results = results[seed, version.name]
-            scored = [item for item in seed_results if isinstance(item, ScoredToken)]
-            rows = [item for item in seed_results if isinstance(item, TokenResult)]
+            scored, rows = split_scored(results[seed, version.name])
             rows += join_two_frame_comfort(scored, version) if scored else []
             joined[version.name] += sorted(
                 (row for row in rows if row.token in order), key=lambda row: order[row.token]
             )
     return joined
+
+
+ScoredRows = dict[tuple[int | None, str], list[TokenResult | ScoredToken]]
+
+
+def score_rows(
+    split_dir: Path,
+    cache_dir: Path,
+    seeds: Mapping[int | None, Mapping[str, object]],
+    versions: Sequence[str],
+    tokens: Sequence[str],
+    progress: Callable[[int], None] | None = None,
+) -> ScoredRows:
+    """Return, per (seed, version), the rows of `tokens` before the split-level step (v2.2's EC): a ScoredToken
+    per scored token, an invalid TokenResult per other. A token's caches are read once for every seed, and
+    each trajectory is simulated once for every version; a chunk's trajectories of every seed go through one
+    simulation."""
+    metric_versions = [get_version(version) for version in versions]
+    paths = scene_paths(split_dir)
+    results: ScoredRows = {(seed, version.name): [] for seed in seeds for version in metric_versions}
+    for start in range(0, len(tokens), CHUNK_SIZE):
+        chunk = tokens[start : start + CHUNK_SIZE]
+        for key, scored_rows in _score_chunk(paths, Path(cache_dir), seeds, metric_versions, chunk).items():
+            results[key] += scored_rows
+        if progress is not None:
+            progress(len(chunk) * len(seeds))
+    return results
+
+
+def split_scored(rows: Sequence[TokenResult | ScoredToken]) -> tuple[list[ScoredToken], list[TokenResult]]:
+    """Return the scored rows and the invalid ones of `score_rows`' rows."""
+    return (
+        [row for row in rows if isinstance(row, ScoredToken)],
+        [row for row in rows if isinstance(row, TokenResult)],
+    )
 
 
 def _score_chunk(
@@ -666,25 +690,51 @@ def pairing_contexts(
     return contexts
 
 
-def join_two_frame_comfort(scored: Sequence[ScoredToken], version: MetricVersion) -> list[TokenResult]:
-    """Return the rows with v2.2's two-frame extended comfort (EC) and the final score: EC between each row and
-    the adjacent earlier frame of its log scored in the same run and seed, NaN (weight dropped) elsewhere.
+def join_two_frame_comfort(
+    scored: Sequence[ScoredToken], version: MetricVersion, pairs: Sequence[tuple[str, str]] | None = None
+) -> list[TokenResult]:
+    """Return the rows with v2's two-frame extended comfort (EC) and the final score, NaN (weight dropped) where
+    a row has no EC.
+
+    `pairs` (current token, previous token) are the frames to compare, as a two-stage split's mapping gives
+    them (orig and prev, now2 and prev2 of each pair): each pair's EC goes to both its rows, as the two-stage
+    aggregator writes it. Without them, one-stage: each row pairs with the adjacent earlier frame of its log
+    scored in the same run and seed (`adjacent_pairs`), and only the later row gets EC.
 
     Where the devkit pairs two frames and then fails on them (start times equal, 0.55 s apart to the float, or
-    under 0.05 s apart), EC is undefined and the row's detail says why.
+    under 0.05 s apart, a partner not scored), EC is undefined and the row's detail says why.
     """
     if version.two_frame_extended_comfort_weight is None:
         return [item.result for item in scored]
-    pairs = adjacent_pairs(scored)
-    details: dict[int, dict[str, Any]] = {
-        index: {"previous_token": scored[previous].result.token} for index, previous in pairs.items()
-    }
+    details: dict[int, dict[str, Any]] = {}
+    receivers: dict[int, list[int]] = {}  # a pair's current row -> the rows that get its EC
+    if pairs is None:
+        index_pairs = list(adjacent_pairs(scored).items())
+        for index, previous in index_pairs:
+            details[index] = {"previous_token": scored[previous].result.token}
+            receivers[index] = [index]
+    else:
+        at = {item.result.token: index for index, item in enumerate(scored)}
+        index_pairs = []
+        for current_token, previous_token in pairs:
+            for token, partner, key in (
+                (current_token, previous_token, "previous_token"),
+                (previous_token, current_token, "current_token"),
+            ):
+                if token in at:
+                    details[at[token]] = {key: partner}
+                    if partner not in at:
+                        details[at[token]]["undefined"] = f"its partner {partner} was not scored"
+            if current_token in at and previous_token in at:
+                index_pairs.append((at[current_token], at[previous_token]))
+                receivers[at[current_token]] = [at[current_token], at[previous_token]]
     computed: list[tuple[int, int, int]] = []  # (row, previous row, steps)
-    for index, previous in pairs.items():
+    for index, previous in index_pairs:
         try:
             computed.append((index, previous, overlap_steps(scored[index].t0_us, scored[previous].t0_us)))
         except ValueError as error:
-            details[index]["undefined"] = f"the official code pairs this frame and then fails: {error}"
+            for row in receivers[index]:
+                details[row]["undefined"] = f"the official code pairs this frame and then fails: {error}"
     values: dict[int, tuple[float, dict[str, float]]] = {}
     if computed:
         rows, previous_rows, steps = (list(column) for column in zip(*computed, strict=True))
@@ -694,10 +744,11 @@ def join_two_frame_comfort(scored: Sequence[ScoredToken], version: MetricVersion
             steps,
         )
         for position, row in enumerate(rows):
-            values[row] = (
+            value = (
                 float(comfort.value[position]),
                 dict(zip(FEATURES, comfort.rms[position].tolist(), strict=True)),
             )
+            values |= dict.fromkeys(receivers[row], value)
     results = []
     for index, item in enumerate(scored):
         if index not in details:

@@ -99,6 +99,9 @@ class MetricVersion:
     two_frame_extended_comfort_weight: float | None = None
     # v2's reactive traffic in place of the log replay (None): the vehicles react to the scored trajectory.
     reactive_traffic: IdmTraffic | None = None
+    # NAVSIM v2's two-stage EPDMS: scored over a split's stage mapping (`scorer.two_stage`), whose pairs give
+    # the two-frame comfort, the synthetic scenes weighted by where the stage-one plans end.
+    two_stage: bool = False
 
     @property
     def ddc_role(self) -> str:
@@ -218,6 +221,7 @@ VERSIONS: dict[VersionName, MetricVersion] = {
         human_penalty_filter=True,
         two_frame_extended_comfort_weight=2.0,
         reactive_traffic=IdmTraffic(),
+        two_stage=True,
     ),
 }
 
