@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from enum import StrEnum
 from importlib.util import find_spec
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import typer
 from rich.markup import escape
@@ -16,7 +17,11 @@ from navsim_lb.terminal import console, fail, output, progress_bar, warn, warn_a
 from scorer.versions import DEFAULT_VERSION, LOG_REPLAY_VERSIONS, VERSIONS, VersionName, cached_together
 
 if TYPE_CHECKING:
-    from scorer.submission import Submission
+    from scorer.submission import Submission, TwoStageSubmission
+    from scorer.versions import MetricVersion
+
+Loaded = TypeVar("Loaded")
+MAX_NOTES_SHOWN = 20  # per seed: what the official script would have crashed on, and what we made of it
 
 # The pictures draw with matplotlib, an optional extra of the engine's install.
 PLOT_EXTRA = "pip install 'navsim-leaderboard[plot]'"
@@ -93,22 +98,48 @@ def cache(
 
 def _read_submission(path: Path) -> Submission:
     """Return the submission in file `path`, or fail with what is wrong with it."""
-    from scorer.submission import SubmissionError, load_submission
+    from scorer.submission import load_submission
+
+    return _read(path, load_submission)
+
+
+def _read_two_stage_submission(path: Path) -> TwoStageSubmission:
+    """Return the two-stage submission in file `path`, or fail with what is wrong with it."""
+    from scorer.submission import load_two_stage_submission
+
+    return _read(path, load_two_stage_submission)
+
+
+def _read(path: Path, loader: Callable[[bytes, str], Loaded]) -> Loaded:
+    """Return what `loader` reads of file `path`, or fail with what is wrong with it."""
+    from scorer.submission import SubmissionError
 
     try:
-        return load_submission(path.read_bytes(), path.name)
+        return loader(path.read_bytes(), path.name)
     except OSError as error:
         raise fail(str(error)) from None
     except SubmissionError as error:
         raise fail(f"{path}: {error}") from None
 
 
+def seed_csv_paths(out: Path, seeds: int) -> list[Path]:
+    """Return where each seed's official two-stage CSV goes: `out` for one seed, else `<stem>.seed<i><suffix>`
+    beside it (the official script scores one seed; each file is what it writes for that seed alone)."""
+    if seeds == 1:
+        return [out]
+    return [out.with_name(f"{out.stem}.seed{index}{out.suffix}") for index in range(seeds)]
+
+
 def score(
     split: Annotated[Path, typer.Argument(help="split directory")],
     submission: Annotated[Path, typer.Argument(help="submission file (JSON or NAVSIM pickle)")],
     version: Annotated[VersionName, typer.Option(help="metric version")] = DEFAULT_VERSION,
-    out: Annotated[Path | None, typer.Option(help="per-token CSV with an average row")] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="per-token CSV with an average row (two-stage: the official CSV, one per seed)"),
+    ] = None,
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
+    workers: Annotated[int, typer.Option(help="processes (two-stage versions)", min=1)] = 1,
 ) -> None:
     """Score a submission against a split and print the summary."""
     from navsim_lb.report import summary_table
@@ -117,6 +148,14 @@ def score(
     from scorer.scene import SceneFormatError, scene_paths
     from scorer.submission import validate_submission
 
+    metric_version = VERSIONS[version]
+    if metric_version.two_stage:
+        _score_two_stage(
+            split, submission, metric_version, out, cache_dir or default_cache_dir(split), workers
+        )
+        return
+    if workers > 1:
+        raise fail(f"--workers: {version} scores in one process; several are for the two-stage versions")
     try:
         tokens = list(scene_paths(split))
     except (SceneFormatError, OSError) as error:
@@ -133,9 +172,57 @@ def score(
                 split, cache_dir or default_cache_dir(split), predictions, version, tokens, seed, advance
             )
     if out is not None:
-        write_results_csv(results, VERSIONS[version], out)
+        write_results_csv(results, metric_version, out)
         console.print(f"wrote {out}")
-    output.print(summary_table(results, VERSIONS[version], f"{loaded.metadata.method} on {split.name}"))
+    output.print(summary_table(results, metric_version, f"{loaded.metadata.method} on {split.name}"))
+
+
+def _score_two_stage(
+    split: Path, submission: Path, version: MetricVersion, out: Path | None, cache_dir: Path, workers: int
+) -> None:
+    """Score a two-stage submission on a two-stage split: coverage warnings per stage, the official CSV of each
+    seed, and the summary with what the official script would have crashed on."""
+    from navsim_lb.report import two_stage_summary_table
+    from scorer.scene import SceneFormatError
+    from scorer.submission import two_stage_coverage_problems
+    from scorer.two_stage.result_csv import write_two_stage_csv
+    from scorer.two_stage.score import score_two_stage
+    from scorer.two_stage.split import MAPPING_FILE, TwoStageSplitError, load_two_stage_split
+
+    if not (split / MAPPING_FILE).is_file():
+        raise fail(
+            f"{split}: no {MAPPING_FILE}, so not a two-stage split; {version.name} scores NAVSIM's two stages "
+            "over a split's stage mapping (a one-stage split takes a one-stage version, e.g. v2.2)"
+        )
+    try:
+        stages = load_two_stage_split(split)
+    except (TwoStageSplitError, SceneFormatError, OSError) as error:
+        raise fail(str(error)) from None
+    loaded = _read_two_stage_submission(submission)
+    for problem in two_stage_coverage_problems(
+        [list(seed) for seed in loaded.first_stage],
+        [list(seed) for seed in loaded.second_stage],
+        stages.stage_one_tokens,
+        stages.stage_two_tokens,
+    ):
+        warn(str(problem))
+    warn_about_kernels()
+    # Every token any seed names is scored for every seed (as the one-stage scoring counts).
+    total = len(set().union(*loaded.first_stage, *loaded.second_stage)) * len(loaded.first_stage)
+    with progress_bar(f"scoring {version.name}", total) as advance:
+        results = score_two_stage(split, cache_dir, loaded, version.name, advance, workers)
+    for index, result in enumerate(results):
+        seed = f"seed {index}: " if len(results) > 1 else ""
+        for note in result.notes[:MAX_NOTES_SHOWN]:
+            warn(seed + note)
+        if len(result.notes) > MAX_NOTES_SHOWN:
+            warn(f"{seed}{len(result.notes) - MAX_NOTES_SHOWN} more note(s) not shown")
+    if out is not None:
+        for result, path in zip(results, seed_csv_paths(out, len(results)), strict=True):
+            write_two_stage_csv(result, path)
+            console.print(f"wrote {path}")
+    title = f"{loaded.metadata.method} on {split.name}"
+    output.print(two_stage_summary_table(results, version, title))
 
 
 def plot(

@@ -10,8 +10,11 @@ from rich.markup import escape
 from rich.table import Table
 
 from scorer.evaluate import TokenResult, summarize
+from scorer.two_stage.aggregate import TwoStageResult
 from scorer.versions import METRIC_LABELS, MetricVersion
 from server.numbers import percent
+
+OVER_SEEDS = (("mean", np.mean), ("std", np.std), ("max", np.max))
 
 
 def summary_rows(results: Sequence[TokenResult], version: MetricVersion) -> list[list[str]]:
@@ -35,22 +38,61 @@ def summary_rows(results: Sequence[TokenResult], version: MetricVersion) -> list
         )
     if len(seeds) > 1:
         values = np.array([[per_seed[seed][column] for column in columns] for seed in seeds])
-        for name, reduce in (("mean", np.mean), ("std", np.std), ("max", np.max)):
+        for name, reduce in OVER_SEEDS:
             rows.append([name, *(percent(value) for value in reduce(values, axis=0)), "", ""])
     return rows
 
 
 def summary_table(results: Sequence[TokenResult], version: MetricVersion, title: str) -> Table:
     """Return the summary as a table that fits an 80-column terminal (no vertical rules, numbers right)."""
-    header, *rows = summary_rows(results, version)
+    caption = f"scores in %; unscored tokens count 0; DDC: {version.ddc_role}" + (
+        "; EC only between adjacent frames of a log (– where none)"
+        if "two_frame_extended_comfort" in version.result_columns
+        else ""
+    )
+    return _terminal_table(
+        f"{title} ({version.score_label} {version.name})", caption, summary_rows(results, version)
+    )
+
+
+def two_stage_summary_rows(results: Sequence[TwoStageResult], version: MetricVersion) -> list[list[str]]:
+    """Return a header and rows of a two-stage result: per seed the stage-one, stage-two and combined score
+    (the reported one), the groups scored, the unscored tokens and whether the official script would have
+    given these numbers; then mean/std/max over seeds. Scores are percent, "–" where undefined."""
+    rows = [["seed", "stage one", "stage two", version.score_label, "groups", "unscored", "official"]]
+    scores = np.array(
+        [[result.stage_one["score"], result.stage_two["score"], result.score] for result in results]
+    )
+    for index, result in enumerate(results):
+        rows.append(
+            [
+                str(index) if len(results) > 1 else "-",
+                *(percent(value) for value in scores[index]),
+                str(len(result.groups)),
+                str(sum(not row.valid for row in result.rows)),
+                "yes" if result.official else "no",
+            ]
+        )
+    if len(results) > 1:
+        for name, reduce in OVER_SEEDS:
+            rows.append([name, *(percent(value) for value in reduce(scores, axis=0)), "", "", ""])
+    return rows
+
+
+def two_stage_summary_table(results: Sequence[TwoStageResult], version: MetricVersion, title: str) -> Table:
+    """Return the two-stage summary as a table for a terminal (`two_stage_summary_rows`)."""
+    caption = "scores in %; official: the official script gives these numbers (if not, the warnings say why)"
+    return _terminal_table(
+        f"{title} ({version.score_label} {version.name})", caption, two_stage_summary_rows(results, version)
+    )
+
+
+def _terminal_table(title: str, caption: str, rows: list[list[str]]) -> Table:
+    """Return a header and rows as a table that fits an 80-column terminal (no vertical rules, numbers right)."""
+    header, *body = rows
     table = Table(
-        title=escape(f"{title} ({version.score_label} {version.name})"),  # plain text: it quotes the method
-        caption=f"scores in %; unscored tokens count 0; DDC: {version.ddc_role}"
-        + (
-            "; EC only between adjacent frames of a log (– where none)"
-            if "two_frame_extended_comfort" in version.result_columns
-            else ""
-        ),
+        title=escape(title),  # plain text: it quotes the method
+        caption=caption,
         box=box.SIMPLE_HEAD,
         show_edge=False,
         pad_edge=False,
@@ -60,6 +102,6 @@ def summary_table(results: Sequence[TokenResult], version: MetricVersion, title:
     )
     for index, column in enumerate(header):
         table.add_column(column, justify="left" if index == 0 else "right", no_wrap=True)
-    for row in rows:
+    for row in body:
         table.add_row(*row)
     return table

@@ -5,11 +5,12 @@ from __future__ import annotations
 import csv
 import gzip
 import json
+import math
 from pathlib import Path
 from typing import Any
 
 from scorer.evaluate import TokenResult
-from scorer.two_stage.aggregate import SCORE_COLUMNS, TwoStageToken
+from scorer.two_stage.aggregate import GROUP_PARTS, SCORE_COLUMNS, TwoStageResult, TwoStageToken
 from scorer.two_stage.split import read_two_stage_split
 
 FIXTURE = Path(__file__).parent / "fixtures" / "epdms-two-stage"
@@ -50,3 +51,55 @@ def aggregation_input(family: str) -> list[TwoStageToken]:
         )
         for token in official_row_order(family)
     ]
+
+
+def _same(actual: float, expected: float | None) -> bool:
+    """Bit equality, NaN (None in JSON) equal to NaN."""
+    if expected is None:
+        return math.isnan(actual)
+    return actual == expected
+
+
+def token_mismatches(result: TwoStageResult, lines: dict[str, dict[str, Any]]) -> list[str]:
+    """Return how the scored rows of `result` differ from the official lines: every column, the weight and
+    how it came about, and the two-frame comfort's partner and RMS differences (`ec_detail`)."""
+    found = []
+    for row in result.rows:
+        line = lines[row.token]
+        if not row.valid:
+            found.append(f"{row.token}: invalid ({row.error})")
+            continue
+        found += [
+            f"{row.token}: {column} {row.metrics[column]!r} != {line[column]!r}"
+            for column in SCORE_COLUMNS
+            if not _same(row.metrics[column], line[column])
+        ]
+        if result.weights.get(row.token) != line["weight"]:
+            found.append(f"{row.token}: weight {result.weights.get(row.token)!r} != {line['weight']!r}")
+        if line["stage"] == "two" and result.weight_detail.get(row.token) != line["weight_detail"]:
+            found.append(f"{row.token}: weight detail {result.weight_detail.get(row.token)}")
+        comfort = row.detail["two_frame_extended_comfort"]
+        partner = comfort.get("previous_token", comfort.get("current_token"))
+        official = line["ec_detail"]
+        if (partner, comfort.get("rms")) != (official["partner"], official["ec_rms"]):
+            found.append(f"{row.token}: EC partner and RMS {partner} {comfort.get('rms')} != {official}")
+    return found
+
+
+def group_mismatches(result: TwoStageResult, groups: list[dict[str, Any]]) -> list[str]:
+    """Return how the groups of `result` differ from the official ones (the first len(result.groups)): the
+    four weighted averages of every column and the group's combined score."""
+    found = []
+    for group, expected in zip(result.groups, groups, strict=False):
+        if (group.original, group.previous) != (expected["original"], expected["previous"]):
+            found.append(f"group {group.original}: official group {expected['original']}")
+            continue
+        for part, columns in zip(GROUP_PARTS, expected["columns"], strict=True):
+            found += [
+                f"group {group.original} {part} {column}: {group.parts[part][column]!r} != {columns[column]!r}"
+                for column in SCORE_COLUMNS
+                if not _same(group.parts[part][column], columns[column])
+            ]
+        if group.combined["score"] != expected["combined"]:
+            found.append(f"group {group.original}: {group.combined['score']!r} != {expected['combined']!r}")
+    return found
