@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 PORT ?= 8000
 
-.PHONY: demo test install services browser lowest
+.PHONY: demo test install services browser lowest full-reference
 
 # An editable install leaves our modules uncompiled; where PYTHONDONTWRITEBYTECODE is set (many containers)
 # every command would compile them again, a fifth of `navsim-lb score`'s start-up: compile them here.
@@ -29,7 +29,7 @@ test: install services browser
 	$(BIN)/ruff check --quiet .
 	$(BIN)/ruff format --check --quiet .
 	$(BIN)/mypy
-	$(BIN)/pytest -q -p no:cacheprovider -n 2 --dist loadscope --no-loadscope-reorder --durations=15
+	$(BIN)/pytest -q -p no:cacheprovider -n 2 --dist loadscope --no-loadscope-reorder --durations=15 -m "not full_reference"
 	$(BIN)/navsim-lb regress
 
 ## PostgreSQL and Redis must answer for the service tests; start them when they do not.
@@ -43,3 +43,8 @@ browser:
 ## make lowest: the suite on the lowest versions pyproject.toml allows (slow; run when a lower bound changes).
 lowest: services browser
 	./.ci/lowest
+
+## make full-reference: every token of the official two-stage reference (../shared/reference/epdms-two-stage), scored
+## from scenes with reactive traffic and compared bit for bit; about 20 minutes on 2 cores, so make test leaves it out.
+full-reference: install
+	$(BIN)/pytest -q -p no:cacheprovider -m full_reference tests/test_two_stage_full_reference.py

@@ -30,7 +30,7 @@ WORKERS = 2
 VERSION = VersionName.V2_2_TWO_STAGE
 
 pytestmark = [
-    pytest.mark.slow,
+    pytest.mark.full_reference,
     pytest.mark.skipif(not REFERENCE.is_dir(), reason="the two-stage reference is not beside the repository"),
 ]
 
