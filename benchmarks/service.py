@@ -60,7 +60,7 @@ from scorer.geometry import FloatArray
 from scorer.scene import scene_paths
 from scorer.submission import Submission, SubmissionMetadata, dump_submission_json, load_submission
 from scorer.synth import synthesize_split
-from scorer.versions import VERSIONS
+from scorer.versions import LOG_REPLAY_VERSIONS
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import upgrade
 from server.models import Approval, Scope, Summary, TokenResultRow
@@ -101,7 +101,7 @@ def prepared_split(tokens: int) -> tuple[Path, Path]:
     """Return a synthetic split of `tokens` scenes and its cache directory, both built on first use."""
     split, cache = synthesized_split(tokens), DATA / f"server_cache_{tokens}_{SPLIT_SEED}"
     started = time.perf_counter()
-    failures = build_split_cache(split, cache, list(VERSIONS), workers=os.cpu_count() or 1)
+    failures = build_split_cache(split, cache, list(LOG_REPLAY_VERSIONS), workers=os.cpu_count() or 1)
     assert not failures, failures
     print(f"metric cache ready in {time.perf_counter() - started:.0f} s (built where missing)")
     return split, cache
@@ -131,7 +131,9 @@ def _warm_engine_process(barrier: Barrier, split: Path, cache: Path, entry: Path
     threadpool_limits(1)
     os.nice(SCORING_NICENESS)
     predictions = load_submission(entry.read_bytes(), entry.name)
-    score_versions(split, cache, predictions.seeds[0], list(VERSIONS), [next(iter(scene_paths(split)))])
+    score_versions(
+        split, cache, predictions.seeds[0], list(LOG_REPLAY_VERSIONS), [next(iter(scene_paths(split)))]
+    )
     _engine_work = split, cache, predictions
     barrier.wait()
 
@@ -142,7 +144,7 @@ def _engine_part(tokens: list[str]) -> tuple[int, float]:
     assert _engine_work is not None, "run by a pool whose initializer is _warm_engine_process"
     split, cache, predictions = _engine_work
     started = time.process_time()
-    rows = score_seeds(split, cache, dict(enumerate(predictions.seeds)), list(VERSIONS), tokens)
+    rows = score_seeds(split, cache, dict(enumerate(predictions.seeds)), list(LOG_REPLAY_VERSIONS), tokens)
     scored = sum(row.valid for version_rows in rows.values() for row in version_rows)
     return scored, time.process_time() - started
 
@@ -226,7 +228,10 @@ def post_to_row(client: httpx.Client, entry: Path) -> tuple[float, float]:
     assert state["status"] == "scored", state["error"]
 
     def on_board() -> bool:
-        rows = [client.get("/api/v1/leaderboard", params={"version": v}).json()["rows"] for v in VERSIONS]
+        rows = [
+            client.get("/api/v1/leaderboard", params={"version": v}).json()["rows"]
+            for v in LOG_REPLAY_VERSIONS
+        ]
         return all(any(row["submission_id"] == submission_id for row in board) for board in rows)
 
     wait_until(on_board)
@@ -382,7 +387,7 @@ def scored_once(database_url: str, submission_ids: list[int], tokens: int, seeds
             entries = session.scalar(select(func.count()).where(Summary.submission_id == submission_id))
             if submission is None or submission.status != "scored":
                 problems.append(f"{submission_id}: {submission.status if submission else 'missing'}")
-            elif rows != tokens * seeds * len(VERSIONS) or entries != len(VERSIONS):
+            elif rows != tokens * seeds * len(LOG_REPLAY_VERSIONS) or entries != len(LOG_REPLAY_VERSIONS):
                 problems.append(f"{submission_id}: {rows} rows, {entries} leaderboard entries")
     engine.dispose()
     return problems
@@ -452,7 +457,7 @@ def main() -> None:
     entry = entry_file(split, DATA / f"entry_{args.tokens}_{SPLIT_SEED}_{args.seeds}.json", seeds=args.seeds)
     engine = {workers: engine_only(split, cache, entry, workers) for workers in sizes}
     print(
-        f"{args.tokens} tokens x {args.seeds} seeds, every metric version ({', '.join(VERSIONS)}): seconds from"
+        f"{args.tokens} tokens x {args.seeds} seeds, the board's metric versions ({', '.join(LOG_REPLAY_VERSIONS)}): seconds from"
         " POST to its scored status and to its leaderboard row, against the engine alone on as many processes"
         f" (target: at most {SERVICE_TARGET}x); CPU seconds of the worker and the API meanwhile, against the"
         " engine's (what a host shared with other work still measures); the split's index of log frames, which"

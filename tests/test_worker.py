@@ -236,20 +236,11 @@ def test_chunks_with_their_contexts_store_the_v2_2_rows_of_the_whole_split(
 def test_reaper_requeues_a_run_left_without_chunks_and_fails_one_out_of_attempts(
     service: Service, synthetic_split: SplitFixture
 ) -> None:
-    lost = service.stored(predictions(synthetic_split.directory, seeds=1, noise=0.4, method="lost once"))
-    exhausted = service.stored(
-        predictions(synthetic_split.directory, seeds=1, noise=0.5, method="lost often")
-    )
-    with transaction(service.factory) as session:  # as if a worker had claimed them and died before planning
-        for submission_id, attempts in ((lost, 1), (exhausted, MAX_ATTEMPTS)):
-            submission = session.get(Submission, submission_id)
-            assert submission is not None
-            submission.status, submission.attempts, submission.worker = (
-                Status.running,
-                attempts,
-                "lost-worker",
-            )
-            submission.claimed_at = utc_now() - timedelta(seconds=5)
+    # As if a worker had claimed them and died before planning.
+    entry = predictions(synthetic_split.directory, seeds=1, noise=0.4, method="lost once")
+    lost = service.stored(entry, lost_claims=1)
+    entry = predictions(synthetic_split.directory, seeds=1, noise=0.5, method="lost often")
+    exhausted = service.stored(entry, lost_claims=MAX_ATTEMPTS)
 
     recovered = service.final(lost)
     assert (recovered.status, recovered.attempts) == (Status.scored, 2)

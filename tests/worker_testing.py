@@ -11,6 +11,7 @@ import zlib
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -26,10 +27,20 @@ from scorer.evaluate import build_split_cache, score_tokens, summarize
 from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionMetadata, dump_submission_json
 from scorer.synth import synthesize_split
-from scorer.versions import VERSIONS, get_version
+from scorer.versions import LOG_REPLAY_VERSIONS, get_version
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import upgrade
-from server.models import ACTIVE_STATUSES, Approval, Phase, Scope, Submission, Team, TokenResultRow
+from server.models import (
+    ACTIVE_STATUSES,
+    Approval,
+    Phase,
+    Scope,
+    Status,
+    Submission,
+    Team,
+    TokenResultRow,
+    utc_now,
+)
 from server.services.splits import create_phase, register_split, split_tokens
 from server.services.submissions import create_submission
 from server.services.teams import create_team
@@ -55,7 +66,7 @@ def synthetic_split(tmp_path_factory: pytest.TempPathFactory) -> SplitFixture:
     root = tmp_path_factory.mktemp("worker-split")
     directory, cache_dir = root / "split", root / "cache"
     synthesize_split(directory, SPLIT_SCENES, SPLIT_SEED)
-    failures = build_split_cache(directory, cache_dir, list(VERSIONS), workers=2)
+    failures = build_split_cache(directory, cache_dir, list(LOG_REPLAY_VERSIONS), workers=2)
     assert not failures, failures
     return SplitFixture(directory, cache_dir)
 
@@ -134,8 +145,13 @@ class Service:
             timeout,
         )
 
-    def stored(self, entry: Predictions, phase: str = "test") -> int:
-        """Create a queued submission through the services, without sending it to the workers; return its id."""
+    def stored(self, entry: Predictions, phase: str = "test", lost_claims: int = 0) -> int:
+        """Create a queued submission through the services, without sending it to the workers; return its id.
+
+        With `lost_claims`, it is created running instead, as if a worker had claimed it that many times, the
+        last 5 s ago, and died before planning: in the same transaction, so that no reaper pass finds it queued
+        (and sends it) in between.
+        """
         data = dump_submission_json(entry)
         with transaction(self.factory) as session:
             phase_row = session.scalar(select(Phase).where(Phase.name == phase))
@@ -143,6 +159,13 @@ class Service:
             assert phase_row is not None and team is not None
             upload = validate_upload(data, "entry.json", split_tokens(phase_row.split))
             submission, _ = create_submission(session, team, phase_row, upload, self.settings.storage_dir)
+            if lost_claims:
+                submission.status, submission.attempts, submission.worker = (
+                    Status.running,
+                    lost_claims,
+                    "lost",
+                )
+                submission.claimed_at = utc_now() - timedelta(seconds=5)
             return submission.id
 
     def upload(self, entry: Predictions, name: str = "entry.json") -> int:
