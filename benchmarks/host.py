@@ -23,6 +23,7 @@ from threadpoolctl import threadpool_info
 
 from scorer.blas import DEVKIT_KERNELS, KEEP_VARIABLE, blas_kernels, cpu_runs_devkit_kernels
 from scorer.geometry import NUMPY_ARCTAN2_IS_SVML
+from scorer.svml_tan import NUMPY_TAN_IS_SVML
 
 # The environment variables that decide how many threads OpenBLAS runs, and which kernels.
 THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -73,8 +74,12 @@ def host_header() -> list[str]:
     )
     avx512 = "yes" if cpu_runs_devkit_kernels() else "no"
     # What numpy dispatches to (NPY_DISABLE_CPU_FEATURES can switch AVX-512 off on an AVX-512 CPU): where its
-    # arctan2 is not SVML's, the engine emulates SVML's (docs/engine.md, "Host dependence and kernels").
-    numpy_simd = "SVML's arctan2" if NUMPY_ARCTAN2_IS_SVML else "no SVML arctan2 (the engine emulates it)"
+    # arctan2 and tan are not SVML's, the engine replays SVML's (docs/engine.md, "numpy's SVML functions").
+    numpy_simd = (
+        "SVML's arctan2 and tan"
+        if NUMPY_ARCTAN2_IS_SVML and NUMPY_TAN_IS_SVML
+        else "no SVML arctan2 and tan (the engine replays them)"
+    )
     libraries = ", ".join(f"{package}'s {version}" for package, version, _ in openblas_libraries())
     software = (
         f"Python {platform.python_version()}, numpy {numpy.__version__}, scipy {scipy.__version__}, "

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from scorer.geometry import WHEEL_BASE, FloatArray, IntArray, normalize_angle, principal_value
+from scorer.svml_tan import tan_avx512
 from scorer.trajectory import SCORING_INTERVAL_S, SCORING_POSES, STATE_SIZE, StateIndex
 
 # The tracker discretises with the proposal interval; the bicycle integrates over a TimePoint
@@ -248,7 +249,7 @@ def _propagate(states: FloatArray, acceleration: FloatArray, steering_rate: Floa
     result[:, StateIndex.X] = states[:, StateIndex.X] + speed * np.cos(heading) * dt
     result[:, StateIndex.Y] = states[:, StateIndex.Y] + speed * np.sin(heading) * dt
     # Positions and heading integrate with the old speed, heading and steering angle.
-    result[:, StateIndex.HEADING] = principal_value(heading + speed * np.tan(steering) / WHEEL_BASE * dt)
+    result[:, StateIndex.HEADING] = principal_value(heading + speed * tan_avx512(steering) / WHEEL_BASE * dt)
     result[:, StateIndex.VELOCITY_X] = speed + filtered_acceleration * dt
     result[:, StateIndex.VELOCITY_Y] = 0.0
     result[:, StateIndex.ACCELERATION_X] = filtered_acceleration
@@ -258,7 +259,7 @@ def _propagate(states: FloatArray, acceleration: FloatArray, steering_rate: Floa
     )
     result[:, StateIndex.STEERING_RATE] = filtered_steering_rate
     result[:, StateIndex.ANGULAR_VELOCITY] = (
-        result[:, StateIndex.VELOCITY_X] * np.tan(result[:, StateIndex.STEERING_ANGLE]) / WHEEL_BASE
+        result[:, StateIndex.VELOCITY_X] * tan_avx512(result[:, StateIndex.STEERING_ANGLE]) / WHEEL_BASE
     )
     result[:, StateIndex.ANGULAR_ACCELERATION] = (
         result[:, StateIndex.ANGULAR_VELOCITY] - states[:, StateIndex.ANGULAR_VELOCITY]

@@ -1,0 +1,146 @@
+"""numpy's `tan` as it computes it on AVX-512 machines (Intel SVML's `__svml_tan8_ha`), on every host.
+
+The bicycle model takes the tangent of the steering angle twice a step (docs/engine.md, "Simulation: the
+bicycle model"). On AVX-512 CPUs numpy (2.x) runs SVML's tan, which is not correctly rounded: about 0.5 % of
+angles in [-pi/3, pi/3] get one ulp more or less than from the C library numpy calls elsewhere (AVX2 and
+baseline builds agree with it). The official results come from AVX-512 machines, so `tan_avx512` gives SVML's
+bits: numpy's own where numpy runs SVML, this replay elsewhere (docs/engine.md, "Host dependence and kernels").
+
+The replay is SVML's main path operation for operation, each FMA emulated (`geometry._fused_multiply_add`):
+x = N pi/16 + r with r in three parts, tan r by an odd polynomial, then tan(N pi/16 + r) =
+(T_N + tan r) / (1 - T_N tan r) with T_N from a 16-entry table, divided through `vrcp14pd`'s estimate
+(`scorer.rcp14`) and one Newton step each for the reciprocal and the quotient. It gives this host's SVML bits
+on every one of 9e6 random angles in [-1.4, 1.4] (with the correctly rounded reciprocal in place of the
+estimate, 0.3 % would differ). It covers 2^-300 <= |x| < 1.4, where no operand meets the table's entry for
+pi/2 (its FMAs would overflow the emulation) and none underflows; the steering angle is clipped to pi/3.
+Elsewhere numpy's own value is returned (below 2^-300 tan x rounds to x on every path).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from scorer.geometry import FloatArray, _fused_multiply_add
+from scorer.rcp14 import rcp14
+
+# Constants of `__svml_tan8_ha` (table `__svml_dtan_ha_data_internal`): N = round(x * 16 / pi) by the
+# 1.5 * 2^52 shifter, pi/16 in three parts, tan(j pi/16) = hi + lo for j = N mod 16, the polynomial in r^2.
+_SIXTEEN_OVER_PI = float.fromhex("0x1.45f306dc9c883p+2")
+_SHIFTER = float.fromhex("0x1.8p+52")
+_PI16_PARTS = tuple(
+    float.fromhex(h) for h in ("0x1.921fb54442d18p-3", "0x1.1a62633p-57", "0x1.45c06e0e68948p-89")
+)
+_TAN_HI_FIRST = [
+    "0x0.0p+0",
+    "0x1.975f5e0553158p-3",
+    "0x1.a827999fcef32p-2",
+    "0x1.561b82ab7f990p-1",
+    "0x1.0p+0",
+    "0x1.7f218e25a7461p+0",
+    "0x1.3504f333f9de6p+1",
+    "0x1.41bfee2424771p+2",
+]
+_TAN_LO_FIRST = [
+    "0x0.0p+0",
+    "0x1.ef5d367441946p-61",
+    "0x1.08b2fb1366ea9p-56",
+    "0x1.7a8c52172b675p-55",
+    "0x0.0p+0",
+    "0x1.419fa6954928fp-54",
+    "0x1.21165f626cdd5p-53",
+    "0x1.10706fed37f0ep-55",
+]
+
+
+def _odd_table(first_half: list[str], pole: float) -> FloatArray:
+    """Return SVML's 16 entries: j = 0 .. 7 as given, j = 8 the pole, j = 9 .. 15 the negated mirror of 7 .. 1
+    (tan((16 - j) pi/16) = -tan(j pi/16)); entry 0 is -0.0 as in SVML's table."""
+    half = [float.fromhex(h) for h in first_half]
+    return np.array([-0.0, *half[1:], pole, *(-value for value in reversed(half[1:]))])
+
+
+_TAN_HI = _odd_table(_TAN_HI_FIRST, -float.fromhex("0x1.fffffffffffffp+1023"))
+_TAN_LO = _odd_table(_TAN_LO_FIRST, -float.fromhex("0x1.0p+971"))
+_TAN_POLYNOMIAL = tuple(  # highest coefficient first: r^2 ... r^10 of tan r = r + r^3 P(r^2)
+    float.fromhex(h)
+    for h in (
+        "0x1.25cccc7c9fa5dp-7",
+        "0x1.664ab664efba9p-6",
+        "0x1.ba1ba489d25cap-5",
+        "0x1.11111110b0802p-3",
+        "0x1.55555555555dcp-2",
+    )
+)
+
+# The replay's domain (module docstring): numpy's value below and above.
+_REPLAY_LOW, _REPLAY_HIGH = 2.0**-300, 1.4
+
+
+def svml_tan_emulated(angle: npt.ArrayLike) -> FloatArray:
+    """Return np.tan(angle) as numpy computes it on AVX-512 machines, from float64 operations only.
+
+    `__svml_tan8_ha`'s main path in its order of operations (the register names of SVML's listing in the
+    comments where the parts get their meaning)."""
+    x = np.asarray(angle, dtype=np.float64)
+    fma = _fused_multiply_add
+    replayed = (np.abs(x) >= _REPLAY_LOW) & (np.abs(x) < _REPLAY_HIGH)
+    x_in = np.where(replayed, x, 1.0)
+    shifted = fma(x_in, np.full_like(x_in, _SIXTEEN_OVER_PI), np.full_like(x_in, _SHIFTER))
+    count = shifted - _SHIFTER  # N
+    index = shifted.view(np.int64) & 15  # j = N mod 16, the shifted value's low bits
+    pi_1, pi_2, pi_3 = (np.full_like(x_in, part) for part in _PI16_PARTS)
+    # r = x - N pi/16 = high + low: three partial reductions, the low part from their rounding errors.
+    first = fma(-count, pi_1, x_in)
+    second = fma(-count, pi_2, first)
+    high = fma(-count, pi_3, second)
+    low = fma(-count, pi_2, first - second) - fma(pi_3, count, high - second)
+    # tan r = high + (high r^2 P(r^2) + low), kept as value + its rounding error.
+    square = high * high
+    polynomial = fma(square, np.full_like(x_in, _TAN_POLYNOMIAL[0]), np.full_like(x_in, _TAN_POLYNOMIAL[1]))
+    for coefficient in _TAN_POLYNOMIAL[2:]:
+        polynomial = fma(square, polynomial, np.full_like(x_in, coefficient))
+    correction = fma(-square, polynomial * high, -low)
+    tan_r = high - correction
+    tan_r_low = (high - tan_r) - correction
+    # Numerator T_j + tan r and denominator 1 - T_j tan r, each as high + low part.
+    table_high, table_low = _TAN_HI[index], _TAN_LO[index]
+    numerator = tan_r + table_high
+    numerator_low = ((tan_r - (numerator - table_high)) + table_low) + tan_r_low
+    one = np.ones_like(x_in)
+    denominator = fma(-tan_r, table_high, one)
+    denominator_error = fma(tan_r, table_high, denominator - 1.0)
+    denominator_low = fma(tan_r, table_low, fma(tan_r_low, table_high, denominator_error))
+    # The quotient: vrcp14pd, one Newton step on the reciprocal, one on the quotient.
+    estimate = rcp14(denominator)
+    residual = fma(denominator_low, estimate, fma(-denominator, estimate, one))
+    reciprocal = fma(residual, estimate, estimate)
+    quotient = numerator * reciprocal
+    remainder = fma(-quotient, denominator_low, fma(quotient, denominator, -numerator)) - numerator_low
+    result = fma(-reciprocal, remainder, quotient)
+    return np.where(replayed, result, np.tan(x))
+
+
+# Angles where SVML's tan is one ulp off the C library's, with SVML's results: numpy is SVML here exactly
+# when it gives these.
+_SVML_PROBE_ANGLES = np.array([-0.013954, 0.447353, 0.998676, 0.121004])
+_SVML_PROBE_TAN = np.array(
+    [
+        float.fromhex(h)
+        for h in (
+            "-0x1.c9463be8c3602p-7",
+            "0x1.eb4f448fbc89dp-2",
+            "0x1.8d89a729ffdc5p+0",
+            "0x1.f210ce4271896p-4",
+        )
+    ]
+)
+NUMPY_TAN_IS_SVML = bool(np.array_equal(np.tan(_SVML_PROBE_ANGLES), _SVML_PROBE_TAN))
+
+
+def tan_avx512(angle: npt.ArrayLike) -> FloatArray:
+    """Return np.tan(angle) as the devkit computed it on the AVX-512 machines of the official results:
+    numpy's own where numpy runs SVML (exact, and faster), the replay elsewhere."""
+    if NUMPY_TAN_IS_SVML:
+        return np.tan(angle)
+    return svml_tan_emulated(angle)
