@@ -13,6 +13,6 @@ def devkit_tolerance(elsewhere: float) -> float:
     return 0.0 if UNDER_DEVKIT_KERNELS else elsewhere
 
 
-# The versions whose official results (fixtures/reference, fixtures/knife-edge) were made on the AVX-512
-# host with the SkylakeX kernels; v2.2's (fixtures/epdms) come from another host (test_epdms_reference.py).
+# The versions of the official results in fixtures/reference and fixtures/knife-edge (v2.2's: fixtures/epdms,
+# test_epdms_reference.py), all made on AVX-512 hosts with the SkylakeX kernels.
 V1_VERSIONS = ("v1.0", "v1.1")

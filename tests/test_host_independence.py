@@ -148,6 +148,49 @@ def test_every_simulated_state_and_result_keeps_its_bits_on_every_numpy_path(
     assert other["rows"] == native["rows"]
 
 
+# The submissions' simulated states of every official v2.2 token (fixtures/epdms, 1,846 tokens made on an
+# AVX-512 host under the SkylakeX kernels), simulated in one call: the tokens whose states differ.
+OFFICIAL_STATES = """
+import json, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+import scorer
+from epdms_reference import rows, scene
+from scorer.simulation import simulate
+from scorer.submission import load_submission
+from scorer.trajectory import agent_references, initial_state
+
+submissions = {}
+def poses(row):
+    path = row.scene_path.parent.parent / "submissions" / f"{row.family}.json"
+    if path not in submissions:
+        submissions[path] = load_submission(path.read_bytes(), path.name).seeds[0]
+    return submissions[path][row.token]
+
+official = rows()
+frames = [scene(row.scene_path).current_frame for row in official]
+initial = np.array([initial_state(frame.ego) for frame in frames])
+t0_us = np.array([frame.timestamp_us for frame in frames])
+states = simulate(agent_references(initial, t0_us, np.array([poses(row) for row in official])), initial)
+expected = np.array([row.diagnostics["agent_states"] for row in official], dtype=np.float64)
+differing = (states != expected).any(axis=(1, 2))
+print(json.dumps({"count": len(official), "differing": [[r.family, r.token] for r, d in zip(official, differing) if d]}))
+"""
+# Its official row was simulated from a submission 1.1e-16 away from the stored one (fixtures/epdms/README.md).
+REGENERATED_SUBMISSION = ["human_noise", "58c89d98cb15536f8"]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not cpu_runs_devkit_kernels(), reason="the official states need the SkylakeX kernels")
+@pytest.mark.parametrize("numpy_path", list(NUMPY_PATHS))
+def test_every_submission_is_simulated_as_the_official_v2_2_results_on_every_numpy_path(
+    numpy_path: str,
+) -> None:
+    output = run_python(OFFICIAL_STATES, [str(Path(__file__).parent)], NUMPY_PATHS[numpy_path])
+    assert output["count"] == 1846
+    assert output["differing"] == [REGENERATED_SUBMISSION]
+
+
 @pytest.mark.slow
 @pytest.mark.xfail(NUMPY_RUNS_SVML, reason="IDM's power is SVML's pow on AVX-512, not emulated", strict=True)
 def test_pdm_closed_proposals_keep_their_bits(cache_dir: Path) -> None:

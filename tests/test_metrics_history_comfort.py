@@ -1,10 +1,9 @@
 """History comfort (HC) against the official v2.2 results: the past states bit for bit, the six checks and HC
 on all 1,846 tokens (520 public, 1,326 probe), and every rounded series against scipy's own calls.
 
-The comfort functions run on the reference's own simulated agent states (`diagnostics.agent_states`): the
-reference host had no AVX-512, and our simulation of the same submissions differs from it in the last bits
-on 545 of the 1,846 tokens (at most 6e-11), which moves no check. PDM-Closed's states, the other member of
-the devkit's filter group, are our simulation of the cached trajectory.
+The comfort functions run on the reference's own simulated agent states (`diagnostics.agent_states`, which
+our simulation gives bit for bit: test_host_independence). PDM-Closed's states, the other member of the
+devkit's filter group, are our simulation of the cached trajectory.
 """
 
 from __future__ import annotations
