@@ -37,7 +37,7 @@ from scorer.red_lights import RedLights, observe_red_lights
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state, pdm_references
-from scorer.versions import VERSIONS, MetricVersion
+from scorer.versions import VERSIONS, MetricVersion, cache_source
 
 if TYPE_CHECKING:
     from scorer.pdm_closed import PlannerOutput
@@ -549,17 +549,22 @@ def load_caches(
     cache_dir: Path, versions: Collection[str], token: str, scene_hash: str
 ) -> dict[str, MetricCache]:
     """Return the stored caches of `token` under `versions`, by version; a version is missing when its cache is
-    missing, damaged or was built from other inputs. The versions share their map's polygons."""
+    missing, damaged or was built from other inputs. The versions share their map's polygons; a version that
+    shares another's cache (`cache_source`) reads that version's section."""
     key = {"scene_hash": scene_hash, "engine_version": engine_provenance()}
+    sources = {version: cache_source(version) for version in versions}
     try:
-        stored_key, sections = _unpack(cache_path(cache_dir, token).read_bytes(), versions)
+        stored_key, sections = _unpack(cache_path(cache_dir, token).read_bytes(), set(sources.values()))
     except (OSError, ValueError, KeyError, TypeError):
         return {}  # missing, truncated or foreign: rebuild
     if stored_key != key:
         return {}
     polygons: dict[tuple[int, int], np.ndarray] = {}  # by their arrays' offsets: one map serves every version
     caches = {}
-    for version, (meta, arrays, offsets) in sections.items():
+    for version, source in sources.items():
+        if source not in sections:
+            continue
+        meta, arrays, offsets = sections[source]
         try:
             caches[version] = _cache_of(
                 CacheKey(scene_hash, key["engine_version"], version), meta, arrays, offsets, polygons

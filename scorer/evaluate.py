@@ -44,7 +44,14 @@ from scorer.reactive.observation import reacting_observation
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state
-from scorer.versions import METRIC_COLUMNS, VERSIONS, MetricVersion, cached_together, get_version
+from scorer.versions import (
+    METRIC_COLUMNS,
+    VERSIONS,
+    MetricVersion,
+    cache_source,
+    cached_together,
+    get_version,
+)
 
 POSES_SHAPE = (8, 3)
 CHUNK_SIZE = 256  # tokens per batched simulation; bounds memory on large splits
@@ -104,7 +111,9 @@ def build_missing_caches(
 
     Return the caches built, by scene file name, and the error of each scene that failed, by file name:
     a batch that fails is built again scene by scene, so an error names its scene and the others go on.
+    A version that shares another's cache has that one built (`cache_source`).
     """
+    versions = list(dict.fromkeys(cache_source(version) for version in versions))
     built: dict[str, dict[str, MetricCache]] = {}
     errors: dict[str, Exception] = {}
     lacking: dict[tuple[str, ...], list[tuple[str, Scene]]] = {}  # scenes grouped by what they lack
@@ -232,8 +241,20 @@ def token_result(
         )
         detail["human_filter"] = {"overridden": [], "not_applied": reason}
     metrics["two_frame_extended_comfort"] = float("nan")
-    metrics["score"] = extended_score(metrics, version)
+    metrics["score"] = extended_score(_scored_columns(metrics, detail, version), version)
     return TokenResult(token=cache.token, seed=seed, valid=True, metrics=metrics, detail=detail)
+
+
+def _scored_columns(
+    metrics: Mapping[str, float], detail: Mapping[str, Any], version: MetricVersion
+) -> Mapping[str, float]:
+    """Return the columns a row's score is formed from: its own, or, where the version's score ignores the human
+    filter (before NAVSIM's fix of its issue 151, `human_filter_rescores`), the agent's before it, with the
+    row's EC (docs/engine.md, "v2.2-prefix")."""
+    before = detail.get("human_filter", {}).get("agent_before")
+    if version.human_filter_rescores or before is None:
+        return metrics
+    return {**before, "two_frame_extended_comfort": metrics["two_frame_extended_comfort"]}
 
 
 # Result columns that come straight from the scorer's rows (v2.2 adds EC and recomputes the score per split).
@@ -290,15 +311,25 @@ def score_simulated_versions(
     Versions that hold the same centerlines and routes for every token (PDM-Closed's, which every version
     shares) are measured in one `measure_alike` call: what reads the map and the ego alone (the ego boxes,
     their areas, DAC, progress) once for all of them, and what reads the observation once per way of
-    observing (`observation_key`: v1.0 and v1.1 observe alike, v2.2 drops tracks on the ego).
+    observing (`observation_key`: v1.0 and v1.1 observe alike, v2.2 drops tracks on the ego). Versions that
+    read one cache and score it with the same settings (v2.2 and v2.2-prefix, which differ in how a row's score
+    is formed from these, `token_result`) get the scores of one computation.
     """
+    first_alike: dict[tuple[object, ...], MetricVersion] = {}
+    scored_as = {
+        version.name: first_alike.setdefault(
+            (cache_source(version.name), version.evaluation, version.reactive_traffic), version
+        )
+        for version in versions
+    }
+    distinct = list(first_alike.values())
     scores: dict[str, ProposalScores] = {
         version.name: _score_reacting(caches[version.name], states, version)
-        for version in versions
+        for version in distinct
         if version.reactive_traffic is not None
     }
     groups: dict[tuple[object, ...], list[MetricVersion]] = {}
-    for version in versions:
+    for version in distinct:
         if version.reactive_traffic is not None:
             continue
         inputs = tuple(
@@ -327,7 +358,7 @@ def score_simulated_versions(
             scores[version.name] = score_measures(
                 join_measures([reference, agent]), version.evaluation, pasts
             )
-    return scores
+    return {name: scores[version.name] for name, version in scored_as.items()}
 
 
 def _reference_measures(cache: MetricCache) -> ProposalMeasures:
@@ -758,7 +789,7 @@ def join_two_frame_comfort(
         if index in values:
             metrics["two_frame_extended_comfort"], rms = values[index]
             details[index]["rms"] = rms
-            metrics["score"] = extended_score(metrics, version)
+            metrics["score"] = extended_score(_scored_columns(metrics, detail, version), version)
         detail["two_frame_extended_comfort"] = details[index]
         results.append(replace(item.result, metrics=metrics, detail=detail))
     return results

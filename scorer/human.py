@@ -5,7 +5,8 @@ As `pdm_score` at tag v2.2 (with the fix of Issue #151): on original scenes (tok
 characters), the human's logged future, 8 poses at 0.5 s, is simulated alone and scored without past states,
 so its EP and HC are always 1. In every column where the human scores exactly 0, the agent's value becomes
 1 (a human NC or DDC of 0.5 forgives nothing); the product of the multipliers and the weighted row are then
-recomputed from the filtered columns, while EP keeps the normaliser of the unfiltered multipliers. The
+recomputed from the filtered columns, while EP keeps the normaliser of the unfiltered multipliers (before the
+fix, v2.2-prefix, the score stays the agent's unfiltered one: `MetricVersion.human_filter_rescores`). The
 human depends on the scene alone, so its result is computed once, with the metric cache.
 """
 

@@ -23,6 +23,7 @@ class VersionName(StrEnum):
     V1_0 = "v1.0"
     V1_1 = "v1.1"
     V2_2 = "v2.2"
+    V2_2_PREFIX = "v2.2-prefix"
     V2_2_TWO_STAGE = "v2.2-two-stage"
 
 
@@ -99,6 +100,13 @@ class MetricVersion:
     two_frame_extended_comfort_weight: float | None = None
     # v2's reactive traffic in place of the log replay (None): the vehicles react to the scored trajectory.
     reactive_traffic: IdmTraffic | None = None
+    # NAVSIM's fix of its issue 151 (commit 359c7f7): the score is computed from the columns after the human filter.
+    # Before it (False), the filter sets the columns shown, but the score stays the agent's unfiltered one.
+    human_filter_rescores: bool = True
+    # The version whose metric cache this one reads, when the two caches are the same (None: its own).
+    shares_cache_of: VersionName | None = None
+    # Scored and shown by the board by default; a variant kept for comparison with papers is not.
+    published_by_default: bool = True
     # NAVSIM v2's two-stage EPDMS: scored over a split's stage mapping (`scorer.two_stage`), whose pairs give
     # the two-frame comfort, the synthetic scenes weighted by where the stage-one plans end.
     two_stage: bool = False
@@ -169,6 +177,21 @@ METRIC_LABELS = {
     "score": "PDMS",
 }
 
+# NAVSIM v2.2's one-stage EPDMS, and the base of its pre-fix variant below.
+_V2_2 = MetricVersion(
+    name=VersionName.V2_2,
+    evaluation=_V2_2_SCORER,
+    planner=_V2_2_SCORER,
+    result_columns=EPDMS_COLUMNS,
+    official_code="NAVSIM v2.2 (tag v2.2, commit 359c7f7, one-stage, non-reactive, human filter on)",
+    score_label="EPDMS",
+    average_row="average_all_frames",
+    observation_frames=8,
+    drops_tracks_on_ego=True,
+    human_penalty_filter=True,
+    two_frame_extended_comfort_weight=2.0,
+)
+
 VERSIONS: dict[VersionName, MetricVersion] = {
     VersionName.V1_0: MetricVersion(
         name=VersionName.V1_0,
@@ -192,18 +215,19 @@ VERSIONS: dict[VersionName, MetricVersion] = {
         ),
         official_code="NAVSIM v1.1 (tag v1.1), nuplan-devkit v1.2",
     ),
-    VersionName.V2_2: MetricVersion(
-        name=VersionName.V2_2,
-        evaluation=_V2_2_SCORER,
-        planner=_V2_2_SCORER,
-        result_columns=EPDMS_COLUMNS,
-        official_code="NAVSIM v2.2 (tag v2.2, commit 359c7f7, one-stage, non-reactive, human filter on)",
-        score_label="EPDMS",
-        average_row="average_all_frames",
-        observation_frames=8,
-        drops_tracks_on_ego=True,
-        human_penalty_filter=True,
-        two_frame_extended_comfort_weight=2.0,
+    VersionName.V2_2: _V2_2,
+    # The v2.2 tree before the human-filter fix, whose results papers published before 2025-09-29 report: the same
+    # cache (the fix changes how a row's score is formed, nothing cached), the score unfiltered.
+    VersionName.V2_2_PREFIX: replace(
+        _V2_2,
+        name=VersionName.V2_2_PREFIX,
+        official_code=(
+            "NAVSIM v2.2 before the human-filter fix (commit 8021f918b907360ac5ae6fbc252b5f96f04db966, the parent of "
+            "359c7f7; one-stage, non-reactive, human filter on, score unfiltered)"
+        ),
+        human_filter_rescores=False,
+        shares_cache_of=VersionName.V2_2,
+        published_by_default=False,
     ),
     # The scoring of each token of navhard's two stages: v2.2's scorer with the vehicles reacting to the scored
     # trajectory (and, for the human filter, to the logged human); no track is dropped at t = 0.
@@ -243,14 +267,27 @@ def get_version(name: str) -> MetricVersion:
         raise ValueError(f"unknown metric version {name!r}; known: {', '.join(VERSIONS)}") from None
 
 
+def cache_source(name: str) -> VersionName:
+    """Return the version whose metric cache `name` reads: its own, or the one it shares."""
+    version = get_version(name)
+    return version.shares_cache_of or version.name
+
+
 def cached_together(names: Iterable[str]) -> list[VersionName]:
-    """Return the versions whose metric caches are built with those of `names`: every version that sees the
-    traffic as one of them does. One PDM-Closed unroll serves all of them; a reactive version's cache adds a
-    simulation of the human per scene (about twice the rest of a scene's cache), so it is built only where a
-    reactive version is asked for."""
+    """Return the versions whose metric caches are built with those of `names`: every version with a cache of
+    its own that sees the traffic as one of them does (a version that shares another's cache reads that one).
+    One PDM-Closed unroll serves all of them; a reactive version's cache adds a simulation of the human per
+    scene (about twice the rest of a scene's cache), so it is built only where a reactive version is asked for."""
     reactive = {get_version(name).reactive_traffic is not None for name in names}
-    return [name for name, version in VERSIONS.items() if (version.reactive_traffic is not None) in reactive]
+    return [
+        name
+        for name, version in VERSIONS.items()
+        if version.shares_cache_of is None and (version.reactive_traffic is not None) in reactive
+    ]
 
 
-# The versions whose other agents replay the log: what a one-stage split is cached and scored under.
-LOG_REPLAY_VERSIONS = tuple(cached_together([DEFAULT_VERSION]))
+# The versions whose other agents replay the log and that the board publishes by default: what a one-stage
+# split is cached and scored under.
+LOG_REPLAY_VERSIONS = tuple(
+    name for name in cached_together([DEFAULT_VERSION]) if VERSIONS[name].published_by_default
+)

@@ -137,11 +137,12 @@ def test_summary_table_reads_in_80_columns(version: str, value: float) -> None:
     assert f"DDC: {VERSIONS[version].ddc_role}" in " ".join(text.split())
 
 
-def test_score_under_v2_2_writes_the_official_one_stage_layout(tmp_path: Path) -> None:
-    """`navsim-lb score --version v2.2`: token, valid, the nine columns and the score, EC empty where no
-    adjacent frame was scored, and the `average_all_frames` row skipping it (the official average)."""
+@pytest.mark.parametrize("version", ["v2.2", "v2.2-prefix"])
+def test_score_under_v2_2_writes_the_official_one_stage_layout(version: str, tmp_path: Path) -> None:
+    """`navsim-lb score --version v2.2` (or v2.2-prefix): token, valid, the nine columns and the score, EC empty
+    where no adjacent frame was scored, and the `average_all_frames` row skipping it (the official average)."""
     split = Path(__file__).parent / "fixtures" / "epdms" / "probes"
-    out = tmp_path / "v2.2.csv"
+    out = tmp_path / f"{version}.csv"
     result = CliRunner().invoke(
         app,
         [
@@ -149,7 +150,7 @@ def test_score_under_v2_2_writes_the_official_one_stage_layout(tmp_path: Path) -
             str(split),
             str(split / "submissions" / "cv_straight.json"),
             "--version",
-            "v2.2",
+            version,
             "--out",
             str(out),
             "--cache-dir",
@@ -158,10 +159,10 @@ def test_score_under_v2_2_writes_the_official_one_stage_layout(tmp_path: Path) -
     )
     assert result.exit_code == 0, result.output
     table = pd.read_csv(out, index_col=0)
-    assert list(table.columns) == ["token", "valid", *VERSIONS["v2.2"].result_columns, "error"]
+    assert list(table.columns) == ["token", "valid", *VERSIONS[version].result_columns, "error"]
     assert table["token"].iloc[-1] == "average_all_frames"
     rows = table.iloc[:-1]
     undefined = rows["two_frame_extended_comfort"].isna()
     assert 0 < undefined.sum() < len(rows)
     assert table["two_frame_extended_comfort"].iloc[-1] == rows["two_frame_extended_comfort"].mean()
-    assert "EPDMS v2.2" in result.output
+    assert f"EPDMS {version}" in result.output

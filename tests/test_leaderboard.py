@@ -522,7 +522,7 @@ def test_every_route_that_takes_a_metric_version_refuses_an_unknown_one(world: W
         headers = world.admin_headers() if "/admin/" in url else world.team_headers()
         response = world.client.request(method, url, headers=headers, **arguments)
         assert response.status_code == 422, url
-        assert "'v1.0', 'v1.1', 'v2.2' or 'v2.2-two-stage'" in response.text, url
+        assert "'v1.0', 'v1.1', 'v2.2', 'v2.2-prefix' or 'v2.2-two-stage'" in response.text, url
     known = world.client.get(
         f"/api/v1/submissions/{submission_id}/tokens",
         params={"version": "v1.0"},

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from scorer import evaluate
-from scorer.cache import MetricCache, load_caches
+from scorer.cache import MetricCache, _unpack, cache_path, load_caches
 from scorer.evaluate import TokenResult, score_seeds, score_tokens, score_versions
 from scorer.submission import load_submission
-from scorer.versions import VERSIONS
+from scorer.versions import LOG_REPLAY_VERSIONS, VERSIONS, cached_together
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 PROBES = Path(__file__).parent / "fixtures" / "epdms" / "probes"
@@ -131,9 +131,10 @@ def test_a_scene_one_version_cannot_cache_fails_in_that_version_only(tmp_path: P
     scene_path.write_bytes(gzip.compress(json.dumps(raw).encode()))
     poses = {token: np.arange(24, dtype=np.float64).reshape(8, 3) * [1.0, 0.0, 0.0]}
     rows = score_versions(split, tmp_path / "cache", poses, list(VERSIONS), [token])
-    # v2.2 and v2.2-two-stage need three past frames (history comfort).
-    assert [rows[version][0].valid for version in VERSIONS] == [True, True, False, False]
+    # v2.2, v2.2-prefix (v2.2's cache) and v2.2-two-stage need three past frames (history comfort).
+    assert [rows[version][0].valid for version in VERSIONS] == [True, True, False, False, False]
     assert "could not be built" in (rows["v2.2"][0].error or "")
+    assert rows["v2.2-prefix"][0].error == rows["v2.2"][0].error
     assert not math.isnan(rows["v1.1"][0].metrics["score"])
 
 
@@ -163,3 +164,17 @@ def test_caches_another_process_built_meanwhile_are_read(
         assert _same(rows[version][0], expected[version][0])
         # Reactive traffic cannot be built on this scene's 2-vertex baselines, as in the devkit.
         assert rows[version][0].valid or "reactive traffic" in (rows[version][0].error or "")
+
+
+def test_v2_2_prefix_reads_v2_2s_cache_and_is_off_the_board_by_default(tmp_path: Path) -> None:
+    """v2.2-prefix's cache is v2.2's (NAVSIM's fix changed how a row's score is formed, nothing cached): scoring
+    it builds the log-replay versions' caches and no section of its own, and the board's versions leave it out."""
+    path = REFERENCE / "submissions" / "cv_decel.json"
+    poses = load_submission(path.read_bytes(), path.name).seeds[0]
+    token = min(poses)
+    (row,) = score_tokens(REFERENCE, tmp_path, poses, "v2.2-prefix", [token])
+    assert row.valid
+    _, sections = _unpack(cache_path(tmp_path, token).read_bytes())
+    assert set(sections) == {"v1.0", "v1.1", "v2.2"}
+    assert cached_together(["v2.2-prefix"]) == list(LOG_REPLAY_VERSIONS) == ["v1.0", "v1.1", "v2.2"]
+    assert not VERSIONS["v2.2-prefix"].published_by_default
