@@ -227,10 +227,13 @@ def _track(
     return acceleration, np.where(stopping, 0.0, lqr_steering_rate)
 
 
-def _propagate(states: FloatArray, acceleration: FloatArray, steering_rate: FloatArray) -> FloatArray:
-    """Return the states (P, 11) one bicycle step of BICYCLE_DT later.
+def _propagate(
+    states: FloatArray, acceleration: FloatArray, steering_rate: FloatArray, steering_tan: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Return the states (P, 11) one bicycle step of BICYCLE_DT later, and the tan of their steering angle.
 
-    See docs/engine.md, "Simulation: the bicycle model".
+    `steering_tan` is the tan of the states' steering angle: each step's yaw rate takes the tan of the angle
+    the next step's heading takes it of, computed once (docs/engine.md, "Simulation: the bicycle model").
     """
     dt = BICYCLE_DT
     speed = states[:, StateIndex.VELOCITY_X]
@@ -249,7 +252,7 @@ def _propagate(states: FloatArray, acceleration: FloatArray, steering_rate: Floa
     result[:, StateIndex.X] = states[:, StateIndex.X] + speed * np.cos(heading) * dt
     result[:, StateIndex.Y] = states[:, StateIndex.Y] + speed * np.sin(heading) * dt
     # Positions and heading integrate with the old speed, heading and steering angle.
-    result[:, StateIndex.HEADING] = principal_value(heading + speed * tan_avx512(steering) / WHEEL_BASE * dt)
+    result[:, StateIndex.HEADING] = principal_value(heading + speed * steering_tan / WHEEL_BASE * dt)
     result[:, StateIndex.VELOCITY_X] = speed + filtered_acceleration * dt
     result[:, StateIndex.VELOCITY_Y] = 0.0
     result[:, StateIndex.ACCELERATION_X] = filtered_acceleration
@@ -258,13 +261,12 @@ def _propagate(states: FloatArray, acceleration: FloatArray, steering_rate: Floa
         steering + filtered_steering_rate * dt, -MAX_STEERING_ANGLE, MAX_STEERING_ANGLE
     )
     result[:, StateIndex.STEERING_RATE] = filtered_steering_rate
-    result[:, StateIndex.ANGULAR_VELOCITY] = (
-        result[:, StateIndex.VELOCITY_X] * tan_avx512(result[:, StateIndex.STEERING_ANGLE]) / WHEEL_BASE
-    )
+    result_tan = tan_avx512(result[:, StateIndex.STEERING_ANGLE])
+    result[:, StateIndex.ANGULAR_VELOCITY] = result[:, StateIndex.VELOCITY_X] * result_tan / WHEEL_BASE
     result[:, StateIndex.ANGULAR_ACCELERATION] = (
         result[:, StateIndex.ANGULAR_VELOCITY] - states[:, StateIndex.ANGULAR_VELOCITY]
     ) / dt
-    return result
+    return result, result_tan
 
 
 def simulate(reference: FloatArray, initial: FloatArray) -> FloatArray:
@@ -315,9 +317,12 @@ def _simulate(poses: FloatArray, initial: FloatArray) -> FloatArray:
     reference_speeds = velocity[:, lookahead]
     window_indices = np.minimum(steps[:, None] + np.arange(TRACKING_HORIZON), lookahead[:, None])
     curvature_windows = curvature[:, window_indices]
+    steering_tan = tan_avx512(states[:, 0, StateIndex.STEERING_ANGLE])
     for step in steps:
         acceleration, steering_rate = _track(
             states[:, step], poses[:, step], reference_speeds[:, step], curvature_windows[:, step]
         )
-        states[:, step + 1] = _propagate(states[:, step], acceleration, steering_rate)
+        states[:, step + 1], steering_tan = _propagate(
+            states[:, step], acceleration, steering_rate, steering_tan
+        )
     return states
