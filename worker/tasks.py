@@ -8,7 +8,8 @@ on every broker, and a lost or repeated chunk cannot produce a wrong count (rows
 version, seed and token).
 
 `reap_lost_work` (no task: the reaper's own process calls it, worker.reaper) sends again what server.runs'
-reaper decides. Database and broker outages are retried; every other error fails the run with a message the team may read, and the worker goes on.
+reaper decides. Database and broker outages are retried; every other error fails the run with a message the
+team may read, and the worker goes on.
 """
 
 from __future__ import annotations
