@@ -10,8 +10,13 @@ Prints, under a header that describes the host (benchmarks/host.py):
 - within both, the floor: the CPU time of the SVDs the devkit's bits require (pinv's, two per simulated
   proposal: scorer/simulation.py), which no faster path may skip; the devkit's time divided by it bounds
   the speed-up any bit-identical engine can reach on this host;
-- apart from those, the start-up of `navsim-lb score` (a one-token split, warm cache) and of `navsim-lb --help`
-  against bare `python -c "import numpy, shapely"` (target: at most 2x), and peak RSS.
+- the ratio to that floor of each version alone and of the log-replay versions at once (the workers' call on a
+  one-stage split: one simulation serves them all), ending with the two lines `floor ratio, scoring (all
+  versions)` (target: at most 1.5x) and `floor ratio, cache (all versions)` (target: at most 2x); the reactive
+  version is apart from those two, since its floor is its IDM traffic's, not the SVDs';
+- apart from those, the start-up of `navsim-lb score` (a one-token split, warm cache) with and without
+  `--out results.csv`, and of `navsim-lb --help`, against bare `python -c "import numpy, shapely"` (target: at
+  most 1.5x), and peak RSS.
 Every process runs one OpenBLAS thread (OPENBLAS_NUM_THREADS=1 unless set), as the workers do and as the
 devkit is timed.
 CPU time counts this process and its finished children (the process pool's), every thread of each. Cache
@@ -42,11 +47,11 @@ from typing import Self, TypeVar
 from host import host_header
 
 from scorer.baselines import constant_velocity
-from scorer.evaluate import build_missing_caches, build_split_cache, score_tokens
+from scorer.evaluate import build_missing_caches, build_split_cache, score_tokens, score_versions
 from scorer.scene import iter_scenes, scene_paths
 from scorer.submission import Submission, SubmissionMetadata, dump_submission_json
 from scorer.synth import synthesize_split
-from scorer.versions import LOG_REPLAY_VERSIONS, VERSIONS, VersionName
+from scorer.versions import VERSIONS, VersionName
 
 linalg_module = importlib.import_module("numpy.linalg._linalg")
 
@@ -55,7 +60,11 @@ ALL_VERSIONS = tuple(VERSIONS)
 V1_VERSIONS = (VersionName.V1_0, VersionName.V1_1)
 CACHE_TARGET = 1.5  # the board's three versions' cache against the two v1 versions'
 SCORE_TARGET = 2.0  # v2.2's scoring time per token against v1.1's
-STARTUP_TARGET = 2.0  # a one-token `navsim-lb score` against bare Python importing numpy and shapely
+STARTUP_TARGET = 1.5  # a one-token `navsim-lb score` against bare Python importing numpy and shapely
+SCORE_FLOOR_TARGET = 1.5  # the log-replay versions at once per token and seed against their SVDs' CPU time
+CACHE_FLOOR_TARGET = 2.0  # the log-replay versions' cache per scene against its SVDs' CPU time
+# Every version whose floor is its SVDs: the reactive version's IDM traffic has a floor of its own.
+LOG_REPLAY = tuple(name for name in ALL_VERSIONS if VERSIONS[name].reactive_traffic is None)
 WARM_UP_SCENES = 4
 T = TypeVar("T")
 
@@ -72,9 +81,18 @@ class Timing:
 
     def row(self) -> str:
         return (
-            f"  {self.label:<16} {self.processes:>9} {self.count / self.seconds:>9.1f}"
+            f"  {self.label:<26} {self.processes:>9} {self.count / self.seconds:>9.1f}"
             f" {1000 * self.cpu_seconds / self.count:>9.1f} {self.seconds:>8.2f} {self.outcome:>6}"
         )
+
+
+def _label(versions: Sequence[str]) -> str:
+    """Name a set of versions in a table row: the version alone, or which set it is."""
+    if len(versions) == 1:
+        return versions[0]
+    if tuple(versions) == LOG_REPLAY:
+        return "log-replay, at once"
+    return "every version, at once" if tuple(versions) == ALL_VERSIONS else "+".join(versions)
 
 
 def _cpu_seconds() -> float:
@@ -120,12 +138,23 @@ def _floor(timing: Timing, svd_cpu_seconds: float, unit: str) -> str:
     return (
         f"  {timing.label}: the SVDs pinv needs for the devkit's bits take {floor_ms:.2f} CPU-ms per {unit}"
         f" ({share:.0%} of the time): 100x the devkit here needs a devkit slower than {100 * floor_ms:.0f} ms"
-        f" per {unit}, 50x one slower than {50 * floor_ms:.0f} ms"
+        f" per {unit}, 50x one slower than {50 * floor_ms:.0f} ms; this run is {_floor_ratio(timing):.2f}x it"
     )
 
 
+def _floor_ratio(timing: Timing) -> float:
+    """Return `timing`'s CPU time against the CPU time of its SVDs (1-process runs only)."""
+    return timing.cpu_seconds / (timing.svd_cpu_seconds or float("nan"))
+
+
+def _floor_verdict(what: str, timing: Timing, target: float) -> str:
+    ratio = _floor_ratio(timing)
+    verdict = "within" if ratio <= target else "OVER"
+    return f"  {what}: {ratio:.2f}x the floor ({verdict} the target of at most {target:g}x)"
+
+
 def _header(unit: str, outcome: str) -> str:
-    return f"  {'versions':<16} {'processes':>9} {unit + '/s':>9} {'CPU-ms':>9} {'seconds':>8} {outcome:>6}"
+    return f"  {'versions':<26} {'processes':>9} {unit + '/s':>9} {'CPU-ms':>9} {'seconds':>8} {outcome:>6}"
 
 
 def _ratio(label: str, numerator: Timing, denominator: Timing, target: float) -> str:
@@ -155,8 +184,9 @@ def _median_seconds(command: list[str], runs: int = 5) -> float:
     return statistics.median(times)
 
 
-def _startup_seconds(split: Path, predictions: dict, cache_dir: Path) -> float:
-    """Return the median wall time of `navsim-lb score` on a one-token split with a warm cache."""
+def _startup_seconds(split: Path, predictions: dict, out: bool) -> float:
+    """Return the median wall time of `navsim-lb score` on a one-token split with a warm cache, writing the
+    results CSV where `out` is set."""
     token, path = next(iter(scene_paths(split).items()))
     one = DATA / "split_one"
     shutil.rmtree(one, ignore_errors=True)
@@ -168,6 +198,7 @@ def _startup_seconds(split: Path, predictions: dict, cache_dir: Path) -> float:
     )
     command = [str(Path(sys.executable).with_name("navsim-lb")), "score", str(one), str(submission)]
     command += ["--cache-dir", str(DATA / "cache_one")]
+    command += ["--out", str(DATA / "one_token.csv")] if out else []
     return _median_seconds(command)  # its first, untimed run builds the one-token cache
 
 
@@ -179,7 +210,7 @@ def build_cache(split: Path, cache_dir: Path, versions: Sequence[str], workers: 
             lambda: build_split_cache(split, cache_dir, versions, workers=workers)
         )
     svd_cpu = svd.cpu_seconds if workers == 1 else None
-    return Timing("+".join(versions), workers, count, seconds, cpu, len(failures), svd_cpu)
+    return Timing(_label(versions), workers, count, seconds, cpu, len(failures), svd_cpu)
 
 
 def score(
@@ -236,8 +267,8 @@ def main() -> None:
     v1 = build_cache(split, Path(f"{stem}_v1"), V1_VERSIONS, 1, len(tokens))
     print(v1.row(), flush=True)
     shutil.rmtree(f"{stem}_v1")
-    # What the workers build: the board's versions (the reactive one's cache is built only where asked for).
-    board = build_cache(split, Path(f"{stem}_board"), LOG_REPLAY_VERSIONS, 1, len(tokens))
+    # What the workers build: the log-replay versions (the reactive one's cache is built only where asked for).
+    board = build_cache(split, Path(f"{stem}_board"), LOG_REPLAY, 1, len(tokens))
     print(board.row(), flush=True)
     shutil.rmtree(f"{stem}_board")
     cache_dir = Path(f"{stem}_w1")  # all versions, 1 process: the cache the scoring below reads
@@ -246,12 +277,11 @@ def main() -> None:
     for workers in process_counts[1:]:
         print(build_cache(split, Path(f"{stem}_w{workers}"), ALL_VERSIONS, workers, len(tokens)).row())
         shutil.rmtree(f"{stem}_w{workers}")
-    print(
-        _ratio("the board's three versions against the two v1 versions, 1 process", board, v1, CACHE_TARGET)
-    )
-    print("the floor of cache building, per version alone, 1 process:")
-    for timing in alone:
+    print(_ratio("the log-replay versions against the two v1 versions, 1 process", board, v1, CACHE_TARGET))
+    print("the floor of cache building, 1 process:")
+    for timing in (*alone, board):
         print(_floor(timing, timing.svd_cpu_seconds or 0.0, "scene"))
+    print(_floor_verdict("the log-replay versions' cache at once", board, CACHE_FLOOR_TARGET))
 
     for version in ALL_VERSIONS:
         score_tokens(split, cache_dir, predictions, version, tokens[:WARM_UP_SCENES])
@@ -263,11 +293,22 @@ def main() -> None:
             timing = score(split, cache_dir, predictions, version, tokens, workers)
             single.setdefault(version, timing)
             print(timing.row(), flush=True)
+    with SvdClock() as svd:  # the workers' call: every log-replay version of a token from one simulation
+        valid, seconds, cpu = _timed(
+            lambda: sum(
+                row.valid
+                for rows in score_versions(split, cache_dir, predictions, LOG_REPLAY, tokens).values()
+                for row in rows
+            )
+        )
+    at_once = Timing(_label(LOG_REPLAY), 1, len(tokens), seconds, cpu, valid, svd.cpu_seconds)
+    print(at_once.row(), flush=True)
     v2_2, v1_1 = single[VersionName.V2_2], single[VersionName.V1_1]
     print(_ratio("v2.2 against v1.1 per token, 1 process", v2_2, v1_1, SCORE_TARGET))
     print("the floor of scoring, 1 process:")
-    for timing in single.values():
+    for timing in (*single.values(), at_once):
         print(_floor(timing, timing.svd_cpu_seconds or 0.0, "token"))
+    print(_floor_verdict("the log-replay versions at once, per token and seed", at_once, SCORE_FLOOR_TARGET))
 
     print("\nstart-up, median wall time of 5 runs:")
     bare = _median_seconds([sys.executable, "-c", "import numpy, shapely"])
@@ -275,8 +316,9 @@ def main() -> None:
     for label, seconds in (
         (
             "navsim-lb score of a one-token split (warm cache)",
-            _startup_seconds(split, predictions, cache_dir),
+            _startup_seconds(split, predictions, out=False),
         ),
+        ("the same with --out results.csv", _startup_seconds(split, predictions, out=True)),
         ("navsim-lb --help", _median_seconds([navsim_lb, "--help"])),
     ):
         verdict = "within" if seconds <= STARTUP_TARGET * bare else "OVER"
@@ -288,6 +330,8 @@ def main() -> None:
         f"peak RSS: {_peak_rss_mib(resource.RUSAGE_SELF):.0f} MiB this process,"
         f" {_peak_rss_mib(resource.RUSAGE_CHILDREN):.0f} MiB its largest child (a pool process or navsim-lb)"
     )
+    print(f"floor ratio, scoring (all versions): {_floor_ratio(at_once):.2f}x")
+    print(f"floor ratio, cache (all versions): {_floor_ratio(board):.2f}x")
 
 
 if __name__ == "__main__":
