@@ -291,3 +291,7 @@ def cached_together(names: Iterable[str]) -> list[VersionName]:
 LOG_REPLAY_VERSIONS = tuple(
     name for name in cached_together([DEFAULT_VERSION]) if VERSIONS[name].published_by_default
 )
+# The versions of NAVSIM's two-stage EPDMS: what a two-stage split is cached and scored under.
+TWO_STAGE_VERSIONS = tuple(
+    name for name, version in VERSIONS.items() if version.two_stage and version.published_by_default
+)

@@ -21,7 +21,7 @@ from scorer.geometry import FloatArray
 from scorer.scene import scene_paths
 from server.models import FailureKind, Submission
 from server.runs._chunks import ChunkStart, StartAction
-from server.runs._run import BOARD_VERSIONS, completed_tokens
+from server.runs._run import completed_tokens, run_versions
 from server.services.errors import NotFound
 from server.storage import read_file, read_trajectories
 
@@ -82,7 +82,7 @@ def load_job(session: Session, submission_id: int) -> ScoringJob:
         split_dir=Path(split.directory),
         split_hash=split.content_hash,
         seed_count=submission.seed_count,
-        versions=BOARD_VERSIONS,
+        versions=run_versions(split),
     )
 
 

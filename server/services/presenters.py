@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from scorer.versions import get_version
 from server.models import Phase, Result, Submission, Summary, TokenResultRow
-from server.runs import BOARD_VERSIONS
+from server.runs import run_versions
 from server.schemas import (
     AdminSubmissionOut,
     PhaseOut,
@@ -75,7 +75,9 @@ def submission_views(
     views = []
     for submission in submissions:
         visible = set(visible_subsets(submission.split, submission.phase, admin))
-        nested: dict[str, dict[str, SubsetResult]] = {version: {} for version in BOARD_VERSIONS}
+        nested: dict[str, dict[str, SubsetResult]] = {
+            version: {} for version in run_versions(submission.split)
+        }
         for summary in by_submission[submission.id]:
             if summary.subset in visible:
                 key = (submission.id, summary.metric_version, summary.subset)
@@ -97,7 +99,7 @@ def _shown_versions(session: Session, submissions: Sequence[Submission]) -> dict
     shown: dict[int, list[str]] = defaultdict(list)
     for phase, team_ids in teams.items():
         subset = default_subset(phase)
-        for version in BOARD_VERSIONS:
+        for version in run_versions(phase.split):
             for submission_id in shown_entries(session, phase, version, subset, team_ids):
                 shown[submission_id].append(version)
     return shown
