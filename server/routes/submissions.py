@@ -17,7 +17,7 @@ from server.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
 from server.schemas import SubmissionAccepted, SubmissionOut, SubmissionPatch, TokenRow, ValidationReport
 from server.services.pictures import scene_picture
 from server.services.presenters import submission_views, token_result_views
-from server.services.splits import resolve_phase, split_tokens
+from server.services.splits import resolve_phase, split_tokens, upload_stages
 from server.services.submissions import create_submission, edit_submission, get_submission, list_submissions
 from server.services.validation import ValidUpload, validate_upload
 from server.upload_gate import Check
@@ -48,8 +48,9 @@ def _checked_upload(
     """Return the phase and the checked file; raises Invalid (422) listing every problem."""
     phase_row = resolve_phase(session, phase)
     data = _read_upload(file, request.app.state.settings.max_upload_bytes)
+    split = phase_row.split
     return phase_row, validate_upload(
-        data, file.filename or "submission", split_tokens(phase_row.split), form
+        data, file.filename or "submission", split_tokens(split), form, upload_stages(split)
     )
 
 

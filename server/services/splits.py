@@ -37,6 +37,11 @@ def stage_mapping(split: Split) -> TwoStageSplit:
     return load_two_stage_split(Path(split.directory))
 
 
+def upload_stages(split: Split) -> TwoStageSplit | None:
+    """Return what an upload's stages must cover: a two-stage split's mapping, None for a one-stage split."""
+    return stage_mapping(split) if split.kind == SplitKind.two_stage else None
+
+
 def scene_starts(session: Session, split: Split) -> dict[str, tuple[str, int]]:
     """Return token -> (log name, t0 in us) of a split's readable scenes, read from its files the first time.
 
