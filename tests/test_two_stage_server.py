@@ -4,8 +4,10 @@ two-stage form."""
 
 from __future__ import annotations
 
+import csv
 import gzip
 import json
+import math
 import shutil
 from datetime import timedelta
 from functools import cache
@@ -15,20 +17,38 @@ from typing import Any
 import numpy as np
 import pytest
 from server_testing import REFERENCE_DIR, REFERENCE_SUBMISSIONS, World
+from sqlalchemy import select
 
 from scorer.submission import SubmissionMetadata, TwoStageSubmission, dump_two_stage_submission_json
 from scorer.two_stage.split import MAPPING_FILE, load_two_stage_split
 from server.db import transaction
-from server.models import SplitKind, Submission, utc_now
+from server.models import Result, ScoringChunk, SplitKind, Submission, Summary, TokenResultRow, utc_now
 from server.runs import RUN_VERSIONS, run_versions
 from server.services.errors import Conflict
 from server.services.splits import create_phase, register_split, split_tokens
+from server.settings import Settings
 from server.storage import read_trajectories
 
 TWO_STAGE_DIR = Path(__file__).parent / "fixtures" / "epdms-two-stage-reactive"
 FULL_REFERENCE_PICKLE = Path(__file__).parent / "fixtures" / "epdms-two-stage" / "submissions" / "human.pkl"
 STAGES = load_two_stage_split(TWO_STAGE_DIR)
 PHASE = "navhard"
+
+
+@pytest.fixture(scope="session")
+def two_stage_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The excerpt's metric caches, built once for every test that scores it."""
+    from scorer.evaluate import build_split_cache
+
+    directory = tmp_path_factory.mktemp("two-stage-cache")
+    assert build_split_cache(TWO_STAGE_DIR, directory, ["v2.2-two-stage"], workers=2) == {}
+    return directory
+
+
+@pytest.fixture
+def server_settings(server_settings: Settings, two_stage_cache: Path) -> Settings:
+    """The test database's settings, scoring from the excerpt's prebuilt caches."""
+    return server_settings.model_copy(update={"cache_dir_option": two_stage_cache})
 
 
 @cache
@@ -146,3 +166,131 @@ def test_an_upload_in_the_other_kinds_form_is_refused_saying_which_form_the_spli
     assert refused.status_code == 422
     assert "is a one-stage split: it takes a one-stage submission" in refused.json()["detail"]
     assert world.queued == []
+
+
+# A run through the server equals `navsim-lb score --version v2.2-two-stage`, bit for bit -------------------
+
+
+def _run_in_process(world: World, submission_id: int, chunk_size: int, dies: int = 0) -> list[list[str]]:
+    """Play the workers of a run in this process: plan it in chunks of `chunk_size`, let the process of the
+    first `dies` chunks die once (they are split one token per chunk), score and write every chunk. Return
+    each scored chunk's tokens and context."""
+    from server.runs import (
+        StartAction,
+        chunk_inputs,
+        claim_submission,
+        plan_run,
+        score_chunk,
+        start_chunk,
+        write_chunk,
+    )
+
+    settings = world.settings
+    with transaction(world.factory) as session:
+        run = claim_submission(session, submission_id, "w")
+        assert run is not None
+        plan = plan_run(session, submission_id, run, chunk_size, "test-engine", 200)
+    pending = list(plan.chunks)
+    with transaction(world.factory) as session:
+        for chunk_id in pending[:dies]:
+            session.get(ScoringChunk, chunk_id).deaths = 1  # type: ignore[union-attr]
+    scored: list[list[str]] = []
+    while pending:
+        chunk_id = pending.pop(0)
+        with transaction(world.factory) as session:
+            start = start_chunk(session, chunk_id, run, "w")
+        if start.action == StartAction.split_up:
+            pending += start.children
+            continue
+        assert start.action == StartAction.score
+        with world.session() as session:
+            inputs = chunk_inputs(session, submission_id, run, start)
+        assert inputs is not None
+        chunk = score_chunk(inputs, settings.storage_dir, settings.cache_dir)
+        with transaction(world.factory) as session:
+            write_chunk(session, inputs, chunk, "w", "test-engine", 200)
+        scored.append([*start.tokens, "|", *start.context])
+    return scored
+
+
+def _cli_results(world: World, data: bytes, seeds: int, tmp_path: Path) -> list[dict[str, dict[str, str]]]:
+    """Return per seed the official CSV `navsim-lb score` writes of the file: token -> its row."""
+    from typer.testing import CliRunner
+
+    from navsim_lb.cli import app
+
+    path = tmp_path / "two.json"
+    path.write_bytes(data)
+    out = tmp_path / "results.csv"
+    command = ["score", str(TWO_STAGE_DIR), str(path), "--version", "v2.2-two-stage", "--out", str(out)]
+    result = CliRunner().invoke(app, [*command, "--cache-dir", str(world.settings.cache_dir)])
+    assert result.exit_code == 0, result.output
+    paths = [out] if seeds == 1 else [out.with_name(f"results.seed{seed}.csv") for seed in range(seeds)]
+    with_rows = []
+    for csv_path in paths:
+        with csv_path.open(newline="") as file:
+            with_rows.append({row["token"]: row for row in csv.DictReader(file)})
+    return with_rows
+
+
+def _field(value: float | None) -> str:
+    """Return a value as the official CSV writes it (NaN, null here, as an empty field)."""
+    return "" if value is None or (isinstance(value, float) and math.isnan(value)) else repr(value)
+
+
+@pytest.mark.slow
+def test_a_run_through_the_server_equals_the_command_line_bit_for_bit(world: World, tmp_path: Path) -> None:
+    """Two seeds, chunks of whole groups, one chunk's process dying (its tokens then scored one per chunk with
+    their comfort partner as context): every token's columns, the three summary rows per seed, each group's
+    equal those of `navsim-lb score` on the same file; seed 0 is the reference family's own submission, whose
+    weights and group values are the official ones."""
+    from two_stage_reference import official_summary, official_tokens
+
+    from scorer.two_stage.aggregate import SCORE_COLUMNS
+    from scorer.two_stage.result_csv import STAGE_COLUMNS, SUMMARY_TOKENS
+
+    add_two_stage_phase(world)
+    submission = family_submission("swerve_left_fast", seeds=2)
+    data = dump_two_stage_submission_json(submission)
+    response = post(world, data, "two.json")
+    assert response.status_code == 202, response.text
+    submission_id = response.json()["id"]
+    chunks = _run_in_process(world, submission_id, chunk_size=30, dies=1)
+    group = STAGES.groups[0].tokens  # type: ignore[index]
+    assert [group[0], "|", group[1]] in chunks  # orig alone, prev (its EC partner) as context
+    assert any(chunk[: len(STAGES.groups[1].tokens)] == list(STAGES.groups[1].tokens) for chunk in chunks)  # type: ignore[index]
+
+    official = _cli_results(world, data, 2, tmp_path)
+    lines, groups = official_tokens("swerve_left_fast"), official_summary("swerve_left_fast")["groups"][:3]
+    with world.session() as session:
+        assert session.get(Submission, submission_id).status == "scored"  # type: ignore[union-attr]
+        rows = session.scalars(
+            select(TokenResultRow).where(TokenResultRow.submission_id == submission_id)
+        ).all()
+        results = {
+            r.seed: r for r in session.scalars(select(Result).where(Result.submission_id == submission_id))
+        }
+        summary = session.scalars(select(Summary).where(Summary.submission_id == submission_id)).one()
+        assert len(rows) == 72 and set(results) == {0, 1}
+        for row in rows:
+            expected = official[row.seed][row.token]
+            stage = row.detail["two_stage"]["stage"]
+            suffix = "_stage_one" if stage == 1 else "_stage_two"
+            for column in STAGE_COLUMNS:
+                assert _field(getattr(row, column)) == expected[column + suffix], (row.token, column)
+            assert _field(row.score) == expected["score"], row.token
+            if row.seed == 0:
+                assert row.detail["two_stage"]["weight"] == lines[row.token]["weight"], row.token
+        for seed, result in results.items():
+            stage_one, stage_two, combined = (official[seed][token] for token in SUMMARY_TOKENS)
+            assert _field(result.score) == combined["score"]
+            for column in STAGE_COLUMNS:
+                assert _field(result.two_stage["stage_one"][column]) == stage_one[column + "_stage_one"]
+                assert _field(result.two_stage["stage_two"][column]) == stage_two[column + "_stage_two"]
+            assert result.two_stage["official"] is True and len(result.two_stage["groups"]) == 3
+        values = [group["combined"]["score"] for group in results[0].two_stage["groups"]]
+        assert values == [group["combined"] for group in groups]
+        scores = [float(official[seed][SUMMARY_TOKENS[2]]["score"]) for seed in (0, 1)]
+        assert summary.score == float(np.mean(scores)) and summary.score_max == max(scores)
+        assert summary.two_stage["groups"] == 3 and summary.ci_low <= summary.score <= summary.ci_high
+        assert set(summary.two_stage["stage_one"]) == set(SCORE_COLUMNS)
