@@ -237,7 +237,8 @@ VERSIONS: dict[VersionName, MetricVersion] = {
         planner=_V2_2_SCORER,
         result_columns=EPDMS_COLUMNS,
         official_code=(
-            "NAVSIM v2.2 (tag v2.2, commit 359c7f7, two-stage, reactive IDM traffic, human filter on)"
+            "NAVSIM v2.2 (tag v2.2, commit 359c7f7, run_pdm_score_from_submission.py: two-stage, reactive IDM "
+            "traffic, human filter on)"
         ),
         score_label="EPDMS",
         average_row="average_all_frames",

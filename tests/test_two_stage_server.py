@@ -16,11 +16,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from server_testing import REFERENCE_DIR, REFERENCE_SUBMISSIONS, World
+from server_testing import REFERENCE_DIR, REFERENCE_SUBMISSIONS, World, add_team
 from sqlalchemy import select
 
 from scorer.submission import SubmissionMetadata, TwoStageSubmission, dump_two_stage_submission_json
 from scorer.two_stage.split import MAPPING_FILE, load_two_stage_split
+from scorer.versions import DEFAULT_VERSION
 from server.db import transaction
 from server.models import Result, ScoringChunk, SplitKind, Submission, Summary, TokenResultRow, utc_now
 from server.runs import RUN_VERSIONS, run_versions
@@ -79,10 +80,11 @@ def add_two_stage_phase(world: World) -> None:
         create_phase(session, PHASE, split, opens_at=utc_now() - timedelta(days=30))
 
 
-def post(world: World, data: bytes, name: str, phase: str = PHASE) -> Any:
+def post(world: World, data: bytes, name: str, phase: str = PHASE, team_token: str | None = None) -> Any:
+    headers = {"Authorization": f"Bearer {team_token}"} if team_token else world.team_headers()
     return world.client.post(
         "/api/v1/submissions",
-        headers=world.team_headers(),
+        headers=headers,
         files={"file": (name, data)},
         data={"phase": phase},
     )
@@ -294,3 +296,100 @@ def test_a_run_through_the_server_equals_the_command_line_bit_for_bit(world: Wor
         assert summary.score == float(np.mean(scores)) and summary.score_max == max(scores)
         assert summary.two_stage["groups"] == 3 and summary.ci_low <= summary.score <= summary.ci_high
         assert set(summary.two_stage["stage_one"]) == set(SCORE_COLUMNS)
+
+
+# The board and the submission's groups ----------------------------------------------------------------------
+
+
+def _scored_from_official(world: World, family: str, team_token: str | None = None) -> int:
+    """Upload a family's excerpt submission and write its rows from the official per-token values (what a
+    chunk writes of them), then aggregate the run; return the submission's id."""
+    from two_stage_reference import aggregation_input
+
+    from server.runs import claim_submission, mark_scored, write_chunk_results
+    from server.runs._two_stage import stage_rows
+
+    data = dump_two_stage_submission_json(family_submission(family))
+    response = post(world, data, f"{family}.json", team_token=team_token)
+    assert response.status_code == 202, response.text
+    submission_id = response.json()["id"]
+    excerpt = set(split_tokens_of_excerpt())
+    tokens = [item for item in aggregation_input(family) if item.result.token in excerpt]
+    order = [item.result.token for item in tokens]
+    with transaction(world.factory) as session:
+        run = claim_submission(session, submission_id, "w")
+        assert run is not None
+        rows = stage_rows({0: tokens}, {0: order})
+        assert write_chunk_results(session, submission_id, run, "v2.2-two-stage", rows, "w", 1.0)
+        assert mark_scored(session, submission_id, run, "test-engine", 200)
+    return submission_id
+
+
+def split_tokens_of_excerpt() -> tuple[str, ...]:
+    return STAGES.stage_one_tokens + STAGES.stage_two_tokens
+
+
+def test_the_two_stage_board_ranks_by_the_combined_score_with_each_stage(world: World) -> None:
+    from two_stage_reference import aggregation_input, official_summary, official_tokens
+
+    from scorer.two_stage.aggregate import aggregate_two_stage
+
+    add_two_stage_phase(world)
+    _, beta = add_team(world.factory, "beta")
+    ids = {
+        "human": _scored_from_official(world, "human"),
+        "swerve_left_fast": _scored_from_official(world, "swerve_left_fast", beta),
+    }
+    expected = {
+        family: aggregate_two_stage(
+            [
+                item
+                for item in aggregation_input(family)
+                if item.result.token in set(split_tokens_of_excerpt())
+            ],
+            STAGES,
+        )
+        for family in ids
+    }
+    board = world.client.get("/api/v1/leaderboard", params={"phase": PHASE}).json()
+    assert (board["version"], board["versions"], board["two_stage"]) == (
+        "v2.2-two-stage",
+        ["v2.2-two-stage"],
+        True,
+    )
+    assert board["interval_over"] == "groups" and "run_pdm_score_from_submission.py" in board["official_code"]
+    ranked = [row for row in board["rows"] if not row["baseline"]]
+    assert [row["method"] for row in ranked] == sorted(ids, key=lambda family: -expected[family].score)
+    for row in ranked:
+        result = expected[row["method"]]
+        assert row["score"] == result.score and row["stage_one_score"] == result.stage_one["score"]
+        assert row["stage_two"]["lane_keeping"] == result.stage_two["lane_keeping"]
+        assert row["groups"] == 3 and row["undefined_groups"] == 0 and row["official"] is True
+        assert row["ci95"][0] <= row["score"] <= row["ci95"][1]
+    by_stage = world.client.get("/api/v1/leaderboard", params={"phase": PHASE, "sort": "stage_two_score"})
+    assert by_stage.status_code == 200
+    refused = world.client.get("/api/v1/leaderboard", params={"phase": PHASE, "version": "v2.2"})
+    assert refused.status_code == 404 and "scored under v2.2-two-stage" in refused.json()["detail"]
+    one_stage = world.client.get("/api/v1/leaderboard").json()  # the default phase keeps its default version
+    assert (one_stage["version"], one_stage["two_stage"]) == (DEFAULT_VERSION, False)
+
+    groups = world.client.get(f"/api/v1/submissions/{ids['human']}/groups", headers=world.team_headers())
+    assert groups.status_code == 200, groups.text
+    [seed] = groups.json()["seeds"]
+    official_groups, lines = official_summary("human")["groups"], official_tokens("human")
+    assert [group["score"] for group in seed["groups"]] == [
+        group["combined"] for group in official_groups[:3]
+    ]
+    first = seed["groups"][0]
+    assert first["original_stage_one"] == official_groups[0]["stage_one_now"]
+    assert first["original_stage_two"] == official_groups[0]["stage_two_now_weighted"]
+    assert first["weights"]["previous"] == {
+        token: lines[token]["weight"]
+        for token in STAGES.groups[0].previous_tokens  # type: ignore[index]
+    }
+    state = world.client.get(f"/api/v1/submissions/{ids['human']}", headers=world.team_headers()).json()
+    assert (
+        state["results"]["v2.2-two-stage"]["all"]["stage_one_score"] == expected["human"].stage_one["score"]
+    )
+    page = world.client.get(f"/?phase={PHASE}")
+    assert page.status_code == 200 and "Stage 1" in page.text and "resamples groups" in page.text

@@ -32,6 +32,7 @@ from server.schemas import (
     RescoreStarted,
     SplitAdded,
     SplitIn,
+    StageGroupsOut,
     TeamIn,
     TeamOut,
     TokenCreated,
@@ -42,7 +43,7 @@ from server.schemas import (
 from server.services import admin as actions
 from server.services.leaderboard import leaderboard_view
 from server.services.pictures import scene_picture
-from server.services.presenters import phase_view, submission_views, token_result_views
+from server.services.presenters import phase_view, stage_group_views, submission_views, token_result_views
 from server.services.splits import resolve_phase
 from server.services.submissions import get_submission, list_submissions
 from server.services.teams import get_team, list_teams
@@ -311,6 +312,17 @@ def scene_picture_route(
         scene_picture(submission, token, version, seed, admin=True, settings=settings),
         media_type="image/png",
     )
+
+
+@router.get("/submissions/{submission_id}/groups")
+def stage_groups(
+    session: SessionDep,
+    _admin: AdminDep,
+    submission_id: RowId,
+    version: VersionName = VersionName.V2_2_TWO_STAGE,
+) -> StageGroupsOut:
+    """A two-stage submission's groups per seed."""
+    return stage_group_views(session, get_submission(session, submission_id), version)
 
 
 @router.get("/submissions/{submission_id}/tokens")

@@ -31,6 +31,7 @@ from server.services.splits import ALL_SUBSET, stage_mapping
 if TYPE_CHECKING:
     from scorer.evaluate import TokenResult
     from scorer.two_stage.aggregate import TwoStageResult, TwoStageToken
+    from scorer.two_stage.split import TwoStageSplit
 
 DETAIL_KEY = "two_stage"
 MAX_KEPT_NOTES = 200  # a navhard-size run's notes stay readable; the count says how many there were
@@ -116,8 +117,11 @@ def _seed_tokens(session: Session, submission: Submission, version: str) -> dict
     }
 
 
-def seed_two_stage(result: TwoStageResult) -> dict[str, Any]:
-    """Return what a seed's Result keeps of its two-stage result beyond its combined row."""
+def seed_two_stage(result: TwoStageResult, stages: TwoStageSplit) -> dict[str, Any]:
+    """Return what a seed's Result keeps of its two-stage result beyond its combined row: the stage summaries,
+    each group's parts, value, detail and the weights of its synthetic tokens (per stage-one frame), and the
+    notes."""
+    entries = {entry.original: entry for entry in stages.groups or ()}
     return json_safe(
         {
             "stage_one": result.stage_one,
@@ -129,6 +133,13 @@ def seed_two_stage(result: TwoStageResult) -> dict[str, Any]:
                     "parts": group.parts,
                     "combined": group.combined,
                     "detail": group.detail,
+                    "weights": {
+                        role: {token: result.weights.get(token, math.nan) for token in tokens}
+                        for role, tokens in (
+                            ("original", entries[group.original].now_tokens),
+                            ("previous", entries[group.original].previous_tokens),
+                        )
+                    },
                 }
                 for group in result.groups
             ],
@@ -194,7 +205,7 @@ def aggregate_two_stage_run(
                 split_hash=submission.split.content_hash,
                 workers=",".join(sorted(workers[seed])),
                 duration_s=float(sum(durations[seed])),
-                two_stage=seed_two_stage(result),
+                two_stage=seed_two_stage(result, stages),
                 **{column: stored_value(result.combined.get(column)) for column in columns},
             )
         )
