@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, AwareDatetime, BaseModel, ConfigDict, Field, HttpUrl, StringConstraints
 
-from scorer.versions import DEFAULT_VERSION, VersionName
+from scorer.versions import VersionName
 
 SQL_INT_MAX = 2**31 - 1  # PostgreSQL's INTEGER: ids and counts beyond it cannot be stored
 
@@ -360,7 +360,10 @@ class DisqualifyIn(BaseModel):
 
 
 class RescoreIn(BaseModel):
-    version: VersionName = DEFAULT_VERSION
+    version: VersionName | None = Field(
+        None,
+        description="by default the phase's: the default version, or v2.2-two-stage on a two-stage split",
+    )
     subset: str | None = None
     phase: str | None = None
     compare_with: VersionName | None = Field(

@@ -302,17 +302,23 @@ def test_a_run_through_the_server_equals_the_command_line_bit_for_bit(world: Wor
 
 
 def _scored_from_official(world: World, family: str, team_token: str | None = None) -> int:
-    """Upload a family's excerpt submission and write its rows from the official per-token values (what a
-    chunk writes of them), then aggregate the run; return the submission's id."""
+    """Upload a family's excerpt submission and score it from the official per-token values; return its id."""
+    data = dump_two_stage_submission_json(family_submission(family))
+    response = post(world, data, f"{family}.json", team_token=team_token)
+    assert response.status_code == 202, response.text
+    submission_id: int = response.json()["id"]
+    _write_official_rows(world, submission_id, family)
+    return submission_id
+
+
+def _write_official_rows(world: World, submission_id: int, family: str) -> None:
+    """Play a run of the submission whose chunks give the official per-token values of `family` (what a chunk
+    writes of them), then aggregate it."""
     from two_stage_reference import aggregation_input
 
     from server.runs import claim_submission, mark_scored, write_chunk_results
     from server.runs._two_stage import stage_rows
 
-    data = dump_two_stage_submission_json(family_submission(family))
-    response = post(world, data, f"{family}.json", team_token=team_token)
-    assert response.status_code == 202, response.text
-    submission_id = response.json()["id"]
     excerpt = set(split_tokens_of_excerpt())
     tokens = [item for item in aggregation_input(family) if item.result.token in excerpt]
     order = [item.result.token for item in tokens]
@@ -322,7 +328,6 @@ def _scored_from_official(world: World, family: str, team_token: str | None = No
         rows = stage_rows({0: tokens}, {0: order})
         assert write_chunk_results(session, submission_id, run, "v2.2-two-stage", rows, "w", 1.0)
         assert mark_scored(session, submission_id, run, "test-engine", 200)
-    return submission_id
 
 
 def split_tokens_of_excerpt() -> tuple[str, ...]:
@@ -393,3 +398,28 @@ def test_the_two_stage_board_ranks_by_the_combined_score_with_each_stage(world: 
     )
     page = world.client.get(f"/?phase={PHASE}")
     assert page.status_code == 200 and "Stage 1" in page.text and "resamples groups" in page.text
+
+
+def test_a_two_stage_rescore_reports_the_rank_changes_of_the_combined_score(world: World) -> None:
+    add_two_stage_phase(world)
+    _, beta = add_team(world.factory, "beta")
+    alpha_id = _scored_from_official(world, "human")
+    beta_id = _scored_from_official(world, "swerve_left_fast", beta)
+    started = world.client.post("/api/v1/admin/rescore", json={"phase": PHASE}, headers=world.admin_headers())
+    assert started.status_code == 202 and started.json()["queued"] == 2
+    # The new run swaps the two entries' results.
+    _write_official_rows(world, alpha_id, "swerve_left_fast")
+    _write_official_rows(world, beta_id, "human")
+    report = world.client.get(started.json()["report"], headers=world.admin_headers()).json()
+    assert (report["version"], report["before_version"], report["complete"]) == ("v2.2-two-stage",) * 2 + (
+        True,
+    )
+    moved = {m["team"]: (m["rank_before"], m["rank_after"]) for m in report["moved"]}
+    assert moved["alpha"] == moved["beta"][::-1] and set(moved["alpha"]) == {1, 2}
+    assert report["kendall_tau"] == -1.0
+    exported = world.client.get(
+        "/api/v1/admin/export", params={"phase": PHASE, "format": "json"}, headers=world.admin_headers()
+    ).json()
+    assert exported["version"] == "v2.2-two-stage"
+    assert {row["submission_id"] for row in exported["rows"]} >= {alpha_id, beta_id}
+    assert all("stage_two_score" in row for row in exported["rows"])

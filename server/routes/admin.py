@@ -235,7 +235,12 @@ def rescore(request: Request, session: SessionDep, admin: AdminDep, body: Rescor
     under `compare_with` (by default `version`) before."""
     view = leaderboard_view(session, body.version, body.subset, "score", body.phase, admin=True)
     rescore_run, queued = actions.start_rescore(
-        session, admin, resolve_phase(session, view["phase"]), body.version, view["subset"], body.compare_with
+        session,
+        admin,
+        resolve_phase(session, view["phase"]),
+        view["version"],
+        view["subset"],
+        body.compare_with,
     )
     session.commit()
     _enqueue(request, [submission.id for submission in queued])
@@ -253,13 +258,15 @@ def rescore_report(session: SessionDep, _admin: AdminDep, rescore_id: RowId) -> 
 def export(
     session: SessionDep,
     _admin: AdminDep,
-    version: VersionName = DEFAULT_VERSION,
+    version: VersionName | None = None,
     subset: str | None = None,
     phase: str | None = None,
     format: Literal["csv", "json"] = "csv",
 ) -> PlainTextResponse | JSONResponse:
-    """Every scored submission of a phase (moderation flags included) as CSV or JSON."""
+    """Every scored submission of a phase (moderation flags included) as CSV or JSON (by default under the
+    phase's version)."""
     view = leaderboard_view(session, version, subset, "score", phase, admin=True)
+    version = VersionName(view["version"])
     rows = actions.export_rows(session, resolve_phase(session, view["phase"]), version, view["subset"])
     name = f"navsim-lb-{view['phase']}-{version}-{view['subset']}"
     if format == "json":
