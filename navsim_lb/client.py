@@ -208,17 +208,19 @@ def validate(
 ) -> None:
     """Check a submission against a split locally, with the server's own checks; nothing is sent."""
     from scorer.scene import SceneFormatError, scene_paths
+    from scorer.two_stage.split import MAPPING_FILE, TwoStageSplitError, load_two_stage_split
     from server.services.errors import Invalid
     from server.services.validation import validate_upload
 
     if not file.is_file():
         raise fail(f"{file}: no such file")
     try:
-        tokens = list(scene_paths(split))
-    except SceneFormatError as error:
+        stages = load_two_stage_split(split) if (split / MAPPING_FILE).is_file() else None
+        tokens = [*stages.stage_one_tokens, *stages.stage_two_tokens] if stages else list(scene_paths(split))
+    except (SceneFormatError, TwoStageSplitError) as error:
         raise fail(str(error)) from None
     try:
-        upload = validate_upload(file.read_bytes(), file.name, tokens)
+        upload = validate_upload(file.read_bytes(), file.name, tokens, stages=stages)
     except Invalid as error:
         raise fail("\n".join([error.message, *problem_lines(error.problems)])) from None
     console.print(

@@ -8,7 +8,14 @@ import numpy as np
 
 from scorer.geometry import FloatArray, normalize_angle
 from scorer.scene import Scene, iter_scenes
-from scorer.submission import INTERVAL_LENGTH_S, NUM_POSES, Submission, SubmissionMetadata
+from scorer.submission import (
+    INTERVAL_LENGTH_S,
+    NUM_POSES,
+    Submission,
+    SubmissionMetadata,
+    TwoStageSubmission,
+)
+from scorer.two_stage.split import load_two_stage_split
 
 POSE_TIMES_S = np.arange(1, NUM_POSES + 1) * INTERVAL_LENGTH_S
 
@@ -46,3 +53,15 @@ def baseline_submission(split_dir: Path, kind: str, method: str) -> Submission:
     predictions = {scene.token: agent(scene) for scene in iter_scenes(split_dir)}
     metadata = SubmissionMetadata(team_name="baseline", method=method)
     return Submission(metadata, (predictions,))
+
+
+def two_stage_baseline_submission(split_dir: Path, kind: str, method: str) -> TwoStageSubmission:
+    """Return the single-seed two-stage submission of baseline `kind` for a two-stage split: its predictions
+    of every scene, each stage's tokens in the split's stage order."""
+    predictions = baseline_submission(split_dir, kind, method)
+    stages = load_two_stage_split(split_dir)
+    first, second = (
+        {token: predictions.seeds[0][token] for token in tokens}
+        for tokens in (stages.stage_one_tokens, stages.stage_two_tokens)
+    )
+    return TwoStageSubmission(predictions.metadata, (first,), (second,))

@@ -18,7 +18,7 @@ import pickle
 import re
 import tempfile
 import zlib
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple, cast
 
@@ -870,14 +870,33 @@ def validate_submission(submission: Submission, tokens: Iterable[str]) -> list[P
     return problems
 
 
-def dump_submission_json(submission: Submission) -> bytes:
-    """Return `submission` as `navsim-lb/submission` JSON (exact float round trip)."""
-    predictions = [{token: poses.tolist() for token, poses in seed.items()} for seed in submission.seeds]
+def _seeds_json(seeds: Sequence[Mapping[str, FloatArray]]) -> Any:
+    """Return seeds as a JSON predictions field: one dict for a single seed, else a list of them."""
+    predictions = [{token: poses.tolist() for token, poses in seed.items()} for seed in seeds]
+    return predictions[0] if len(predictions) == 1 else predictions
+
+
+def _dump_json(metadata: SubmissionMetadata, format_name: str, fields_: dict[str, Any]) -> bytes:
     document = {
-        "format": FORMAT,
+        "format": format_name,
         "version": FORMAT_VERSION,
-        **{f.name: getattr(submission.metadata, f.name) for f in fields(SubmissionMetadata)},
+        **{f.name: getattr(metadata, f.name) for f in fields(SubmissionMetadata)},
         "trajectory_sampling": {"time_horizon": TIME_HORIZON_S, "interval_length": INTERVAL_LENGTH_S},
-        "predictions": predictions[0] if len(predictions) == 1 else predictions,
+        **fields_,
     }
     return json.dumps(document).encode()
+
+
+def dump_submission_json(submission: Submission) -> bytes:
+    """Return `submission` as `navsim-lb/submission` JSON (exact float round trip)."""
+    return _dump_json(submission.metadata, FORMAT, {"predictions": _seeds_json(submission.seeds)})
+
+
+def dump_two_stage_submission_json(submission: TwoStageSubmission) -> bytes:
+    """Return `submission` as `navsim-lb/submission-two-stage` JSON (exact float round trip)."""
+    stages = (submission.first_stage, submission.second_stage)
+    return _dump_json(
+        submission.metadata,
+        TWO_STAGE_FORMAT,
+        {field: _seeds_json(seeds) for field, seeds in zip(STAGE_FIELDS, stages, strict=True)},
+    )

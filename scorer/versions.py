@@ -237,7 +237,8 @@ VERSIONS: dict[VersionName, MetricVersion] = {
         planner=_V2_2_SCORER,
         result_columns=EPDMS_COLUMNS,
         official_code=(
-            "NAVSIM v2.2 (tag v2.2, commit 359c7f7, two-stage, reactive IDM traffic, human filter on)"
+            "NAVSIM v2.2 (tag v2.2, commit 359c7f7, run_pdm_score_from_submission.py: two-stage, reactive IDM "
+            "traffic, human filter on)"
         ),
         score_label="EPDMS",
         average_row="average_all_frames",
@@ -290,4 +291,8 @@ def cached_together(names: Iterable[str]) -> list[VersionName]:
 # split is cached and scored under.
 LOG_REPLAY_VERSIONS = tuple(
     name for name in cached_together([DEFAULT_VERSION]) if VERSIONS[name].published_by_default
+)
+# The versions of NAVSIM's two-stage EPDMS: what a two-stage split is cached and scored under.
+TWO_STAGE_VERSIONS = tuple(
+    name for name, version in VERSIONS.items() if version.two_stage and version.published_by_default
 )

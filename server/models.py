@@ -93,6 +93,14 @@ class Status(StrEnum):
 ACTIVE_STATUSES = (Status.queued, Status.running)
 
 
+class SplitKind(StrEnum):
+    # What a split's directory holds decides how its runs are scored (server.runs.RUN_VERSIONS).
+    log_replay = "log-replay"  # logged frames, other agents replaying the log (v1.0, v1.1, v2.2)
+    two_stage = (
+        "two-stage"  # a `two_stage.json` stage mapping: NAVSIM v2.2's two-stage EPDMS, reactive traffic
+    )
+
+
 class FailureKind(StrEnum):
     # Infrastructure failures (worker lost, timeouts, storage) are refunded; submission failures are not.
     infrastructure = "infrastructure"
@@ -144,6 +152,9 @@ class Split(Base):
     token_count: Mapped[int] = mapped_column(Integer)
     # Whether teams may see its scenes (maps, objects) in drill-down pictures; a hidden test split never.
     scenes_public: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    kind: Mapped[str] = mapped_column(
+        String(16), default=SplitKind.log_replay, server_default=SplitKind.log_replay.value
+    )
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
     # token -> [log name, t0 in us] of its scenes, read once when a run is first planned on the split
     # (server.services.splits.scene_starts); large, so loaded only when asked for.
@@ -360,6 +371,9 @@ class Result(MetricColumns, Base):
     split_hash: Mapped[str] = mapped_column(String(64))
     workers: Mapped[str] = mapped_column(Text, default="")
     duration_s: Mapped[float] = mapped_column(Float, default=0.0)
+    # A two-stage run's seed (the metric columns hold its combined row): the stage-one and stage-two summary
+    # rows, each group's parts, value and detail, each stage-two token's weight, the notes and `official`.
+    two_stage: Mapped[dict[str, Any] | None] = mapped_column(JSON, deferred=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
 
 
@@ -387,6 +401,9 @@ class Summary(MetricColumns, Base):
     ci_high: Mapped[float] = mapped_column(Float)
     tokens: Mapped[int] = mapped_column(Integer)
     failed: Mapped[int] = mapped_column(Integer)
+    # A two-stage entry: the stage-one and stage-two summary rows (means over seeds), the groups scored and
+    # those undefined; `ci_low`/`ci_high` are then over groups (their seed-averaged values).
+    two_stage: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     computed_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
 
     submission: Mapped[Submission] = relationship()

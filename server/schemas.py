@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, AwareDatetime, BaseModel, ConfigDict, Field, HttpUrl, StringConstraints
 
-from scorer.versions import DEFAULT_VERSION, VersionName
+from scorer.versions import VersionName
 
 SQL_INT_MAX = 2**31 - 1  # PostgreSQL's INTEGER: ids and counts beyond it cannot be stored
 
@@ -167,6 +167,48 @@ class TokenRow(BaseModel):
     )
 
 
+class StageGroupOut(BaseModel):
+    """One group of a two-stage split (a mapping entry), as a seed scored it."""
+
+    original: str = Field(description="the logged frame (orig)")
+    previous: str = Field(description="the logged frame 0.5 s before it (prev)")
+    original_stage_one: float | None = Field(description="orig's stage-one score")
+    original_stage_two: float | None = Field(description="orig's synthetic successors' weighted score (now2)")
+    previous_stage_one: float | None = Field(description="prev's stage-one score")
+    previous_stage_two: float | None = Field(
+        description="prev's synthetic successors' weighted score (prev2)"
+    )
+    score: float | None = Field(description="(orig stage one x stage two + prev stage one x stage two) / 2")
+    weights: dict[str, dict[str, float | None]] = Field(
+        description="per frame (original, previous), each synthetic token's weight: a Gaussian of the distance "
+        "between its start and the frame's submitted endpoint, normalised over the frame's tokens"
+    )
+    detail: dict[str, Any] = Field(
+        description="what the value rests on beyond the official premises: failed, not_submitted, "
+        "comfort_undefined tokens; uniform_weights where no synthetic start is near the endpoint"
+    )
+
+
+class StageSeedOut(BaseModel):
+    """One seed of a two-stage run: the three summary rows and the groups."""
+
+    seed: int
+    score: float | None = Field(description="the combined EPDMS")
+    stage_one: dict[str, float | None]
+    stage_two: dict[str, float | None]
+    official: bool = Field(description="the official script would have produced these numbers")
+    notes: list[str] = Field(description="why not, where it would not (the first 200)")
+    note_count: int
+    groups: list[StageGroupOut]
+
+
+class StageGroupsOut(BaseModel):
+    """A two-stage submission's groups, per seed."""
+
+    version: VersionName
+    seeds: list[StageSeedOut]
+
+
 class LeaderboardRow(BaseModel):
     """One entry; the devkit's subscore columns of the version are extra fields."""
 
@@ -194,6 +236,12 @@ class LeaderboardRow(BaseModel):
 
 class LeaderboardOut(BaseModel):
     version: VersionName
+    versions: list[VersionName] = Field(description="the versions the phase's split is scored under")
+    two_stage: bool = Field(
+        description="NAVSIM v2's two-stage EPDMS: `score` is the combined one; each row also has `stage_one` and "
+        "`stage_two` (each stage's summary row, means over seeds), `groups` and `undefined_groups`"
+    )
+    interval_over: str = Field(description="what `ci95` resamples: tokens, or a two-stage split's groups")
     score_label: str = Field(description="the score's name in the papers: PDMS (v1.x) or EPDMS (v2.2)")
     official_code: str = Field(description="the official code whose results this version reproduces")
     phase: str
@@ -312,7 +360,10 @@ class DisqualifyIn(BaseModel):
 
 
 class RescoreIn(BaseModel):
-    version: VersionName = DEFAULT_VERSION
+    version: VersionName | None = Field(
+        None,
+        description="by default the phase's: the default version, or v2.2-two-stage on a two-stage split",
+    )
     subset: str | None = None
     phase: str | None = None
     compare_with: VersionName | None = Field(

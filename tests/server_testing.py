@@ -19,12 +19,11 @@ from scratch import scratch_postgres_database
 from sqlalchemy import create_engine
 from sqlalchemy.orm import Session, sessionmaker
 
-from scorer.versions import ALL_RESULT_COLUMNS
+from scorer.versions import ALL_RESULT_COLUMNS, LOG_REPLAY_VERSIONS
 from server.db import make_engine, make_session_factory, transaction
 from server.main import create_app
 from server.migrate import upgrade
 from server.models import Approval, Phase, Scope, Split, SplitSubset, Submission, Team, utc_now
-from server.runs import BOARD_VERSIONS
 from server.services.splits import create_phase
 from server.services.teams import create_team
 from server.services.tokens import create_token
@@ -212,7 +211,7 @@ def score_run(
     factory: sessionmaker[Session],
     submission_id: int,
     per_seed: list[dict[str, float | None]],
-    versions: tuple[str, ...] = BOARD_VERSIONS,
+    versions: tuple[str, ...] = LOG_REPLAY_VERSIONS,
     chunk: int = 16,
 ) -> None:
     """Play a worker: claim, write every (version, seed) in chunks through the services, then mark scored."""

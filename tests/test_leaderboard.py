@@ -22,11 +22,11 @@ from server_testing import (
 )
 
 from scorer.evaluate import TokenResult
-from scorer.versions import EPDMS_COLUMNS, VERSIONS
+from scorer.versions import EPDMS_COLUMNS, LOG_REPLAY_VERSIONS, VERSIONS
 from server.db import transaction
 from server.models import Submission, utc_now
 from server.numbers import counted, percent
-from server.runs import BOARD_VERSIONS, claim_submission, mark_scored, write_chunk_results
+from server.runs import claim_submission, mark_scored, write_chunk_results
 from server.runs._aggregate import bootstrap_cis
 from server.services.leaderboard import rank_change_report
 from server.services.submissions import add_baselines, create_submission
@@ -224,15 +224,15 @@ def test_a_team_sees_its_sanctions_and_the_entry_the_board_counts(world: World) 
         """Per submission the versions the team's API says the board shows it in; checked against each board."""
         listing = world.client.get("/api/v1/submissions", headers=world.team_headers()).json()
         shown = {entry["id"]: entry["on_leaderboard"] for entry in listing}
-        for version in BOARD_VERSIONS:
+        for version in LOG_REPLAY_VERSIONS:
             assert [i for i, versions in shown.items() if version in versions] == [
                 _team_entry(world, version)
             ]
         return shown
 
-    assert counted()[best] == list(BOARD_VERSIONS)  # no final entry chosen: the best
+    assert counted()[best] == list(LOG_REPLAY_VERSIONS)  # no final entry chosen: the best
     assert _select(world, worst).status_code == 200
-    assert counted()[worst] == list(BOARD_VERSIONS)
+    assert counted()[worst] == list(LOG_REPLAY_VERSIONS)
 
     # Disqualified, the final entry leaves the board and the team sees why; it cannot be chosen again.
     _moderate(world, worst, "disqualify", {"reason": "trained on the test logs"})
@@ -243,7 +243,7 @@ def test_a_team_sees_its_sanctions_and_the_entry_the_board_counts(world: World) 
         [],
     )
     assert "trained on the test logs" in seen["final_refusal"]
-    assert counted()[best] == list(BOARD_VERSIONS)
+    assert counted()[best] == list(LOG_REPLAY_VERSIONS)
     refused = _select(world, worst)
     assert refused.status_code == 409
     assert "disqualified by an organiser: trained on the test logs" in refused.json()["detail"]
@@ -252,7 +252,7 @@ def test_a_team_sees_its_sanctions_and_the_entry_the_board_counts(world: World) 
     _moderate(world, best, "hide", {"hidden": True})
     seen = _as_team_sees(world, best)
     assert seen["admin_hidden"] is True and seen["on_leaderboard"] == []
-    assert counted()[middle] == list(BOARD_VERSIONS)
+    assert counted()[middle] == list(LOG_REPLAY_VERSIONS)
     refused = _select(world, best)
     assert (
         refused.status_code == 409
@@ -265,7 +265,7 @@ def test_a_team_sees_its_sanctions_and_the_entry_the_board_counts(world: World) 
     assert refused.status_code == 409 and "hidden by your team; show it first" in refused.json()["detail"]
     assert _as_team_sees(world, middle)["selected"] is False  # the refused request changed nothing
     assert _select(world, middle, hidden=False).status_code == 200
-    assert counted()[middle] == list(BOARD_VERSIONS)
+    assert counted()[middle] == list(LOG_REPLAY_VERSIONS)
 
 
 def test_private_subset_is_revealed_when_the_phase_closes(world: World) -> None:
@@ -341,7 +341,7 @@ def _scored_with_undefined_ec(world: World, undefined: set[str]) -> int:
         )
         run = claim_submission(session, submission.id, "w")
         assert run is not None
-        for version in BOARD_VERSIONS:
+        for version in LOG_REPLAY_VERSIONS:
             rows = [
                 TokenResult(
                     token,

@@ -27,11 +27,11 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from scorer.evaluate import TokenResult
+from scorer.versions import LOG_REPLAY_VERSIONS
 from server.db import transaction
 from server.migrate import upgrade
 from server.models import ChunkState, Result, ScoringChunk, Status, Submission, TokenResultRow, utc_now
 from server.runs import (
-    BOARD_VERSIONS,
     cancel,
     claim_submission,
     mark_scored,
@@ -168,7 +168,7 @@ def test_rows_read_back_as_written(new_submission: tuple[sessionmaker[Session], 
 
 def _write_rows(session: Session, submission_id: int, tokens: list[str]) -> None:
     """Write every version's rows of `tokens` in run 1."""
-    for version in BOARD_VERSIONS:
+    for version in LOG_REPLAY_VERSIONS:
         assert write_chunk_results(
             session, submission_id, 1, version, token_results(uniform(0.5, tokens)), "w1", 1
         )
@@ -202,7 +202,7 @@ def _check_finished_by_the_last_chunk(factory: sessionmaker[Session], submission
     assert _write_chunk(factory, submission_id, second)
     scored = _get(factory, submission_id)
     assert (scored.status, scored.progress) == (Status.scored, 100)
-    assert _rows(factory, submission_id) == 40 * len(BOARD_VERSIONS)
+    assert _rows(factory, submission_id) == 40 * len(LOG_REPLAY_VERSIONS)
 
 
 def test_the_last_chunk_finishes_the_run_and_finished_chunks_give_the_progress(
@@ -217,7 +217,7 @@ def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:
         run = claim_submission(session, submission_id, "w1")
         write_chunk_results(session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1.0)
     with (
-        pytest.raises(Conflict, match=f"40 of {40 * len(BOARD_VERSIONS)}"),
+        pytest.raises(Conflict, match=f"40 of {40 * len(LOG_REPLAY_VERSIONS)}"),
         transaction(world.factory) as session,
     ):
         mark_scored(session, submission_id, 1, "e", 100)

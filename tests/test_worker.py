@@ -35,10 +35,10 @@ from worker_testing import (
 from scorer.blas import engine_provenance
 from scorer.evaluate import score_tokens
 from scorer.submission import dump_submission_json, load_submission
+from scorer.versions import LOG_REPLAY_VERSIONS as VERSIONS
 from server.db import transaction
 from server.models import FailureKind, Result, Status, Submission, utc_now
 from server.queue import SCORE_TASK, celery_client, enqueue_submission
-from server.runs import BOARD_VERSIONS as VERSIONS
 from server.runs import Rejected, ScoringJob, claim_submission
 from server.runs._job import trajectories
 from server.runs._plan import plan_chunks

@@ -38,10 +38,10 @@ from worker_testing import (
 
 from navsim_lb.processes import child_process
 from scorer.submission import Submission as Predictions
+from scorer.versions import LOG_REPLAY_VERSIONS as VERSIONS
 from server.db import transaction
 from server.main import DATABASE_DOWN
 from server.models import ChunkState, FailureKind, ScoringChunk, Status, Summary, TokenResultRow, utc_now
-from server.runs import BOARD_VERSIONS as VERSIONS
 from server.runs._score import POISONED_TOKEN
 from server.services.workers import LIVE_WITHIN_S
 

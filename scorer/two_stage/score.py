@@ -20,6 +20,7 @@ import numpy as np
 from scorer.evaluate import (
     CHUNK_SIZE,
     ScoredRows,
+    ScoredToken,
     TokenResult,
     join_two_frame_comfort,
     score_rows,
@@ -32,7 +33,7 @@ from scorer.trajectory import initial_state
 from scorer.two_stage.aggregate import TwoStageResult, TwoStageToken, aggregate_two_stage
 from scorer.two_stage.split import TwoStageSplit, load_two_stage_split
 from scorer.two_stage.weights import global_endpoints
-from scorer.versions import get_version
+from scorer.versions import MetricVersion, get_version
 
 Predictions = dict[str, FloatArray]
 UNKNOWN_POSE = (math.nan, math.nan, math.nan)
@@ -103,6 +104,60 @@ def _start_pose(path: Path | None) -> tuple[float, float, float]:
     return x, y, heading
 
 
+def two_stage_tokens(
+    rows: Sequence[TokenResult | ScoredToken],
+    predictions: Predictions,
+    version: MetricVersion,
+    pairs: Sequence[tuple[str, str]],
+    paths: Mapping[str, Path],
+    tokens: Sequence[str],
+) -> list[TwoStageToken]:
+    """Return `tokens`' results as the aggregation reads them, from one seed's `score_rows` rows of `tokens` and
+    of the partners their pairs name (`pairs`: `comfort_pairs`): two-frame comfort by the mapping, each token's
+    start point and its submitted endpoint."""
+    scored, unscored = split_scored(rows)
+    results: dict[str, TokenResult] = {row.token: row for row in unscored}
+    results |= {row.token: row for row in join_two_frame_comfort(scored, version, pairs)}
+    starts: Mapping[str, Sequence[float]] = {
+        item.result.token: item.states[0, :3].tolist() for item in scored
+    }
+    start_poses = np.array([starts.get(token) or _start_pose(paths.get(token)) for token in tokens])
+    endpoints = global_endpoints(np.stack([predictions[token] for token in tokens]), start_poses)
+    return [
+        TwoStageToken(results[token], (start[0], start[1]), (end[0], end[1]))
+        for token, start, end in zip(tokens, start_poses.tolist(), endpoints.tolist(), strict=True)
+    ]
+
+
+def score_two_stage_part(
+    split_dir: Path,
+    cache_dir: Path,
+    seeds: Mapping[int | None, Predictions],
+    version: str,
+    tokens: Sequence[str],
+    context: Sequence[str] = (),
+) -> dict[int | None, list[TwoStageToken]]:
+    """Return, per seed, the results of some `tokens` of a two-stage submission (every token's poses in `seeds`),
+    scored beside the `context` tokens their mapping pairs them with for two-frame comfort (not returned).
+    A part's results are those the whole submission gives its tokens: a token's traffic and scores depend on
+    no other token, its comfort on its partner alone."""
+    pairs = comfort_pairs(load_two_stage_split(split_dir))
+    requested = set(tokens)
+    scored = score_rows(
+        split_dir,
+        cache_dir,
+        seeds,
+        [version],
+        [*tokens, *(t for t in dict.fromkeys(context) if t not in requested)],
+    )
+    paths = scene_paths(split_dir)
+    metric_version = get_version(version)
+    return {
+        seed: two_stage_tokens(scored[seed, version], predictions, metric_version, pairs, paths, tokens)
+        for seed, predictions in seeds.items()
+    }
+
+
 def score_two_stage(
     split_dir: Path,
     cache_dir: Path,
@@ -126,19 +181,9 @@ def score_two_stage(
     pairs = comfort_pairs(split)
     results = []
     for index, (seed, predictions) in enumerate(seeds.items()):
-        scored, unscored = split_scored(scored_rows[seed, version])
-        rows: dict[str, TokenResult] = {row.token: row for row in unscored if row.token in predictions}
-        rows |= {row.token: row for row in join_two_frame_comfort(scored, metric_version, pairs)}
-        starts: Mapping[str, Sequence[float]] = {
-            item.result.token: item.states[0, :3].tolist() for item in scored
-        }
-        order = list(predictions)
-        start_poses = np.array([starts.get(token) or _start_pose(paths.get(token)) for token in order])
-        endpoints = global_endpoints(np.stack([predictions[token] for token in order]), start_poses)
-        tokens = [
-            TwoStageToken(rows[token], (start[0], start[1]), (end[0], end[1]))
-            for token, start, end in zip(order, start_poses.tolist(), endpoints.tolist(), strict=True)
-        ]
+        tokens = two_stage_tokens(
+            scored_rows[seed, version], predictions, metric_version, pairs, paths, list(predictions)
+        )
         result = aggregate_two_stage(tokens, split)
         twice = [token for token in submission.first_stage[index] if token in submission.second_stage[index]]
         if twice:

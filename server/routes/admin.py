@@ -32,6 +32,7 @@ from server.schemas import (
     RescoreStarted,
     SplitAdded,
     SplitIn,
+    StageGroupsOut,
     TeamIn,
     TeamOut,
     TokenCreated,
@@ -42,7 +43,7 @@ from server.schemas import (
 from server.services import admin as actions
 from server.services.leaderboard import leaderboard_view
 from server.services.pictures import scene_picture
-from server.services.presenters import phase_view, submission_views, token_result_views
+from server.services.presenters import phase_view, stage_group_views, submission_views, token_result_views
 from server.services.splits import resolve_phase
 from server.services.submissions import get_submission, list_submissions
 from server.services.teams import get_team, list_teams
@@ -234,7 +235,12 @@ def rescore(request: Request, session: SessionDep, admin: AdminDep, body: Rescor
     under `compare_with` (by default `version`) before."""
     view = leaderboard_view(session, body.version, body.subset, "score", body.phase, admin=True)
     rescore_run, queued = actions.start_rescore(
-        session, admin, resolve_phase(session, view["phase"]), body.version, view["subset"], body.compare_with
+        session,
+        admin,
+        resolve_phase(session, view["phase"]),
+        view["version"],
+        view["subset"],
+        body.compare_with,
     )
     session.commit()
     _enqueue(request, [submission.id for submission in queued])
@@ -252,13 +258,15 @@ def rescore_report(session: SessionDep, _admin: AdminDep, rescore_id: RowId) -> 
 def export(
     session: SessionDep,
     _admin: AdminDep,
-    version: VersionName = DEFAULT_VERSION,
+    version: VersionName | None = None,
     subset: str | None = None,
     phase: str | None = None,
     format: Literal["csv", "json"] = "csv",
 ) -> PlainTextResponse | JSONResponse:
-    """Every scored submission of a phase (moderation flags included) as CSV or JSON."""
+    """Every scored submission of a phase (moderation flags included) as CSV or JSON (by default under the
+    phase's version)."""
     view = leaderboard_view(session, version, subset, "score", phase, admin=True)
+    version = VersionName(view["version"])
     rows = actions.export_rows(session, resolve_phase(session, view["phase"]), version, view["subset"])
     name = f"navsim-lb-{view['phase']}-{version}-{view['subset']}"
     if format == "json":
@@ -311,6 +319,17 @@ def scene_picture_route(
         scene_picture(submission, token, version, seed, admin=True, settings=settings),
         media_type="image/png",
     )
+
+
+@router.get("/submissions/{submission_id}/groups")
+def stage_groups(
+    session: SessionDep,
+    _admin: AdminDep,
+    submission_id: RowId,
+    version: VersionName = VersionName.V2_2_TWO_STAGE,
+) -> StageGroupsOut:
+    """A two-stage submission's groups per seed."""
+    return stage_group_views(session, get_submission(session, submission_id), version)
 
 
 @router.get("/submissions/{submission_id}/tokens")

@@ -16,6 +16,7 @@ from server.schemas import (
     MeOut,
     PhaseOut,
     SplitOut,
+    StageGroupsOut,
     SubmissionOut,
     TeamIn,
     TeamOut,
@@ -29,6 +30,7 @@ from server.services.presenters import (
     phase_view,
     quota_views,
     split_views,
+    stage_group_views,
     submission_views,
     token_result_views,
 )
@@ -43,12 +45,14 @@ router = APIRouter()
 @router.get("/leaderboard", response_model=LeaderboardOut, tags=["leaderboard"])
 async def get_leaderboard(
     request: Request,
-    version: VersionName = DEFAULT_VERSION,
+    version: VersionName | None = None,
     subset: str | None = None,
     sort: str = "score",
     phase: str | None = None,
 ) -> Response:
-    """Best (or selected) entry per team plus baselines, ranked by the version's score (PDMS or EPDMS) with bootstrap 95% intervals."""
+    """Best (or selected) entry per team plus baselines, ranked by the version's score (PDMS or EPDMS) with bootstrap 95% intervals.
+    Without a version, the phase's default: the default version on a one-stage split, v2.2-two-stage on a
+    two-stage one."""
     cache, sessions = request.app.state.leaderboard_cache, request.app.state.session_factory
     board = cache.get((version, subset, sort, phase))
     if board is None:  # the database is only asked off the event loop
@@ -106,6 +110,14 @@ def me(session: SessionDep, token: TokenDep) -> MeOut:
 def published(session: SessionDep, submission_id: RowId) -> SubmissionOut:
     """A leaderboard entry whose phase has closed, as its team sees it: open to everyone."""
     return submission_views(session, [published_submission(session, submission_id)], SubmissionOut)[0]
+
+
+@router.get("/published/{submission_id}/groups", tags=["published"])
+def published_stage_groups(
+    session: SessionDep, submission_id: RowId, version: VersionName = VersionName.V2_2_TWO_STAGE
+) -> StageGroupsOut:
+    """A published two-stage entry's groups per seed."""
+    return stage_group_views(session, published_submission(session, submission_id), version)
 
 
 @router.get("/published/{submission_id}/tokens", tags=["published"])

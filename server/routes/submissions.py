@@ -14,10 +14,17 @@ from server.auth import ApprovedTeamDep, SessionDep, TeamDep, approved_team_of, 
 from server.body_limit import upload_too_large
 from server.models import Phase, Status
 from server.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
-from server.schemas import SubmissionAccepted, SubmissionOut, SubmissionPatch, TokenRow, ValidationReport
+from server.schemas import (
+    StageGroupsOut,
+    SubmissionAccepted,
+    SubmissionOut,
+    SubmissionPatch,
+    TokenRow,
+    ValidationReport,
+)
 from server.services.pictures import scene_picture
-from server.services.presenters import submission_views, token_result_views
-from server.services.splits import resolve_phase, split_tokens
+from server.services.presenters import stage_group_views, submission_views, token_result_views
+from server.services.splits import resolve_phase, split_tokens, upload_stages
 from server.services.submissions import create_submission, edit_submission, get_submission, list_submissions
 from server.services.validation import ValidUpload, validate_upload
 from server.upload_gate import Check
@@ -48,8 +55,9 @@ def _checked_upload(
     """Return the phase and the checked file; raises Invalid (422) listing every problem."""
     phase_row = resolve_phase(session, phase)
     data = _read_upload(file, request.app.state.settings.max_upload_bytes)
+    split = phase_row.split
     return phase_row, validate_upload(
-        data, file.filename or "submission", split_tokens(phase_row.split), form
+        data, file.filename or "submission", split_tokens(split), form, upload_stages(split)
     )
 
 
@@ -157,6 +165,18 @@ def edit(session: SessionDep, team: TeamDep, submission_id: RowId, patch: Submis
     edit_submission(session, submission, changes)
     session.commit()
     return submission_views(session, [submission], SubmissionOut)[0]
+
+
+@router.get("/submissions/{submission_id}/groups")
+def stage_groups(
+    session: SessionDep,
+    team: TeamDep,
+    submission_id: RowId,
+    version: VersionName = VersionName.V2_2_TWO_STAGE,
+) -> StageGroupsOut:
+    """A two-stage submission's groups per seed: each frame's stage-one score, its weighted stage two, the
+    weights of its synthetic tokens, and the group's value with what it rests on."""
+    return stage_group_views(session, get_submission(session, submission_id, team.id), version)
 
 
 @router.get("/submissions/{submission_id}/tokens")

@@ -45,7 +45,7 @@ def error_page(
 def leaderboard_page(
     request: Request,
     session: SessionDep,
-    version: str = DEFAULT_VERSION,
+    version: str | None = None,
     subset: str | None = None,
     phase: str | None = None,
 ) -> HTMLResponse:
@@ -63,7 +63,7 @@ def leaderboard_page(
         "labels": METRIC_LABELS,
         "query": query,
         "here": here,
-        "ddc_role": VERSIONS[VersionName(version)].ddc_role if version in VERSIONS else "",
+        "ddc_role": "",
     }
     status = 200
     try:
@@ -72,7 +72,9 @@ def leaderboard_page(
             state.leaderboard_cache, state.session_factory, version, subset, "score", phase
         ).view
         context["board"] = board
-        query["phase"], query["subset"] = board["phase"], board["subset"]
+        context["versions"] = board["versions"]
+        context["ddc_role"] = VERSIONS[VersionName(board["version"])].ddc_role
+        query["phase"], query["subset"], query["version"] = board["phase"], board["subset"], board["version"]
     except ServiceError as error:
         context["error"] = error.message
         status = error.http_status

@@ -22,13 +22,14 @@ from server.runs._job import ChunkInputs, Rejected, ScoringJob, chunk_inputs
 from server.runs._plan import Plan, plan_run
 from server.runs._reaper import Reaped, reap_dead_chunks, reap_lost_work
 from server.runs._rows import write_chunk, write_chunk_results
-from server.runs._run import BOARD_VERSIONS
+from server.runs._run import BOARD_VERSIONS, RUN_VERSIONS, run_versions
 from server.runs._score import ScoredChunk, score_chunk
 from server.runs._state import cancel, claim_submission, mark_failed, reset_for_rerun
 
 __all__ = [
     "BOARD_VERSIONS",
     "POISON_DEATHS",
+    "RUN_VERSIONS",
     "ChunkInputs",
     "ChunkStart",
     "Plan",
@@ -47,6 +48,7 @@ __all__ = [
     "reap_dead_chunks",
     "reap_lost_work",
     "reset_for_rerun",
+    "run_versions",
     "score_chunk",
     "start_chunk",
     "write_chunk",

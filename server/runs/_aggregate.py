@@ -145,7 +145,8 @@ def aggregate_submission(
     engine_version: str,
     bootstrap_samples: int,
 ) -> None:
-    """Replace the results and summaries of a submission with those of its current run's per-token rows.
+    """Replace the results and summaries of a submission with those of its current run's per-token rows, under
+    its one-stage versions (a two-stage version's are written by server.runs._two_stage).
 
     The means are `scorer.evaluate.summarize`'s to the bit: the same values in the same order (the subset's),
     an unscored token 0 and an undefined value left out.
@@ -153,8 +154,10 @@ def aggregate_submission(
     by_seed = _seed_rows(session, submission)
     session.execute(delete(Result).where(Result.submission_id == submission.id))
     session.execute(delete(Summary).where(Summary.submission_id == submission.id))
-    versions = sorted({version for version, _ in by_seed})
+    versions = sorted({version for version, _ in by_seed if not get_version(version).two_stage})
     seeds = sorted({seed for _, seed in by_seed})
+    if not versions:
+        return
     unscored = _SeedRows.empty()
     for subset, tokens in subsets.items():
         per_version = {}

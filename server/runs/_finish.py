@@ -12,9 +12,11 @@ from datetime import datetime
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from scorer.versions import get_version
 from server.models import FINISHED_CHUNK_STATES, LIVE_CHUNK_STATES, ScoringChunk, Status, utc_now
 from server.runs._aggregate import aggregate_submission
-from server.runs._run import expected_rows, is_current, locked_submission, rows_written
+from server.runs._run import expected_rows, is_current, locked_submission, rows_written, run_versions
+from server.runs._two_stage import aggregate_two_stage_run
 from server.services.errors import Conflict
 from server.services.splits import subset_tokens
 
@@ -60,6 +62,10 @@ def mark_scored(
     aggregate_submission(
         session, submission, subset_tokens(submission.split), engine_version, bootstrap_samples
     )
+    for version in run_versions(submission.split):
+        if get_version(version).two_stage:
+            aggregate_two_stage_run(session, submission, version, engine_version, bootstrap_samples)
+    session.flush()
     submission.status = Status.scored
     submission.progress = 100
     submission.finished_at = now or utc_now()

@@ -19,9 +19,9 @@ from sqlalchemy.orm import Session
 
 from scorer.geometry import FloatArray
 from scorer.scene import scene_paths
-from server.models import FailureKind, Submission
+from server.models import FailureKind, SplitKind, Submission
 from server.runs._chunks import ChunkStart, StartAction
-from server.runs._run import BOARD_VERSIONS, completed_tokens
+from server.runs._run import completed_tokens, run_versions
 from server.services.errors import NotFound
 from server.storage import read_file, read_trajectories
 
@@ -51,6 +51,7 @@ class ScoringJob:
     split_name: str
     split_dir: Path
     split_hash: str
+    split_kind: SplitKind
     seed_count: int
     versions: tuple[str, ...]
 
@@ -81,8 +82,9 @@ def load_job(session: Session, submission_id: int) -> ScoringJob:
         split_name=split.name,
         split_dir=Path(split.directory),
         split_hash=split.content_hash,
+        split_kind=SplitKind(split.kind),
         seed_count=submission.seed_count,
-        versions=BOARD_VERSIONS,
+        versions=run_versions(split),
     )
 
 
@@ -128,17 +130,24 @@ def trajectories(job: ScoringJob, storage_dir: Path) -> tuple[dict[str, FloatArr
     copies, or a copy lost) the file is parsed again.
     """
     # Imported here: the API imports this package, and loads the parser only when it checks an upload.
-    from scorer.submission import SubmissionError, coverage_problems, load_submission
+    from scorer.submission import coverage_problems
+    from scorer.two_stage.split import load_two_stage_split
+    from server.services.errors import Invalid
+    from server.services.validation import read_upload
 
     data = _stored_file(job, storage_dir)
+    stages = load_two_stage_split(job.split_dir) if job.split_kind == SplitKind.two_stage else None
+    tokens = (
+        [*stages.stage_one_tokens, *stages.stage_two_tokens] if stages else list(scene_paths(job.split_dir))
+    )
     seeds = read_trajectories(storage_dir, job.stored_name, job.sha256)
     if seeds is None:
         try:
-            seeds = load_submission(data, job.filename).seeds
-        except SubmissionError as error:
-            listed = "; ".join(str(problem) for problem in error.problems[:MAX_LISTED_PROBLEMS])
+            seeds = read_upload(data, job.filename, tokens, stages)[1]
+        except Invalid as error:
+            listed = "; ".join(problem["message"] or "" for problem in error.problems[:MAX_LISTED_PROBLEMS])
             raise Rejected(FailureKind.submission, f"the file cannot be read: {listed}") from None
-    problems = coverage_problems([list(seed) for seed in seeds], scene_paths(job.split_dir))
+    problems = coverage_problems([list(seed) for seed in seeds], tokens)
     if problems:
         # The file was checked against the split at upload: the split's tokens changed since.
         raise Rejected(

@@ -1,24 +1,31 @@
-"""Planning a run: its tokens without rows become queued chunks, each with the earlier frames it pairs with.
+"""Planning a run: its tokens without rows become queued chunks, each with the frames it pairs with.
 
-A chunk takes consecutive frames of a log (the split's tokens in log and time order) so that few of its tokens
-need a context to pair with (v2.2's two-frame comfort; scorer.evaluate.pairing_contexts). A chunk whose
-process died is planned again one token per chunk (`split_chunk`), so that a token that kills its worker
-cannot take the others with it.
+On a log-replay split a chunk takes consecutive frames of a log (the split's tokens in log and time order) so
+that few of its tokens need a context to pair with (v2.2's two-frame comfort;
+scorer.evaluate.pairing_contexts). On a two-stage split a chunk takes whole groups of the stage mapping (orig,
+prev and every now2 and prev2): each token's comfort partner is then in its chunk; tokens no group covers are
+scored too, after the groups. A chunk whose process died is planned again one token per chunk
+(`split_chunk`), so that a token that kills its worker cannot take the others with it; its comfort partner
+then comes as its context.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
+from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.models import LIVE_CHUNK_STATES, ChunkState, ScoringChunk, Submission, utc_now
+from server.models import LIVE_CHUNK_STATES, ChunkState, ScoringChunk, SplitKind, Submission, utc_now
 from server.runs._finish import finish_if_complete
 from server.runs._run import completed_tokens
-from server.services.splits import scene_starts, split_tokens
+from server.services.splits import scene_starts, split_tokens, stage_mapping
+
+if TYPE_CHECKING:
+    from scorer.two_stage.split import TwoStageSplit
 
 
 @dataclass(frozen=True)
@@ -53,18 +60,42 @@ def plan_run(
     return Plan(chunks=tuple(plan_chunks(session, submission, missing, size)))
 
 
-def _with_contexts(
-    submission: Submission, groups: list[list[str]], starts: Mapping[str, tuple[str, int]]
-) -> list[ScoringChunk]:
-    """Return queued chunks of the run for `groups` of tokens, each with the earlier frames it pairs with
-    (`starts`: the split's `scene_starts`)."""
-    from scorer.evaluate import pairing_contexts  # the engine is heavy: imported only where chunks are made
+def _with_contexts(session: Session, submission: Submission, groups: list[list[str]]) -> list[ScoringChunk]:
+    """Return queued chunks of the run for `groups` of tokens, each with the frames outside it that its tokens'
+    two-frame comfort pairs them with."""
+    # The engine is heavy: imported only where chunks are made.
+    from scorer.evaluate import pairing_contexts
+    from scorer.two_stage.score import comfort_pairs
 
-    contexts = pairing_contexts(starts, groups)
+    split = submission.split
+    if split.kind == SplitKind.two_stage:
+        partner = {a: b for pair in comfort_pairs(stage_mapping(split)) for a, b in (pair, pair[::-1])}
+        contexts = [
+            list(dict.fromkeys(partner[t] for t in group if t in partner and partner[t] not in group))
+            for group in groups
+        ]
+    else:
+        contexts = pairing_contexts(scene_starts(session, split), groups)
     return [
         ScoringChunk(submission_id=submission.id, run=submission.run, tokens=group, context=context)
         for group, context in zip(groups, contexts, strict=True)
     ]
+
+
+def _whole_groups(stages: TwoStageSplit, tokens: Sequence[str], size: int) -> list[list[str]]:
+    """Return `tokens` in chunks of about `size` that keep each group of the stage mapping whole (a larger group
+    is a chunk of its own), in mapping order; then the tokens no group covers."""
+    todo = set(tokens)
+    groups = stages.groups or ()
+    grouped = {token for group in groups for token in group.tokens}
+    units = [[token for token in group.tokens if token in todo] for group in groups]
+    units = [unit for unit in units if unit] + [[token] for token in tokens if token not in grouped]
+    chunks: list[list[str]] = []
+    for unit in units:
+        if not chunks or len(chunks[-1]) + len(unit) > size:
+            chunks.append([])
+        chunks[-1] += unit
+    return chunks
 
 
 def plan_chunks(
@@ -82,14 +113,14 @@ def plan_chunks(
         )
         for token in chunk_tokens
     }
-    starts = scene_starts(session, submission.split)
-    todo = sorted(
-        (token for token in tokens if token not in held),
-        key=lambda token: (starts.get(token, ("", 0)), token),
-    )
-    chunks = _with_contexts(
-        submission, [todo[start : start + size] for start in range(0, len(todo), size)], starts
-    )
+    todo = [token for token in tokens if token not in held]
+    if submission.split.kind == SplitKind.two_stage:
+        groups = _whole_groups(stage_mapping(submission.split), todo, size)
+    else:
+        starts = scene_starts(session, submission.split)
+        todo.sort(key=lambda token: (starts.get(token, ("", 0)), token))
+        groups = [todo[start : start + size] for start in range(0, len(todo), size)]
+    chunks = _with_contexts(session, submission, groups)
     for chunk in chunks:
         chunk.sent_at = now or utc_now()
     session.add_all(chunks)
@@ -101,8 +132,7 @@ def split_chunk(session: Session, chunk: ScoringChunk, now: datetime) -> tuple[i
     """Plan a chunk's tokens again one per chunk, each inheriting its deaths; return the new chunks' ids."""
     submission = session.get(Submission, chunk.submission_id)
     assert submission is not None  # start_chunk checked the run
-    starts = scene_starts(session, submission.split)
-    children = _with_contexts(submission, [[token] for token in chunk.tokens], starts)
+    children = _with_contexts(session, submission, [[token] for token in chunk.tokens])
     for child in children:
         child.deaths, child.sent_at = chunk.deaths, now
     session.add_all(children)

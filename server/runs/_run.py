@@ -14,13 +14,23 @@ from collections.abc import Collection
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from scorer.versions import LOG_REPLAY_VERSIONS
-from server.models import ACTIVE_STATUSES, Submission, TokenResultRow
+from scorer.versions import LOG_REPLAY_VERSIONS, TWO_STAGE_VERSIONS, VersionName
+from server.models import ACTIVE_STATUSES, Split, SplitKind, Submission, TokenResultRow
 from server.services.errors import NotFound
 
-# The versions every submission is scored under and the board shows: those whose traffic replays the log (a
-# two-stage split's reactive version has no board yet).
-BOARD_VERSIONS = LOG_REPLAY_VERSIONS
+# The versions a run is scored under and its phase's board shows, by the kind of its split: log-replay splits
+# under the versions whose traffic replays the log, two-stage splits under NAVSIM's two-stage EPDMS.
+RUN_VERSIONS: dict[SplitKind, tuple[VersionName, ...]] = {
+    SplitKind.log_replay: LOG_REPLAY_VERSIONS,
+    SplitKind.two_stage: TWO_STAGE_VERSIONS,
+}
+# Every version some board shows.
+BOARD_VERSIONS = tuple(dict.fromkeys(version for versions in RUN_VERSIONS.values() for version in versions))
+
+
+def run_versions(split: Split) -> tuple[VersionName, ...]:
+    """Return the metric versions a run on `split` is scored under (its kind's)."""
+    return RUN_VERSIONS[SplitKind(split.kind)]
 
 
 def locked_submission(session: Session, submission_id: int) -> Submission:
@@ -38,7 +48,7 @@ def is_current(submission: Submission, run: int) -> bool:
 
 def expected_rows(submission: Submission) -> int:
     """Return how many per-token rows a complete run holds: tokens x seeds x metric versions."""
-    return submission.token_count * submission.seed_count * len(BOARD_VERSIONS)
+    return submission.token_count * submission.seed_count * len(run_versions(submission.split))
 
 
 def rows_written(session: Session, submission_id: int, run: int) -> int:
@@ -64,6 +74,6 @@ def completed_tokens(
     if among is not None:
         query = query.where(TokenResultRow.token.in_(among))
     grouped = query.group_by(TokenResultRow.token).having(
-        func.count() == submission.seed_count * len(BOARD_VERSIONS)
+        func.count() == submission.seed_count * len(run_versions(submission.split))
     )
     return set(session.scalars(grouped).all())

@@ -7,9 +7,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from time import perf_counter
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from server.runs._job import ChunkInputs, trajectories
+from server.models import SplitKind
+from server.runs._job import ChunkInputs, ScoringJob, trajectories
+from server.runs._two_stage import stage_rows
 
 if TYPE_CHECKING:
     from scorer.evaluate import TokenResult
@@ -47,5 +49,18 @@ def score_chunk(inputs: ChunkInputs, storage_dir: Path, cache_dir: Path) -> Scor
         return ScoredChunk({}, 0.0)
     seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, storage_dir)))
     started = perf_counter()
-    rows = score_seeds(job.split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
+    if job.split_kind == SplitKind.two_stage:
+        rows = {version: _two_stage_rows(job, cache_dir, seeds, version, inputs) for version in job.versions}
+    else:
+        rows = score_seeds(job.split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))
+
+
+def _two_stage_rows(
+    job: ScoringJob, cache_dir: Path, seeds: Mapping[int | None, Any], version: str, inputs: ChunkInputs
+) -> list[TokenResult]:
+    """Score a two-stage chunk's tokens beside their comfort partners (its context) under `version`."""
+    from scorer.two_stage.score import score_two_stage_part
+
+    scored = score_two_stage_part(job.split_dir, cache_dir, seeds, version, inputs.todo, inputs.context)
+    return stage_rows(scored, {seed: list(predictions) for seed, predictions in seeds.items()})

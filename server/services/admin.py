@@ -15,7 +15,7 @@ from typing import Any
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
-from scorer.versions import DEFAULT_VERSION, get_version
+from scorer.versions import get_version
 from server.models import (
     ApiToken,
     Approval,
@@ -32,7 +32,14 @@ from server.models import (
 )
 from server.runs import cancel, reset_for_rerun
 from server.services.errors import Conflict, NotFound
-from server.services.leaderboard import leaderboard, phase_summaries, rank_change_report, subscore_columns
+from server.services.leaderboard import (
+    STAGES,
+    leaderboard,
+    phase_summaries,
+    phase_version,
+    rank_change_report,
+    subscore_columns,
+)
 from server.services.splits import create_phase, register_split, split_by_name
 from server.services.submissions import add_baselines, get_submission
 from server.services.teams import create_team, set_approval, set_team_quota
@@ -260,10 +267,10 @@ def start_rescore(
     """Snapshot the leaderboard under `compare_with` and queue a new run of every scored entry of the phase
     (baselines included). By default the snapshot is `version`'s, or the default version's when `version` ranks
     no entry yet: rescoring under a version new on the board then reports how it reorders the board."""
-    before_version = compare_with or version
+    before_version = phase_version(phase, compare_with or version)
     before = leaderboard(session, phase, before_version, subset)
     if compare_with is None and not any(not row["baseline"] for row in before):
-        before_version = DEFAULT_VERSION
+        before_version = phase_version(phase, None)
         before = leaderboard(session, phase, before_version, subset)
     submissions = session.scalars(
         select(Submission)
@@ -351,6 +358,11 @@ def export_rows(session: Session, phase: Phase, version: str, subset: str) -> li
             "baseline": submission.is_baseline,
             "status": submission.status,
             "score": summary.score,
+            **{
+                f"{stage}_score": summary.two_stage[stage]["score"]
+                for stage in STAGES
+                if summary.two_stage is not None
+            },
             **{column: getattr(summary, column) for column in columns},
             "seeds": summary.seeds,
             "score_std": summary.score_std,

@@ -13,8 +13,9 @@ import numpy as np
 from sqlalchemy import case, func, or_, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from scorer.versions import ALL_RESULT_COLUMNS, get_version
+from scorer.versions import ALL_RESULT_COLUMNS, DEFAULT_VERSION, get_version
 from server.models import Phase, Status, Submission, Summary, Team
+from server.runs import run_versions
 from server.services.errors import Forbidden, Invalid, NotFound
 from server.services.splits import (
     ALL_SUBSET,
@@ -56,6 +57,23 @@ def summary_figures(summary: Any, columns: tuple[str, ...]) -> dict[str, Any]:
     }
 
 
+STAGES = ("stage_one", "stage_two")
+
+
+def stage_figures(two_stage: dict[str, Any] | None) -> dict[str, Any]:
+    """Return the two-stage figures of a summary (empty for a one-stage one): each stage's summary row (means
+    over seeds), its score apart for sorting, and the groups the combined score and its interval rest on."""
+    if two_stage is None:
+        return {}
+    return {
+        **{stage: two_stage[stage] for stage in STAGES},
+        **{f"{stage}_score": two_stage[stage]["score"] for stage in STAGES},
+        "groups": two_stage["groups"],
+        "undefined_groups": two_stage["undefined_groups"],
+        "official": two_stage["official"],
+    }
+
+
 def _row(entry: Any, columns: tuple[str, ...]) -> dict[str, Any]:
     return {
         "rank": None,
@@ -64,6 +82,7 @@ def _row(entry: Any, columns: tuple[str, ...]) -> dict[str, Any]:
         "tech_report_url": entry.tech_report_url,
         "code_url": entry.code_url,
         **summary_figures(entry, columns),
+        **stage_figures(entry.two_stage),
         "baseline": entry.is_baseline,
         "submitted_at": entry.created_at.isoformat(),
         "submission_id": entry.submission_id,
@@ -105,6 +124,7 @@ def _entries(
             Summary.ci_high,
             Summary.tokens,
             Summary.failed,
+            Summary.two_stage,
             *(getattr(Summary, column) for column in ALL_RESULT_COLUMNS),
             choice.label("choice"),
         )
@@ -152,7 +172,8 @@ def leaderboard(
 ) -> list[dict[str, Any]]:
     """Return the leaderboard rows: ranked by the version's score (ties: earlier submission, then id), ordered by `sort`."""
     columns = subscore_columns(version)
-    sortable = ("score", *columns, "submitted_at")
+    stages = tuple(f"{stage}_score" for stage in STAGES) if get_version(version).two_stage else ()
+    sortable = ("score", *stages, *columns, "submitted_at")
     if sort not in sortable:
         message = f"cannot sort by {sort!r}; choose one of {', '.join(sortable)}"
         raise Invalid(message, [{"token": None, "field": "sort", "message": message}])
@@ -206,11 +227,34 @@ def rank_change_report(before: list[dict[str, Any]], after: list[dict[str, Any]]
     }
 
 
+def phase_version(phase: Phase, version: str | None) -> str:
+    """Return the version a phase's board shows for a query: the one asked, or by default the default version
+    where the phase's split is scored under it, else the first of its split's versions. A version of the other
+    kind of split (one-stage on a two-stage split, or the reverse) is refused, naming the phase's versions."""
+    versions = run_versions(phase.split)
+    if version is None:
+        return DEFAULT_VERSION if DEFAULT_VERSION in versions else versions[0]
+    subscore_columns(version)  # an unknown version is refused first
+    if get_version(version).two_stage != get_version(versions[0]).two_stage:
+        raise NotFound(
+            f"phase {phase.name!r} is on {phase.split.kind} split {phase.split.name!r}, scored under "
+            f"{', '.join(versions)}: it has no {version} leaderboard"
+        )
+    return version
+
+
 def leaderboard_view(
-    session: Session, version: str, subset: str | None, sort: str, phase_name: str | None, admin: bool = False
+    session: Session,
+    version: str | None,
+    subset: str | None,
+    sort: str,
+    phase_name: str | None,
+    admin: bool = False,
 ) -> dict[str, Any]:
-    """Return the leaderboard body for the query (shared by the REST route and the web page)."""
+    """Return the leaderboard body for the query (shared by the REST route and the web page); `version` None
+    is the phase's default (`phase_version`)."""
     phase = resolve_phase(session, phase_name)
+    version = phase_version(phase, version)
     columns = subscore_columns(version)
     visible = visible_subsets(phase.split, phase, admin)
     if subset is None:
@@ -226,6 +270,9 @@ def leaderboard_view(
     metric_version = get_version(version)
     return {
         "version": version,
+        "versions": list(run_versions(phase.split)),
+        "two_stage": metric_version.two_stage,
+        "interval_over": "groups" if metric_version.two_stage else "tokens",
         "score_label": metric_version.score_label,
         "official_code": metric_version.official_code,
         "phase": phase.name,
@@ -255,7 +302,7 @@ class Board:
 def cached_board(
     cache: TTLCache[Board],
     sessions: sessionmaker[Session],
-    version: str,
+    version: str | None,
     subset: str | None,
     sort: str,
     phase: str | None,

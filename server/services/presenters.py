@@ -7,22 +7,32 @@ from collections.abc import Sequence
 from typing import Any, TypeVar
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, undefer
 
-from scorer.versions import get_version
+from scorer.versions import VersionName, get_version
 from server.models import Phase, Result, Submission, Summary, TokenResultRow
-from server.runs import BOARD_VERSIONS
+from server.runs import run_versions
 from server.schemas import (
     AdminSubmissionOut,
     PhaseOut,
     QuotaOut,
     SeedResult,
     SplitOut,
+    StageGroupOut,
+    StageGroupsOut,
+    StageSeedOut,
     SubmissionOut,
     SubsetResult,
     TokenRow,
 )
-from server.services.leaderboard import default_subset, shown_entries, subscore_columns, summary_figures
+from server.services.errors import NotFound
+from server.services.leaderboard import (
+    default_subset,
+    shown_entries,
+    stage_figures,
+    subscore_columns,
+    summary_figures,
+)
 from server.services.quota import quota_usage
 from server.services.splits import (
     ALL_SUBSET,
@@ -38,6 +48,7 @@ from server.services.submissions import final_refusal
 def _subset_result(summary: Summary, results: list[Result]) -> SubsetResult:
     return SubsetResult(
         **summary_figures(summary, subscore_columns(summary.metric_version)),
+        **stage_figures(summary.two_stage),
         per_seed=[
             SeedResult(
                 seed=result.seed,
@@ -75,7 +86,9 @@ def submission_views(
     views = []
     for submission in submissions:
         visible = set(visible_subsets(submission.split, submission.phase, admin))
-        nested: dict[str, dict[str, SubsetResult]] = {version: {} for version in BOARD_VERSIONS}
+        nested: dict[str, dict[str, SubsetResult]] = {
+            version: {} for version in run_versions(submission.split)
+        }
         for summary in by_submission[submission.id]:
             if summary.subset in visible:
                 key = (submission.id, summary.metric_version, summary.subset)
@@ -97,7 +110,7 @@ def _shown_versions(session: Session, submissions: Sequence[Submission]) -> dict
     shown: dict[int, list[str]] = defaultdict(list)
     for phase, team_ids in teams.items():
         subset = default_subset(phase)
-        for version in BOARD_VERSIONS:
+        for version in run_versions(phase.split):
             for submission_id in shown_entries(session, phase, version, subset, team_ids):
                 shown[submission_id].append(version)
     return shown
@@ -237,3 +250,44 @@ def quota_views(session: Session, team_id: int) -> list[QuotaOut]:
         if is_open(phase)
         for usage in quota_usage(session, team_id, phase)
     ]
+
+
+def stage_group_views(session: Session, submission: Submission, version: str) -> StageGroupsOut:
+    """Return a two-stage submission's groups per seed under `version` (a two-stage version); NotFound for a
+    one-stage one, or one not scored yet."""
+    if not get_version(version).two_stage:
+        raise NotFound(f"{version} is a one-stage version: its results have no groups (see /tokens)")
+    query = select(Result).where(
+        Result.submission_id == submission.id, Result.metric_version == version, Result.two_stage.is_not(None)
+    )
+    results = sorted(session.scalars(query.options(undefer(Result.two_stage))).all(), key=lambda r: r.seed)
+    if not results:
+        raise NotFound(f"submission {submission.id} has no two-stage results under {version}")
+    return StageGroupsOut(
+        version=VersionName(version),
+        seeds=[_stage_seed(result.seed, result.score, result.two_stage or {}) for result in results],
+    )
+
+
+def _stage_seed(seed: int, score: float | None, two_stage: dict[str, Any]) -> StageSeedOut:
+    """Return one seed's two-stage part (`Result.two_stage`) as the API shows it."""
+    return StageSeedOut(
+        seed=seed,
+        score=score,
+        stage_one=two_stage["stage_one"],
+        stage_two=two_stage["stage_two"],
+        official=two_stage["official"],
+        notes=two_stage["notes"],
+        note_count=two_stage["note_count"],
+        groups=[
+            StageGroupOut(
+                original=group["original"],
+                previous=group["previous"],
+                **{part: columns["score"] for part, columns in group["parts"].items()},
+                score=group["combined"]["score"],
+                weights=group["weights"],
+                detail=group["detail"],
+            )
+            for group in two_stage["groups"]
+        ],
+    )

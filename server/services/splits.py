@@ -5,14 +5,18 @@ from __future__ import annotations
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from scorer.scene import SceneFormatError, scene_paths
-from server.models import Phase, Split, SplitSubset, utc_now
+from scorer.two_stage.split import MAPPING_FILE, TwoStageSplitError, load_two_stage_split
+from server.models import Phase, Split, SplitKind, SplitSubset, utc_now
 from server.services.errors import Conflict, Invalid, NotFound
+
+if TYPE_CHECKING:
+    from scorer.two_stage.split import TwoStageSplit
 
 ALL_SUBSET = "all"
 PUBLIC_SUBSET = "public"
@@ -20,8 +24,22 @@ PRIVATE_SUBSET = "private"
 
 
 def split_tokens(split: Split) -> tuple[str, ...]:
-    """Return the tokens of a split's directory in token order."""
+    """Return the tokens a submission of the split covers: a log-replay split's scenes in token order, a
+    two-stage split's stage-one then stage-two tokens (`stage_mapping`)."""
+    if split.kind == SplitKind.two_stage:
+        stages = stage_mapping(split)
+        return stages.stage_one_tokens + stages.stage_two_tokens
     return tuple(scene_paths(split.directory))
+
+
+def stage_mapping(split: Split) -> TwoStageSplit:
+    """Return a two-stage split's stage mapping and stage tokens (`scorer.two_stage.split`)."""
+    return load_two_stage_split(Path(split.directory))
+
+
+def upload_stages(split: Split) -> TwoStageSplit | None:
+    """Return what an upload's stages must cover: a two-stage split's mapping, None for a one-stage split."""
+    return stage_mapping(split) if split.kind == SplitKind.two_stage else None
 
 
 def scene_starts(session: Session, split: Split) -> dict[str, tuple[str, int]]:
@@ -68,12 +86,25 @@ def register_split(
         ) from None
     if not tokens:
         raise Conflict(f"split {name!r}: no scene in {directory / 'scenes'}")
+    kind = SplitKind.two_stage if (directory / MAPPING_FILE).is_file() else SplitKind.log_replay
+    if kind == SplitKind.two_stage:
+        try:
+            stages = load_two_stage_split(directory)
+        except TwoStageSplitError as error:
+            raise Conflict(f"split {name!r}: {str(error).replace(str(directory), '<split>')}") from None
+        tokens = [*stages.stage_one_tokens, *stages.stage_two_tokens]
+        if public_tokens is not None:
+            raise Conflict(
+                f"split {name!r} is a two-stage split: its groups are scored whole, so it has no public and "
+                "private subsets (register the public and private parts as two splits)"
+            )
     split = Split(
         name=name,
         directory=str(directory),
         content_hash=split_content_hash(directory),
         token_count=len(tokens),
         scenes_public=scenes_public,
+        kind=kind,
     )
     if public_tokens is not None:
         unknown = sorted(set(public_tokens) - set(tokens))

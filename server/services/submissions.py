@@ -107,18 +107,24 @@ def create_submission(
 
 
 def add_baselines(session: Session, split: Split, storage_dir: Path) -> list[Submission]:
-    """Create the queued constant-velocity and human baseline submissions of a split (the caller enqueues them)."""
-    from scorer.baselines import baseline_submission
-    from scorer.submission import dump_submission_json
-    from server.services.splits import split_tokens
+    """Create the queued constant-velocity and human baseline submissions of a split (the caller enqueues them),
+    in the split's form (one-stage or two-stage)."""
+    from scorer.baselines import baseline_submission, two_stage_baseline_submission
+    from scorer.submission import dump_submission_json, dump_two_stage_submission_json
+    from server.services.splits import split_tokens, upload_stages
     from server.services.validation import validate_upload
 
     team = baseline_team(session)
     tokens = split_tokens(split)
+    stages = upload_stages(split)
     created = []
     for kind, method in BASELINES:
-        data = dump_submission_json(baseline_submission(Path(split.directory), kind, method))
-        upload = validate_upload(data, f"{kind}.json", tokens, {"method": method})
+        if stages is None:
+            data = dump_submission_json(baseline_submission(Path(split.directory), kind, method))
+        else:
+            baseline = two_stage_baseline_submission(Path(split.directory), kind, method)
+            data = dump_two_stage_submission_json(baseline)
+        upload = validate_upload(data, f"{kind}.json", tokens, {"method": method}, stages)
         submission = _new_submission(team, split, None, upload, _store(storage_dir, upload))
         submission.is_baseline = True
         submission.charged = False

@@ -6,10 +6,14 @@ import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import PurePath
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 from server.services.errors import Invalid
+
+if TYPE_CHECKING:
+    from scorer.submission import Submission, TwoStageSubmission
+    from scorer.two_stage.split import TwoStageSplit
 
 # Metadata a team may give in the file or as form fields (form fields win).
 METADATA_FIELDS = ("method", "authors", "email", "institution", "country", "tech_report_url", "code_url")
@@ -45,27 +49,117 @@ def _is_web_address(text: str) -> bool:
     return parts.scheme in ("http", "https") and bool(parts.netloc) and not any(c.isspace() for c in text)
 
 
-def validate_upload(
-    data: bytes, filename: str, split_tokens: Sequence[str], form_metadata: dict[str, str] | None = None
-) -> ValidUpload:
-    """Return the checked upload, or raise Invalid listing every problem (token, field, message)."""
+ONE_STAGE_FORM = "a one-stage submission (NAVSIM's pickle with `predictions`, or navsim-lb/submission JSON)"
+TWO_STAGE_FORM = (
+    "a two-stage submission (NAVSIM v2's pickle with `first_stage_predictions` and `second_stage_predictions`, "
+    "or navsim-lb/submission-two-stage JSON)"
+)
+
+
+def _wrong_form(filename: str, stages: TwoStageSplit | None) -> Invalid:
+    """Return the refusal of a file in the other split kind's form, saying which form the split takes."""
+    two_stage = stages is not None
+    expected, found = (TWO_STAGE_FORM, ONE_STAGE_FORM) if two_stage else (ONE_STAGE_FORM, TWO_STAGE_FORM)
+    kind = "a two-stage" if two_stage else "a one-stage"
+    message = f"{filename}: this phase's split is {kind} split: it takes {expected}; the file is {found}"
+    return Invalid(message, [{"token": None, "field": None, "message": message}])
+
+
+def _reads_as_other_form(data: bytes, filename: str, stages: TwoStageSplit | None, limit: Any) -> bool:
+    """Whether a file the split's form refused reads in the other kind's form."""
+    from scorer.submission import SubmissionError, load_submission, load_two_stage_submission
+
+    try:
+        (load_submission if stages is not None else load_two_stage_submission)(data, filename, limit)
+    except SubmissionError:
+        return False
+    return True
+
+
+def _two_stage_problems(submission: TwoStageSubmission, stages: TwoStageSplit) -> list[Any]:
+    """Return what keeps a two-stage submission from covering each stage's tokens once per seed."""
+    from scorer.submission import MAX_SEEDS, STAGE_FIELDS, Problem, two_stage_coverage_problems
+
+    problems = two_stage_coverage_problems(
+        [list(seed) for seed in submission.first_stage],
+        [list(seed) for seed in submission.second_stage],
+        stages.stage_one_tokens,
+        stages.stage_two_tokens,
+    )
+    if len(submission.first_stage) > MAX_SEEDS:
+        message = f"{len(submission.first_stage)} seeds: a submission holds at most {MAX_SEEDS}"
+        problems.insert(0, Problem(None, STAGE_FIELDS[0], message))
+    return problems
+
+
+def read_upload(
+    data: bytes, filename: str, split_tokens: Sequence[str], stages: TwoStageSplit | None = None
+) -> tuple[Submission | TwoStageSubmission, tuple[dict[str, Any], ...]]:
+    """Return the file read in its split's form and, per seed, token -> poses of every token it submits (a
+    two-stage file's stage one, then stage two, each in the file's order: the official row order), or raise
+    Invalid listing every problem of the file (with its coverage of the split, per stage for a two-stage one,
+    where the file names its tokens). `stages` is a two-stage split's mapping, None for a one-stage split."""
     from scorer.submission import (
         ContentLimit,
         SubmissionError,
+        TwoStageSubmission,
         coverage_problems,
         load_submission,
-        validate_submission,
+        load_two_stage_submission,
+        two_stage_coverage_problems,
     )
 
-    filename = PurePath(filename or "submission").name
+    # What a valid file of the split can take bounds what it may inflate to (a bomb stops there).
+    limit = ContentLimit.for_tokens(split_tokens)
     try:
-        # What a valid file of the split can take bounds what it may inflate to (a bomb stops there).
-        submission = load_submission(data, filename, ContentLimit.for_tokens(split_tokens))
+        if stages is None:
+            submission: Submission | TwoStageSubmission = load_submission(data, filename, limit)
+        else:
+            submission = load_two_stage_submission(data, filename, limit)
     except SubmissionError as error:
-        found = error.problems + coverage_problems(error.seed_tokens, split_tokens)
-        problems = [_problem(p) for p in found]
+        if _reads_as_other_form(data, filename, stages, limit):
+            raise _wrong_form(filename, stages) from None
+        if stages is None:
+            coverage = coverage_problems(error.seed_tokens, split_tokens)
+        else:
+            coverage = two_stage_coverage_problems(
+                error.seed_tokens, error.second_stage_tokens, stages.stage_one_tokens, stages.stage_two_tokens
+            )
+        problems = [_problem(p) for p in error.problems + coverage]
         raise Invalid(f"{filename}: {len(problems)} problem(s) in the file", problems) from None
-    problems = [_problem(p) for p in validate_submission(submission, split_tokens)]
+    if isinstance(submission, TwoStageSubmission):
+        from scorer.two_stage.score import submitted_rows  # the engine: only for a two-stage file
+
+        return submission, tuple(
+            submitted_rows(submission, seed) for seed in range(len(submission.first_stage))
+        )
+    return submission, submission.seeds
+
+
+def _split_problems(
+    submission: Submission | TwoStageSubmission, split_tokens: Sequence[str], stages: TwoStageSplit | None
+) -> list[dict[str, str | None]]:
+    """Return what keeps a readable file from covering its split once per seed (per stage for two stages)."""
+    from scorer.submission import TwoStageSubmission, validate_submission
+
+    if isinstance(submission, TwoStageSubmission):
+        assert stages is not None
+        return [_problem(p) for p in _two_stage_problems(submission, stages)]
+    return [_problem(p) for p in validate_submission(submission, split_tokens)]
+
+
+def validate_upload(
+    data: bytes,
+    filename: str,
+    split_tokens: Sequence[str],
+    form_metadata: dict[str, str] | None = None,
+    stages: TwoStageSplit | None = None,
+) -> ValidUpload:
+    """Return the checked upload, or raise Invalid listing every problem (token, field, message). `stages` is
+    a two-stage split's mapping (`read_upload`)."""
+    filename = PurePath(filename or "submission").name
+    submission, seeds = read_upload(data, filename, split_tokens, stages)
+    problems = _split_problems(submission, split_tokens, stages)
     if problems:
         raise Invalid(f"{filename}: {len(problems)} problem(s) against the split", problems)
     metadata = _file_metadata(submission)
@@ -73,7 +167,7 @@ def validate_upload(
         {k: v.strip() for k, v in (form_metadata or {}).items() if k in METADATA_FIELDS and v and v.strip()}
     )
     metadata.setdefault("method", PurePath(filename).name.split(".")[0])
-    problems = [
+    problems += [
         {"token": None, "field": field, "message": f"{field} must be an http:// or https:// address"}
         for field in URL_FIELDS
         if field in metadata and not _is_web_address(metadata[field])
@@ -84,8 +178,8 @@ def validate_upload(
         data=data,
         filename=filename,
         sha256=hashlib.sha256(data).hexdigest(),
-        seed_count=len(submission.seeds),
+        seed_count=len(seeds),
         token_count=len(split_tokens),
         metadata=metadata,
-        trajectories=submission.seeds,
+        trajectories=seeds,
     )

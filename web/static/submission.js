@@ -128,8 +128,9 @@ async function render() {
   const results = submission.results[state.version] || {};
   const subsets = Object.keys(results);
   if (!subsets.includes(state.subset)) state.subset = subsets.includes("public") ? "public" : subsets[0];
+  const scored = PAGE.versions.filter((version) => version in submission.results);
   const versionTabs = $("#version-tabs");
-  versionTabs.replaceChildren(...PAGE.versions.map((version) =>
+  versionTabs.replaceChildren(...(scored.length ? scored : PAGE.versions).map((version) =>
     tab(`${PAGE.score_labels[version]} ${version}`, version === state.version, () => { state.version = version; render(); })));
   for (const element of document.querySelectorAll(".score-label")) element.textContent = label("score");
   $("#subset-tabs").replaceChildren(...subsets.map((subset) =>
@@ -142,8 +143,16 @@ async function render() {
   $("#page-error").textContent = "";
   const columns = columnsOf(summary);
 
-  // Breakdown next to the baselines.
+  // Breakdown next to the baselines (two stages: the combined score, each stage's score and subscores).
   const reference = await baselines(state.version, state.subset);
+  const twoStage = "stage_one" in summary;
+  const lines = twoStage
+    ? [["score", `${label("score")} (combined)`, (entry) => entry.score],
+      ...["stage_one", "stage_two"].flatMap((stage, index) => ["score", ...columns].map((column) =>
+        [column, `${column === "score" ? label("score") : label(column)}, stage ${index + 1}`, (entry) => (entry[stage] || {})[column]]))]
+    : ["score", ...columns].map((column) => [column,
+      column === "driving_direction_compliance" ? `${label(column)} (${PAGE.ddc_roles[state.version]})` : label(column),
+      (entry) => entry[column]]);
   const head = $("#breakdown thead tr");
   head.replaceChildren();
   for (const text of ["Metric", submission.method, ...reference.map((row) => row.method)]) {
@@ -155,22 +164,24 @@ async function render() {
   }
   const body = $("#breakdown tbody");
   body.replaceChildren();
-  for (const column of ["score", ...columns]) {
+  for (const [column, text, value] of lines) {
     const row = body.insertRow();
     const name = document.createElement("th");
     name.scope = "row";
-    name.textContent = column === "driving_direction_compliance" ? `${label(column)} (${PAGE.ddc_roles[state.version]})` : label(column);
+    name.textContent = text;
     name.title = column;
     row.append(name);
-    for (const value of [summary[column], ...reference.map((entry) => entry[column])]) {
+    for (const entry of [summary, ...reference]) {
       const td = cell(row, "", "num");
       const meter = document.createElement("span");
       meter.className = "meter";
-      meter.style.setProperty("--fill", `${Math.round(100 * (value ?? 0))}%`);
-      meter.textContent = pct(value);
+      meter.style.setProperty("--fill", `${Math.round(100 * (value(entry) ?? 0))}%`);
+      meter.textContent = pct(value(entry));
       td.append(meter);
     }
   }
+
+  await renderGroups(twoStage);
 
   // Histograms and the worst tokens.
   const tokens = perToken(await tokenRows(submission.id, state.version), columns);
@@ -190,6 +201,56 @@ async function render() {
   }
   renderFilter(tokens);
   await renderDiff(tokens, summary, columns);
+}
+
+// Two stages: per group each frame's stage-one score, its weighted stage two and the weights, lowest first.
+async function renderGroups(twoStage) {
+  $("#groups").hidden = !twoStage;
+  if (!twoStage) return;
+  const key = `${state.submission.id}/${state.version}/groups`;
+  if (!(key in state.rows)) state.rows[key] = await read(`/submissions/${state.submission.id}/groups?version=${state.version}`);
+  const seeds = state.rows[key].seeds;
+  const choice = $("#group-seed");
+  $("#group-seed-choice").hidden = seeds.length < 2;
+  if (choice.options.length !== seeds.length) {
+    choice.replaceChildren(...seeds.map((seed) => new Option(`${seed.seed}`, seed.seed)));
+    choice.onchange = () => renderGroups(true);
+  }
+  const seed = seeds.find((entry) => String(entry.seed) === choice.value) || seeds[0];
+  $("#group-seed-note").textContent = seeds.length > 1 ? `Seed ${seed.seed} of ${seeds.length}: ${label("score")} ${pct(seed.score)}.` : "";
+  $("#group-notes").textContent = seed.official ? "" : `Where the official script would have stopped, this scores what is defined: ${seed.notes.slice(0, 5).join("; ")}${seed.note_count > 5 ? ` (and ${seed.note_count - 5} more)` : ""}.`;
+  const body = $("#group-table tbody");
+  body.replaceChildren();
+  const order = (value) => (defined(value) ? value : Infinity);
+  for (const group of [...seed.groups].sort((a, b) => order(a.score) - order(b.score))) {
+    for (const [role, token, one, two] of [["now", group.original, group.original_stage_one, group.original_stage_two],
+      ["0.5 s before", group.previous, group.previous_stage_one, group.previous_stage_two]]) {
+      const row = body.insertRow();
+      const frame = cell(row, button(token, () => showScene(token), "draw this scene"), "token");
+      const small = document.createElement("small");
+      small.className = "role";
+      small.textContent = role;
+      frame.append(small);
+      cell(row, pct(one), "num");
+      cell(row, pct(two), "num");
+      const weights = Object.entries(group.weights[token === group.original ? "original" : "previous"]);
+      const list = cell(row, "", "weights");
+      for (const [synthetic, weight] of weights) {
+        const item = document.createElement("span");
+        item.className = "weight";
+        item.title = `${synthetic}: weight ${defined(weight) ? weight.toFixed(4) : "–"}`;
+        item.textContent = defined(weight) ? weight.toFixed(2) : "–";
+        list.append(item);
+      }
+      if (token === group.original) {
+        const value = cell(row, pct(group.score), "num score");
+        value.rowSpan = 2;
+        const reasons = Object.entries(group.detail).map(([what, tokens]) => `${what.replaceAll("_", " ")}: ${[].concat(tokens).join(", ")}`);
+        if (reasons.length) value.title = reasons.join("; ");
+        if (reasons.length) value.append(Object.assign(document.createElement("small"), { className: "role", textContent: reasons.join("; ") }));
+      }
+    }
+  }
 }
 
 // The human filter (v2.2): where the logged human scores 0 too, the column counts 1 for the agent.
@@ -297,6 +358,7 @@ async function load() {
   const select = $("#other");
   select.replaceChildren(new Option("choose…", ""), ...state.others.map((s) => new Option(`${s.id}: ${s.method}`, s.id)));
   select.addEventListener("change", () => render());
+  if (!(state.version in submission.results)) state.version = Object.keys(submission.results)[0] || state.version;
   await render();
 }
 
