@@ -9,8 +9,10 @@ again, every token of every group scores as the official script did, bit for bit
 
 from __future__ import annotations
 
+import copy
 import gzip
 import json
+import pickle
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -27,19 +29,24 @@ from two_stage_reference import (
     official_tokens,
     token_mismatches,
 )
+from typer.testing import CliRunner
 
+from navsim_lb.cli import app
 from scorer.evaluate import build_split_cache
 from scorer.openscene.importer import ImportSettings, scene_path
-from scorer.openscene.two_stage_import import import_two_stage
+from scorer.openscene.scene_pickle import ScenePickleError, load_scene_pickle
+from scorer.openscene.synthetic import SyntheticSceneError, synthetic_scenes
+from scorer.openscene.two_stage_import import import_synthetic, import_two_stage, read_stage_mapping
 from scorer.scene import load_scene
 from scorer.submission import SubmissionMetadata, TwoStageSubmission
 from scorer.two_stage.score import score_two_stage
-from scorer.two_stage.split import load_two_stage_split
+from scorer.two_stage.split import MAPPING_FILE, TwoStageSplitError, load_two_stage_split
 from scorer.versions import VersionName
 
 FIXTURES = Path(__file__).parent / "fixtures" / "epdms-two-stage-reactive"
 MAPPING: list[Any] = json.loads((FIXTURES / "two_stage.json").read_text())["reactive_all_mapping"]
 VERSION = VersionName.V2_2_TWO_STAGE
+runner = CliRunner()
 UTM = 32611  # the fixture maps are stored in their projected system
 
 
@@ -155,3 +162,175 @@ def test_imported_groups_score_as_the_official_script(imported, caches, family: 
         [result] = score_two_stage(split, cache_dir, submission, VERSION)
         assert token_mismatches(result, official_tokens(family)) == [], (family, original)
         assert group_mismatches(result, [official_summary(family)["groups"][index]]) == [], (family, original)
+
+
+def test_the_command_line_imports_a_two_stage_split_that_scores(tmp_path: Path) -> None:
+    entry = MAPPING[2]
+    config = write_group(tmp_path, entry, EgoFrameStats())
+    split = tmp_path / "split"
+    arguments = [
+        "import-openscene",
+        str(split),
+        "--logs",
+        str(tmp_path / "logs"),
+        "--maps",
+        str(tmp_path / "maps"),
+    ]
+    result = runner.invoke(app, [*arguments, "--workers", "1", "--stage-mapping", str(config)])
+    assert result.exit_code == 2 and "needs both --stage-mapping and --synthetic" in _text(result.output)
+    two_stage = ["--stage-mapping", str(config), "--synthetic", str(tmp_path / "synthetic")]
+    result = runner.invoke(app, [*arguments, "--workers", "1", *two_stage])
+    assert result.exit_code == 0, result.output
+    assert "12 scenes written" in _text(result.output) and "two-stage split: 1 groups" in _text(result.output)
+    original, previous, pairs = entry
+    predictions = _predictions("swerve_left_fast")
+    submission = tmp_path / "submission.json"
+    submission.write_text(
+        json.dumps(
+            {
+                "format": "navsim-lb/submission-two-stage",
+                "version": 1,
+                "first_stage_predictions": [{token: predictions[token] for token in (original, previous)}],
+                "second_stage_predictions": [{token: predictions[token] for pair in pairs for token in pair}],
+            }
+        )
+    )
+    out = tmp_path / "results.csv"
+    result = runner.invoke(
+        app,
+        [
+            "score",
+            str(split),
+            str(submission),
+            "--version",
+            VERSION,
+            "--out",
+            str(out),
+            "--cache-dir",
+            str(tmp_path / "cache"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    rows = {line.split(",")[1]: line.split(",") for line in out.read_text().splitlines()[1:]}
+    combined = official_summary("swerve_left_fast")["groups"][2]["combined"]
+    assert float(rows["extended_pdm_score_combined"][-1]) == combined
+    official = official_tokens("swerve_left_fast")
+    assert {token: float(rows[token][-1]) for token in entry[:2]} == {
+        t: official[t]["score"] for t in entry[:2]
+    }
+
+
+def _text(output: str) -> str:
+    return " ".join(output.split())
+
+
+def _scene_pickle(root: Path) -> tuple[Path, dict[str, Any]]:
+    """Write the 5-frame roll-out of group 0's pair 0; return its path and content (to break and rewrite)."""
+    _, previous, pairs = MAPPING[0]
+    content = synthetic_pickle([_raw(pairs[0][1]), _raw(pairs[0][0])], previous, EgoFrameStats())
+    path = root / "synthetic" / f"{pairs[0][1]}.pkl"
+    write_pickle(path, content)
+    return path, content
+
+
+def _maps(root: Path) -> Path:
+    raw = _raw(MAPPING[0][0])
+    write_gpkg(
+        root / "maps" / raw["map_name"] / "1.0" / "map.gpkg",
+        map_tables(raw["map"]),
+        storage_epsg=UTM,
+        projected=f"epsg:{UTM}",
+    )
+    return root / "maps"
+
+
+def _broken(content: dict[str, Any], change: str) -> dict[str, Any]:
+    content = copy.deepcopy(content)
+    if change == "annotations":
+        del content["frames"][4]["annotations"]["track_tokens"]
+    elif change == "class":
+        content["frames"][4]["annotations"]["names"][0] = "animal"
+    elif change == "pose":
+        content["frames"][2]["ego_status"]["ego_pose"] = np.array([1.0, np.nan, 0.0])
+    elif change == "future":
+        content["extended_detections_tracks"] = content["extended_detections_tracks"][:3]
+    elif change == "object":
+        del content["extended_detections_tracks"][5].tracked_objects.tracked_objects[0].__dict__["_box"]
+    return content
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ("annotations", "frames[4] (token {now2}).annotations.track_tokens: missing"),
+        ("class", "frames[4] (token {now2}).annotations.names: unknown class(es) ['animal']"),
+        ("pose", "frames[2] (token {frame2}).ego_pose: non-finite value"),
+        (
+            "future",
+            "frames[3] (token {prev2}): 4 future frame(s) (frames after it and extended_detections_tracks); the observation needs 8",
+        ),
+        ("object", "extended_detections_tracks[5].tracked_objects[0]._box: missing"),
+    ],
+)
+def test_a_malformed_pickle_is_named_and_leaves_nothing(tmp_path: Path, change: str, message: str) -> None:
+    path, content = _scene_pickle(tmp_path)
+    write_pickle(path, _broken(content, change))
+    settings = ImportSettings(_maps(tmp_path), tmp_path / "split")
+    outcomes, failed = import_synthetic(tmp_path / "synthetic", settings, None)
+    now2 = MAPPING[0][2][0][0]
+    expected = message.format(now2=now2, prev2=MAPPING[0][2][0][1], frame2=content["frames"][2]["token"])
+    assert [entry["log"] for entry in failed] == [path.name]
+    assert failed[0]["reason"].startswith(f"{path}: {expected}"), failed
+    assert outcomes == []
+    assert not (tmp_path / "split" / "scenes").exists()  # the good scene of the pair is not written either
+
+
+def test_only_data_is_unpickled(tmp_path: Path) -> None:
+    class Payload:
+        def __reduce__(self) -> tuple[Any, ...]:
+            return (print, ("executed",))
+
+    path = tmp_path / "evil.pkl"
+    path.write_bytes(pickle.dumps({"scene_metadata": Payload()}))
+    with pytest.raises(
+        ScenePickleError,
+        match=r"evil.pkl: not a readable synthetic scene pickle \(global builtins.print is not allowed",
+    ):
+        load_scene_pickle(path)
+    private_test = tmp_path / "private.pkl"
+    private_test.write_bytes(pickle.dumps([{"token": "x"}] * 5))
+    with pytest.raises(SyntheticSceneError, match="a list of frames is the private-test agent input"):
+        synthetic_scenes(private_test, load_scene_pickle(private_test), lambda location: None)
+
+
+def test_a_split_with_a_scene_missing_gets_no_mapping(tmp_path: Path) -> None:
+    config = write_group(tmp_path, MAPPING[0], EgoFrameStats())
+    missing = MAPPING[0][2][3][0]
+    (tmp_path / "synthetic" / f"{missing}.pkl").unlink()
+    report = import_two_stage(
+        tmp_path / "logs",
+        tmp_path / "synthetic",
+        config,
+        ImportSettings(tmp_path / "maps", tmp_path / "split"),
+    )
+    assert report["two_stage"]["written"] is False and report["two_stage"]["missing_tokens"] == [missing]
+    assert [entry["token"] for entry in report["skipped"]] == [missing]
+    assert not (tmp_path / "split" / MAPPING_FILE).exists()
+    assert len(list((tmp_path / "split" / "scenes").iterdir())) == 11
+
+
+def test_stage_mappings_are_read_from_navsim_configs(tmp_path: Path) -> None:
+    private = tmp_path / "private_test_hard_two_stage.yaml"
+    private.write_text("defaults:\n- scene_filter: private_test_hard_two_stage\nreactive_all_mapping: null\n")
+    assert read_stage_mapping(private).groups is None
+    broken = tmp_path / "navhard_two_stage.yaml"
+    broken.write_text(
+        yaml.safe_dump({"reactive_all_mapping": [["0123456789abcdef", "0123456789abcdee", [["x", "y"]]]]})
+    )
+    with pytest.raises(
+        TwoStageSplitError, match=r"reactive_all_mapping\[0\]\[2\]\[0\]\[0\]: token x is not synthetic"
+    ):
+        read_stage_mapping(broken)
+    (tmp_path / "other.yaml").write_text("data_split: test\n")
+    with pytest.raises(TwoStageSplitError, match="no reactive_all_mapping"):
+        read_stage_mapping(tmp_path / "other.yaml")

@@ -97,6 +97,13 @@ class _Where:
 def synthetic_scenes(path: Path, content: Any, tables: Callable[[str], MapTables]) -> list[SyntheticScene]:
     """Return the scenes of a loaded synthetic scene pickle; `tables(location)` gives a map's tables."""
     at = _Where(path)
+    if isinstance(content, list):
+        raise at.fail(
+            "(top level)",
+            "a list of frames is the private-test agent input (no annotations, no future objects); "
+            "a scene needs a Scene.save_to_disk pickle (a dict with scene_metadata, frames and the extended "
+            "tracks)",
+        )
     metadata = at.get(content, "scene_metadata", "")
     raw_frames = at.get(content, "frames", "")
     if not isinstance(raw_frames, list) or len(raw_frames) <= CURRENT_INDEX:
