@@ -83,6 +83,11 @@ def velocities_to_global(local_velocities: FloatArray, pose: EgoPose) -> FloatAr
     return np.stack([vx * cos - vy * sin, vx * sin + vy * cos], axis=-1).reshape(-1, 2)
 
 
+def vehicle_centres(objects: Sequence[Mapping[str, Any]]) -> list[tuple[float, float]]:
+    """Return the box centres of a scene-file frame's vehicles (what the reactive traffic places on lanes)."""
+    return [(obj["box"][0], obj["box"][1]) for obj in objects if obj["category"] == "vehicle"]
+
+
 def driving_command(frame: Mapping[str, Any]) -> list[int] | None:
     """Return the stored one-hot [left, straight, right, unknown] command, or None when absent or not one-hot."""
     raw = frame.get("driving_command")

@@ -29,6 +29,7 @@ from scorer.openscene.frames import (
     ego_pose,
     route_roadblocks,
     scene_windows,
+    vehicle_centres,
     window_problem,
 )
 from scorer.openscene.gpkg import MapFormatError, MapTables, gpkg_path, load_map_tables, map_location
@@ -214,8 +215,9 @@ class _LogScenes:
             )
         location = map_location(str(current.get("map_location")))
         pose = ego_pose(current)
-        excerpt = build_excerpt(map_tables(self.settings.maps_dir, location), pose, route)
         frames = [dict(self._convert(index)) for index in range(start, start + NUM_FRAMES)]
+        vehicles = vehicle_centres(frames[CURRENT_INDEX]["objects"])
+        excerpt = build_excerpt(map_tables(self.settings.maps_dir, location), pose, route, vehicles)
         stored_command = frames[CURRENT_INDEX]["driving_command"]
         check = self.settings.check_commands or stored_command is None
         computed_command = self._command(current_index, excerpt) if check else None

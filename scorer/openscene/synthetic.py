@@ -31,6 +31,7 @@ from scorer.openscene.frames import (
     EgoPose,
     driving_command,
     global_objects,
+    vehicle_centres,
 )
 from scorer.openscene.gpkg import MapTables, map_location
 from scorer.openscene.scene_pickle import EnumValue, Record
@@ -142,7 +143,12 @@ def synthetic_scenes(path: Path, content: Any, tables: Callable[[str], MapTables
             future += [_held(future[-1], step) for step in range(1, FUTURE_FRAMES - len(future) + 1)]
         ego = frames[current]["ego"]
         pose = EgoPose(ego["x"], ego["y"], ego["heading"])
-        excerpt = build_excerpt(tables(location), pose, frames[current]["route_roadblocks"])
+        excerpt = build_excerpt(
+            tables(location),
+            pose,
+            frames[current]["route_roadblocks"],
+            vehicle_centres(frames[current]["objects"]),
+        )
         scene = {
             "format": SCENE_FORMAT,
             "version": SCENE_VERSION,
