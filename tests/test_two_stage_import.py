@@ -34,6 +34,7 @@ from typer.testing import CliRunner
 from navsim_lb.cli import app
 from scorer.evaluate import build_split_cache
 from scorer.openscene.importer import ImportSettings, scene_path
+from scorer.openscene.importer import map_tables as map_tables_of
 from scorer.openscene.scene_pickle import ScenePickleError, load_scene_pickle
 from scorer.openscene.synthetic import SyntheticSceneError, synthetic_scenes
 from scorer.openscene.two_stage_import import import_synthetic, import_two_stage, read_stage_mapping
@@ -334,3 +335,46 @@ def test_stage_mappings_are_read_from_navsim_configs(tmp_path: Path) -> None:
     (tmp_path / "other.yaml").write_text("data_split: test\n")
     with pytest.raises(TwoStageSplitError, match="no reactive_all_mapping"):
         read_stage_mapping(tmp_path / "other.yaml")
+
+
+# Pickled by nuplan-devkit e924167's own classes (NAVSIM v2.2's pin): one future frame's DetectionsTracks (a
+# vehicle, a pedestrian and a traffic cone, given in that reverse order and sorted by TrackedObjects, whose
+# cached type ranges were filled) and TrafficLightStatuses (red, yellow, green).
+NUPLAN_FUTURE = Path(__file__).parent / "fixtures" / "nuplan-extended-future.pkl"
+
+
+def test_nuplan_objects_pickled_by_nuplan_itself_are_read(tmp_path: Path) -> None:
+    path, _ = _scene_pickle(tmp_path)
+    content = load_scene_pickle(path)
+    future = load_scene_pickle(NUPLAN_FUTURE)
+    for key in ("extended_detections_tracks", "extended_traffic_light_data"):
+        content[key] = future[key] * 10
+    maps = _maps(tmp_path)
+    [prev2, now2] = synthetic_scenes(path, content, lambda location: map_tables_of(maps, location))
+    frame = now2.scene["frames"][4]
+    assert frame["token"] == f"{now2.token}+1"
+    assert frame["timestamp_us"] == now2.scene["frames"][3]["timestamp_us"] + 500_000
+    assert frame["objects"] == [
+        {
+            "track": "car",
+            "category": "vehicle",
+            "box": [664010.25, 3997001.5, 0.0, 4.6, 1.9, 1.7, -3.0],
+            "velocity": [-8.5, 0.75],
+        },
+        {
+            "track": "walker",
+            "category": "pedestrian",
+            "box": [664020.0, 3997008.0, 0.0, 0.5, 0.6, 1.8, 1.5],
+            "velocity": [0.1, 1.2],
+        },
+        {
+            "track": "cone",
+            "category": "traffic_cone",
+            "box": [664030.0, 3996999.0, 0.0, 0.3, 0.3, 0.7, 0.25],
+            "velocity": [0.0, 0.0],
+        },
+    ]
+    assert frame["traffic_lights"] == [["4001", True], ["4002", False], ["4003", False]]
+    # prev2's first future frame is now2's current frame; its extended future starts one frame later.
+    assert prev2.scene["frames"][4] == now2.scene["frames"][3]
+    assert prev2.scene["frames"][5]["objects"] == frame["objects"]
