@@ -38,12 +38,29 @@ def import_openscene(
     check_commands: Annotated[
         bool, typer.Option(help="recompute stored driving commands and report mismatches")
     ] = True,
+    stage_mapping: Annotated[
+        Path | None,
+        typer.Option(
+            help="two-stage split: NAVSIM's split YAML (its reactive_all_mapping) or a two_stage.json; "
+            "the logs give the stage-one tokens, --synthetic the stage-two ones"
+        ),
+    ] = None,
+    synthetic: Annotated[
+        Path | None,
+        typer.Option(help="directory of NAVSIM synthetic scene pickles (Scene.save_to_disk, <token>.pkl)"),
+    ] = None,
 ) -> None:
-    """Import OpenScene logs and nuPlan maps into scene files; resumable, with a report of skipped tokens."""
-    from scorer.openscene.importer import REPORT_NAME, ImportSettings, import_logs, read_scene_filter
+    """Import OpenScene logs and nuPlan maps into scene files; resumable, with a report of skipped tokens.
 
-    if not logs.is_dir() or not maps.is_dir():
-        raise fail(f"{logs if not logs.is_dir() else maps}: not a directory")
+    With --stage-mapping and --synthetic, a two-stage split: the synthetic scenes too, and two_stage.json."""
+    from scorer.openscene.importer import REPORT_NAME, ImportSettings, import_logs, read_scene_filter
+    from scorer.openscene.two_stage_import import import_two_stage
+
+    for directory in (logs, maps, synthetic):
+        if directory is not None and not directory.is_dir():
+            raise fail(f"{directory}: not a directory")
+    if (stage_mapping is None) != (synthetic is None):
+        raise fail("a two-stage import needs both --stage-mapping and --synthetic")
     if frame_interval < 1:
         raise fail(f"--frame-interval must be at least 1, got {frame_interval}")
     try:
@@ -53,7 +70,13 @@ def import_openscene(
     settings = ImportSettings(maps, out, frame_interval, require_route, check_commands)
     total = sum(1 for path in logs.iterdir() if path.suffix == ".pkl")
     with progress_bar("importing logs", total) as advance:
-        report = import_logs(logs, settings, wanted, workers, advance)
+        if stage_mapping is None or synthetic is None:
+            report = import_logs(logs, settings, wanted, workers, advance)
+        else:
+            try:
+                report = import_two_stage(logs, synthetic, stage_mapping, settings, wanted, workers, advance)
+            except (OSError, ValueError) as error:
+                raise fail(str(error)) from None
     run = report["this_run"]
     console.print(
         f"{run['written']} scenes written, {run['present']} already present, {run['skipped']} skipped; "
@@ -73,7 +96,18 @@ def import_openscene(
         console.print(
             f"[yellow]{len(report['command_mismatches'])} stored driving commands differ from the route's[/yellow]"
         )
+    two_stage = report.get("two_stage")
+    if two_stage is not None and two_stage["written"]:
+        console.print(f"two-stage split: {two_stage['groups']} groups in {out / 'two_stage.json'}")
+    elif two_stage is not None:
+        missing = two_stage["missing_tokens"]
+        console.print(
+            f"[red]two_stage.json not written: {len(missing)} token(s) of the mapping have no scene[/red] "
+            f"({escape(', '.join(missing[:SHOWN_REASONS]))}{', ...' if len(missing) > SHOWN_REASONS else ''})"
+        )
     console.print(f"report: {out / REPORT_NAME}")
+    if two_stage is not None and not two_stage["written"]:
+        raise typer.Exit(code=1)
 
 
 def curate(

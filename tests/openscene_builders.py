@@ -9,6 +9,7 @@ OpenScene generator's forward transforms.
 
 from __future__ import annotations
 
+import itertools
 import math
 import pickle
 import sqlite3
@@ -20,6 +21,8 @@ from typing import Any
 import numpy as np
 import pyproj
 import shapely
+
+from scorer.openscene.frames import quaternion_yaw
 
 X0, Y0 = 664000.0, 3997000.0  # Las Vegas, UTM zone 11N
 PROJECTED_CRS = "epsg:32611"
@@ -541,3 +544,118 @@ def write_road_log(logs_dir: Path, log_index: int = 1, **kwargs: Any) -> tuple[P
     path = logs_dir / f"{name}.pkl"
     write_log(path, [log_frame(frame, name) for frame in truth])
     return path, truth
+
+
+# --- scene files back to upstream formats ------------------------------------------------------------
+
+
+def exact_yaw_quaternion(heading: float) -> list[float]:
+    """Return a unit quaternion [w, 0, 0, z] whose pyquaternion yaw is exactly `heading` (nearest ulps first)."""
+    w, z = math.cos(heading / 2), math.sin(heading / 2)
+    for radius in range(40):
+        for dw, dz in itertools.product(range(-radius, radius + 1), repeat=2):
+            candidate = [w + dw * float(np.spacing(w)), 0.0, 0.0, z + dz * float(np.spacing(z))]
+            if max(abs(dw), abs(dz)) == radius and quaternion_yaw(candidate) == heading:
+                return candidate
+    raise AssertionError(f"no quaternion reproduces heading {heading!r}")
+
+
+def map_tables(raw_map: dict[str, list[dict[str, Any]]]) -> dict[str, Table]:
+    """Return the GeoPackage tables of a scene's map excerpt (ids unchanged, rows in file order)."""
+    speed = {"speed_limit_mps": "REAL"}
+    tables = {
+        "lanes_polygons": Table(
+            "lanes_polygons", {"lane_fid": "INTEGER", "lane_group_fid": "INTEGER", **speed}
+        ),
+        "lane_connectors": Table(
+            "lane_connectors",
+            {
+                "exit_lane_fid": "INTEGER",
+                "entry_lane_fid": "INTEGER",
+                "lane_group_connector_fid": "INTEGER",
+                **speed,
+            },
+        ),
+        "gen_lane_connectors_scaled_width_polygons": Table(
+            "gen_lane_connectors_scaled_width_polygons", {"lane_connector_fid": "INTEGER"}
+        ),
+        "baseline_paths": Table("baseline_paths", {"lane_fid": "INTEGER", "lane_connector_fid": "INTEGER"}),
+        "lane_groups_polygons": Table("lane_groups_polygons", {}),
+        "lane_group_connectors": Table(
+            "lane_group_connectors", {"from_lane_group_fid": "INTEGER", "to_lane_group_fid": "INTEGER"}
+        ),
+        **{
+            name: Table(name, {})
+            for name in ("intersections", "carpark_areas", "generic_drivable_areas", "crosswalks", "walkways")
+        },
+    }
+    extra_fid = itertools.count(1)
+    for lane in raw_map["lanes"]:
+        tables["lanes_polygons"].rows.append(
+            (
+                int(lane["id"]),
+                shapely.Polygon(lane["polygon"]),
+                {
+                    "lane_fid": int(lane["id"]),
+                    "lane_group_fid": int(lane["roadblock"]),
+                    "speed_limit_mps": lane["speed_limit_mps"],
+                },
+            )
+        )
+        tables["baseline_paths"].rows.append(
+            (
+                next(extra_fid),
+                shapely.LineString(lane["baseline"]),
+                {"lane_fid": int(lane["id"]), "lane_connector_fid": None},
+            )
+        )
+    for connector in raw_map["lane_connectors"]:
+        tables["lane_connectors"].rows.append(
+            (
+                int(connector["id"]),
+                shapely.LineString(connector["baseline"]),
+                {
+                    "exit_lane_fid": int(connector["incoming"][0]),
+                    "entry_lane_fid": int(connector["outgoing"][0]),
+                    "lane_group_connector_fid": int(connector["roadblock"]),
+                    "speed_limit_mps": connector["speed_limit_mps"],
+                },
+            )
+        )
+        tables["gen_lane_connectors_scaled_width_polygons"].rows.append(
+            (
+                next(extra_fid),
+                shapely.Polygon(connector["polygon"]),
+                {"lane_connector_fid": int(connector["id"])},
+            )
+        )
+        tables["baseline_paths"].rows.append(
+            (
+                next(extra_fid),
+                shapely.LineString(connector["baseline"]),
+                {"lane_fid": None, "lane_connector_fid": int(connector["id"])},
+            )
+        )
+    for block in raw_map["roadblocks"]:
+        tables["lane_groups_polygons"].rows.append((int(block["id"]), shapely.Polygon(block["polygon"]), {}))
+    for block in raw_map["roadblock_connectors"]:
+        tables["lane_group_connectors"].rows.append(
+            (
+                int(block["id"]),
+                shapely.Polygon(block["polygon"]),
+                {
+                    "from_lane_group_fid": int(block["incoming"][0]),
+                    "to_lane_group_fid": int(block["outgoing"][0]),
+                },
+            )
+        )
+    for layer, table in (
+        ("intersections", "intersections"),
+        ("carpark_areas", "carpark_areas"),
+        ("drivable_areas", "generic_drivable_areas"),
+        ("crosswalks", "crosswalks"),
+        ("walkways", "walkways"),
+    ):
+        for area in raw_map.get(layer, []):
+            tables[table].rows.append((int(area["id"]), shapely.Polygon(area["polygon"]), {}))
+    return tables

@@ -381,6 +381,23 @@ def test_excerpt_square_is_centred_on_the_ego_box_not_the_rear_axle(tables) -> N
     assert str(FAR_WALKWAY) not in [w.id for w in build_excerpt(tables, east, []).map.walkways]
 
 
+def test_excerpt_holds_the_lanes_and_areas_at_every_current_vehicle(tables) -> None:
+    # The junction (x0 + 1138 .. 1152) and the far walkway lie beyond the square around an ego at x0 + 960.
+    pose = EgoPose(X0 + 960.0, Y0 + 1.75, 0.0)
+    plain = build_excerpt(tables, pose, ROUTE).map
+    assert str(INTERSECTION) not in [area.id for area in plain.intersections]
+    vehicles = [(X0 + 1145.0, Y0 + 5.0), (X0 + 3050.0, Y0 - 1.0)]
+    reactive = build_excerpt(tables, pose, ROUTE, vehicles).map
+    assert str(INTERSECTION) in [area.id for area in reactive.intersections]
+    assert str(FAR_WALKWAY) in [area.id for area in reactive.walkways]
+    # A vehicle inside a lane brings the lane's roadblock with all its lanes.
+    far_block = 59
+    assert str(roadblock_id(far_block)) not in [block.id for block in plain.roadblocks]
+    beside = build_excerpt(tables, pose, ROUTE, [(X0 + far_block * 50.0 + 20.0, Y0 + 1.75)]).map
+    assert str(roadblock_id(far_block)) in [block.id for block in beside.roadblocks]
+    assert {str(lane_id(far_block, side)) for side in (0, 1)} <= {lane.id for lane in beside.lanes}
+
+
 def test_excerpt_lanes_and_graph_are_the_maps(tables) -> None:
     excerpt = build_excerpt(tables, EgoPose(X0 + 1005.0, Y0 + 1.75, 0.0), ROUTE)
     lanes = {lane.id: lane for lane in excerpt.map.lanes}

@@ -26,7 +26,7 @@ from typer.testing import CliRunner
 from navsim_lb.openscene_cli import register
 from scorer.baselines import human
 from scorer.openscene.excerpt import build_excerpt, excerpt_to_json
-from scorer.openscene.frames import convert_frame, ego_pose, route_roadblocks
+from scorer.openscene.frames import convert_frame, ego_pose, route_roadblocks, vehicle_centres
 from scorer.openscene.gpkg import gpkg_path, load_map_tables
 from scorer.openscene.importer import (
     JOURNAL_NAME,
@@ -93,7 +93,8 @@ def test_scene_content_is_the_converted_window_and_its_excerpt(data, imported) -
     for written, expected in zip(raw["frames"], expected_frames, strict=True):
         assert written == expected  # every field, floats bit for bit (the stored commands are all one-hot)
     current = window[3]
-    excerpt = build_excerpt(tables, ego_pose(current), route_roadblocks(current))
+    vehicles = vehicle_centres(expected_frames[3]["objects"])
+    excerpt = build_excerpt(tables, ego_pose(current), route_roadblocks(current), vehicles)
     assert raw["map"] == json.loads(json.dumps(excerpt_to_json(excerpt.map)))
     assert (raw["token"], raw["log_name"], raw["frame_interval_s"]) == (token, data["log"].stem, 0.5)
 

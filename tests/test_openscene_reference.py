@@ -8,7 +8,6 @@ imported again, compared field by field with the original, and scored against th
 from __future__ import annotations
 
 import gzip
-import itertools
 import json
 import math
 from pathlib import Path
@@ -16,130 +15,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-import shapely
 from devkit_kernels import devkit_tolerance
-from openscene_builders import Table, write_gpkg, write_log
+from openscene_builders import exact_yaw_quaternion, map_tables, write_gpkg, write_log
 
 from scorer.geometry import rear_axle_round_trip
-from scorer.openscene.frames import quaternion_yaw
 from scorer.openscene.importer import ImportSettings, SceneFilter, import_logs, scene_path
 from scorer.scene import load_scene
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 SCENES = sorted((REFERENCE / "scenes").glob("*.json.gz"))
 UTM = 32611  # the synthetic maps are stored in their projected system (no reprojection)
-
-
-def exact_yaw_quaternion(heading: float) -> list[float]:
-    """Return a unit quaternion [w, 0, 0, z] whose pyquaternion yaw is exactly `heading` (nearest ulps first)."""
-    w, z = math.cos(heading / 2), math.sin(heading / 2)
-    for radius in range(40):
-        for dw, dz in itertools.product(range(-radius, radius + 1), repeat=2):
-            candidate = [w + dw * float(np.spacing(w)), 0.0, 0.0, z + dz * float(np.spacing(z))]
-            if max(abs(dw), abs(dz)) == radius and quaternion_yaw(candidate) == heading:
-                return candidate
-    raise AssertionError(f"no quaternion reproduces heading {heading!r}")
-
-
-def map_tables(raw_map: dict[str, list[dict[str, Any]]]) -> dict[str, Table]:
-    """Return the GeoPackage tables of a scene's map excerpt (ids unchanged, rows in file order)."""
-    speed = {"speed_limit_mps": "REAL"}
-    tables = {
-        "lanes_polygons": Table(
-            "lanes_polygons", {"lane_fid": "INTEGER", "lane_group_fid": "INTEGER", **speed}
-        ),
-        "lane_connectors": Table(
-            "lane_connectors",
-            {
-                "exit_lane_fid": "INTEGER",
-                "entry_lane_fid": "INTEGER",
-                "lane_group_connector_fid": "INTEGER",
-                **speed,
-            },
-        ),
-        "gen_lane_connectors_scaled_width_polygons": Table(
-            "gen_lane_connectors_scaled_width_polygons", {"lane_connector_fid": "INTEGER"}
-        ),
-        "baseline_paths": Table("baseline_paths", {"lane_fid": "INTEGER", "lane_connector_fid": "INTEGER"}),
-        "lane_groups_polygons": Table("lane_groups_polygons", {}),
-        "lane_group_connectors": Table(
-            "lane_group_connectors", {"from_lane_group_fid": "INTEGER", "to_lane_group_fid": "INTEGER"}
-        ),
-        **{
-            name: Table(name, {})
-            for name in ("intersections", "carpark_areas", "generic_drivable_areas", "crosswalks", "walkways")
-        },
-    }
-    extra_fid = itertools.count(1)
-    for lane in raw_map["lanes"]:
-        tables["lanes_polygons"].rows.append(
-            (
-                int(lane["id"]),
-                shapely.Polygon(lane["polygon"]),
-                {
-                    "lane_fid": int(lane["id"]),
-                    "lane_group_fid": int(lane["roadblock"]),
-                    "speed_limit_mps": lane["speed_limit_mps"],
-                },
-            )
-        )
-        tables["baseline_paths"].rows.append(
-            (
-                next(extra_fid),
-                shapely.LineString(lane["baseline"]),
-                {"lane_fid": int(lane["id"]), "lane_connector_fid": None},
-            )
-        )
-    for connector in raw_map["lane_connectors"]:
-        tables["lane_connectors"].rows.append(
-            (
-                int(connector["id"]),
-                shapely.LineString(connector["baseline"]),
-                {
-                    "exit_lane_fid": int(connector["incoming"][0]),
-                    "entry_lane_fid": int(connector["outgoing"][0]),
-                    "lane_group_connector_fid": int(connector["roadblock"]),
-                    "speed_limit_mps": connector["speed_limit_mps"],
-                },
-            )
-        )
-        tables["gen_lane_connectors_scaled_width_polygons"].rows.append(
-            (
-                next(extra_fid),
-                shapely.Polygon(connector["polygon"]),
-                {"lane_connector_fid": int(connector["id"])},
-            )
-        )
-        tables["baseline_paths"].rows.append(
-            (
-                next(extra_fid),
-                shapely.LineString(connector["baseline"]),
-                {"lane_fid": None, "lane_connector_fid": int(connector["id"])},
-            )
-        )
-    for block in raw_map["roadblocks"]:
-        tables["lane_groups_polygons"].rows.append((int(block["id"]), shapely.Polygon(block["polygon"]), {}))
-    for block in raw_map["roadblock_connectors"]:
-        tables["lane_group_connectors"].rows.append(
-            (
-                int(block["id"]),
-                shapely.Polygon(block["polygon"]),
-                {
-                    "from_lane_group_fid": int(block["incoming"][0]),
-                    "to_lane_group_fid": int(block["outgoing"][0]),
-                },
-            )
-        )
-    for layer, table in (
-        ("intersections", "intersections"),
-        ("carpark_areas", "carpark_areas"),
-        ("drivable_areas", "generic_drivable_areas"),
-        ("crosswalks", "crosswalks"),
-        ("walkways", "walkways"),
-    ):
-        for area in raw_map.get(layer, []):
-            tables[table].rows.append((int(area["id"]), shapely.Polygon(area["polygon"]), {}))
-    return tables
 
 
 def log_frames(raw: dict[str, Any]) -> list[dict[str, Any]]:

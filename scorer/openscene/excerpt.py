@@ -1,6 +1,7 @@
 """Cut the map excerpt of one scene out of the full map (scene-format.md, "Map excerpt").
 
-An excerpt holds every object meeting the square of half-side 100 m around the ego box centre and
+An excerpt holds every object meeting the square of half-side 100 m around the ego box centre or a
+small square around a current vehicle's centre (where v2's reactive traffic looks for its lane), and
 the roadblock-graph neighbourhood the engine's route repair can reach: the route, 15 steps back
 and 30 forward from it, and 30 forward from the blocks the ego may start in. Every block comes with
 all its lanes or lane connectors, every layer keeps map table order, and ids are unchanged.
@@ -39,24 +40,35 @@ class Excerpt:
     warnings: tuple[str, ...]
 
 
-def build_excerpt(tables: MapTables, pose: EgoPose, route_ids: Sequence[str]) -> Excerpt:
-    """Return the excerpt of `tables` a scene with this current ego pose and route needs."""
+def build_excerpt(
+    tables: MapTables,
+    pose: EgoPose,
+    route_ids: Sequence[str],
+    vehicles: Sequence[tuple[float, float]] = (),
+) -> Excerpt:
+    """Return the excerpt of `tables` a scene with this current ego pose and route needs; `vehicles` are the
+    box centres of the current frame's vehicles, whose lanes the reactive traffic drives on."""
     center_x, center_y = ego_center(pose.x, pose.y, pose.heading)
-    drivable_square = _square(float(center_x), float(center_y), DRIVABLE_HALF_SIDE_M + EDGE_MARGIN_M)
+    # v2's reactive traffic finds each current vehicle's lane or connector (and tells parked vehicles by
+    # lanes and intersections) at its centre, however far from the ego: a small square there joins the area.
+    area = shapely.union_all(
+        [
+            _square(float(center_x), float(center_y), DRIVABLE_HALF_SIDE_M + EDGE_MARGIN_M),
+            *(_square(x, y, EDGE_MARGIN_M) for x, y in vehicles),
+        ]
+    )
     starting_square = _square(pose.x, pose.y, STARTING_HALF_SIDE_M + EDGE_MARGIN_M)
     rear_axle = shapely.Point(pose.x, pose.y)
 
-    roadblocks = _ids(tables.roadblocks, tables.roadblocks.rows_intersecting(drivable_square))
-    connectors = _ids(
-        tables.roadblock_connectors, tables.roadblock_connectors.rows_intersecting(drivable_square)
-    )
-    # Lanes and connectors near the ego bring their parents (and so all their siblings).
+    roadblocks = _ids(tables.roadblocks, tables.roadblocks.rows_intersecting(area))
+    connectors = _ids(tables.roadblock_connectors, tables.roadblock_connectors.rows_intersecting(area))
+    # Lanes and connectors in the area bring their parents (and so all their siblings).
     roadblocks |= _parents(
-        tables.lanes, _ids(tables.lanes, tables.lanes.rows_intersecting(drivable_square)), "lane_group_fid"
+        tables.lanes, _ids(tables.lanes, tables.lanes.rows_intersecting(area)), "lane_group_fid"
     )
     connectors |= _parents(
         tables.lane_connectors,
-        _ids(tables.connector_polygons, tables.connector_polygons.rows_intersecting(drivable_square)),
+        _ids(tables.connector_polygons, tables.connector_polygons.rows_intersecting(area)),
         "lane_group_connector_fid",
     )
 
@@ -96,7 +108,7 @@ def build_excerpt(tables: MapTables, pose: EgoPose, route_ids: Sequence[str]) ->
         **{
             name: tuple(
                 builder.area(getattr(tables, name), row)
-                for row in getattr(tables, name).rows_intersecting(drivable_square)
+                for row in getattr(tables, name).rows_intersecting(area)
             )
             for name in AREA_TABLES
         },

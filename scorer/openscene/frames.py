@@ -83,6 +83,11 @@ def velocities_to_global(local_velocities: FloatArray, pose: EgoPose) -> FloatAr
     return np.stack([vx * cos - vy * sin, vx * sin + vy * cos], axis=-1).reshape(-1, 2)
 
 
+def vehicle_centres(objects: Sequence[Mapping[str, Any]]) -> list[tuple[float, float]]:
+    """Return the box centres of a scene-file frame's vehicles (what the reactive traffic places on lanes)."""
+    return [(obj["box"][0], obj["box"][1]) for obj in objects if obj["category"] == "vehicle"]
+
+
 def driving_command(frame: Mapping[str, Any]) -> list[int] | None:
     """Return the stored one-hot [left, straight, right, unknown] command, or None when absent or not one-hot."""
     raw = frame.get("driving_command")
@@ -177,14 +182,24 @@ def _objects(frame: Mapping[str, Any], token: str, pose: EgoPose) -> list[dict[s
         raise FrameError(
             f"frame {token}: anns.gt_names: unknown class(es) {unknown}; expected one of {CATEGORIES}"
         )
+    return global_objects(annotations["track_tokens"], categories, local_boxes, local_velocities, pose)
+
+
+def global_objects(
+    tracks: Sequence[Any],
+    categories: Sequence[str],
+    local_boxes: FloatArray,
+    local_velocities: FloatArray,
+    pose: EgoPose,
+) -> list[dict[str, Any]]:
+    """Return scene-file objects of ego-frame annotations (boxes (n, 7), velocities (n, >= 2)) seen from
+    `pose`: global boxes, global velocities for agents and zero for static objects."""
     boxes = boxes_to_global(local_boxes, pose)
     is_agent = np.isin(categories, AGENT_CATEGORIES)
     velocities = np.where(is_agent[:, None], velocities_to_global(local_velocities, pose), 0.0)
     return [
         {"track": str(track), "category": category, "box": box.tolist(), "velocity": velocity.tolist()}
-        for track, category, box, velocity in zip(
-            annotations["track_tokens"], categories, boxes, velocities, strict=True
-        )
+        for track, category, box, velocity in zip(tracks, categories, boxes, velocities, strict=True)
     ]
 
 

@@ -29,6 +29,7 @@ from scorer.openscene.frames import (
     ego_pose,
     route_roadblocks,
     scene_windows,
+    vehicle_centres,
     window_problem,
 )
 from scorer.openscene.gpkg import MapFormatError, MapTables, gpkg_path, load_map_tables, map_location
@@ -108,17 +109,22 @@ def _checked_tokens(tokens: Sequence[str], where: Callable[[int], str]) -> tuple
     return tuple(dict.fromkeys(tokens))
 
 
+def load_yaml(path: Path) -> Any:
+    """Return the content of one of NAVSIM's config files (safe YAML: data only)."""
+    import yaml  # only organisers importing logs need it
+
+    try:
+        return yaml.safe_load(path.read_text())
+    except yaml.YAMLError as error:
+        raise ValueError(f"{path}: not YAML ({error})") from None
+
+
 def read_scene_filter(path: Path) -> SceneFilter:
     """Return the scene filter of a file: NAVSIM's scene-filter YAML (`.yaml`/`.yml`: its `tokens`, its
     `log_names`, or both; the other keys are NAVSIM's own) or a list of tokens, one per line (`#` comments)."""
     text = path.read_text()
     if path.suffix in (".yaml", ".yml"):
-        import yaml  # only organisers importing logs need it
-
-        try:
-            document = yaml.safe_load(text)
-        except yaml.YAMLError as error:
-            raise ValueError(f"{path}: not YAML ({error})") from None
+        document = load_yaml(path)
         if not isinstance(document, dict):
             raise ValueError(f"{path}: expected a mapping with tokens and/or log_names")
         tokens, log_names = _names(document, "tokens", path), _names(document, "log_names", path)
@@ -145,7 +151,8 @@ def _set_wanted_tokens(tokens: frozenset[str] | None) -> None:
 
 
 @lru_cache(maxsize=MAP_CACHE_SIZE)
-def _map_tables(maps_dir: Path, location: str) -> MapTables:
+def map_tables(maps_dir: Path, location: str) -> MapTables:
+    """Return the tables of a map location, the last few kept loaded."""
     return load_map_tables(gpkg_path(maps_dir, location), location)
 
 
@@ -208,8 +215,9 @@ class _LogScenes:
             )
         location = map_location(str(current.get("map_location")))
         pose = ego_pose(current)
-        excerpt = build_excerpt(_map_tables(self.settings.maps_dir, location), pose, route)
         frames = [dict(self._convert(index)) for index in range(start, start + NUM_FRAMES)]
+        vehicles = vehicle_centres(frames[CURRENT_INDEX]["objects"])
+        excerpt = build_excerpt(map_tables(self.settings.maps_dir, location), pose, route, vehicles)
         stored_command = frames[CURRENT_INDEX]["driving_command"]
         check = self.settings.check_commands or stored_command is None
         computed_command = self._command(current_index, excerpt) if check else None
@@ -231,7 +239,7 @@ class _LogScenes:
             "frames": frames,
             "map": excerpt_to_json(excerpt.map),
         }
-        _write_scene(scene, out_path)
+        write_scene(scene, out_path)
         return TokenOutcome(
             token,
             self.name,
@@ -258,13 +266,13 @@ class _LogScenes:
             else:
                 location = map_location(str(frame.get("map_location")))
                 if excerpt is None:
-                    excerpt = build_excerpt(_map_tables(self.settings.maps_dir, location), pose, route)
+                    excerpt = build_excerpt(map_tables(self.settings.maps_dir, location), pose, route)
                 command = navigation_command(excerpt.map, pose, route)
             self._computed_commands[index] = command
         return self._computed_commands[index]
 
 
-def _write_scene(scene: dict[str, Any], out_path: Path) -> None:
+def write_scene(scene: dict[str, Any], out_path: Path) -> None:
     """Validate the scene as the reader will, then write it compressed (atomically)."""
     parse_scene(scene, str(out_path))
     data = gzip.compress(json.dumps(scene, separators=(",", ":"), allow_nan=False).encode(), mtime=0)

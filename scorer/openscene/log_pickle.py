@@ -15,7 +15,7 @@ import numpy as np
 from numpy._core import multiarray, numeric
 
 # numpy < 2 writers name `numpy.core.*`, numpy >= 2 writers `numpy._core.*`; both map to the same code.
-_ALLOWED_GLOBALS: dict[tuple[str, str], Any] = {
+NUMPY_GLOBALS: dict[tuple[str, str], Any] = {
     ("numpy", "ndarray"): np.ndarray,
     ("numpy", "dtype"): np.dtype,
     # A private numpy function, which the devkit's pickles of arrays name.
@@ -29,19 +29,29 @@ class LogFormatError(ValueError):
     """A log pickle cannot be read as a list of OpenScene frame dicts; the message names the file."""
 
 
-class _LogUnpickler(pickle.Unpickler):
+class RestrictedUnpickler(pickle.Unpickler):
+    """An unpickler that resolves only the globals of `allowed` and refuses persistent ids."""
+
+    def __init__(self, data: bytes, allowed: dict[tuple[str, str], Any], what: str) -> None:
+        super().__init__(io.BytesIO(data))
+        self.allowed = allowed
+        self.what = what
+
     def find_class(self, module: str, name: str) -> Any:
         try:
-            return _ALLOWED_GLOBALS[(module, name)]
+            return self.allowed[(module, name)]
         except KeyError:
-            raise pickle.UnpicklingError(f"global {module}.{name} is not allowed in a log pickle") from None
+            raise pickle.UnpicklingError(f"global {module}.{name} is not allowed in {self.what}") from None
+
+    def persistent_load(self, pid: Any) -> Any:
+        raise pickle.UnpicklingError("persistent ids are not allowed")
 
 
 def load_log(path: Path | str) -> list[dict[str, Any]]:
     """Return the frame dicts of an OpenScene log pickle, in file (time) order."""
     path = Path(path)
     try:
-        frames = _LogUnpickler(io.BytesIO(path.read_bytes())).load()
+        frames = RestrictedUnpickler(path.read_bytes(), NUMPY_GLOBALS, "a log pickle").load()
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError) as error:
         raise LogFormatError(f"{path}: not a readable log pickle ({error})") from None
     if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
