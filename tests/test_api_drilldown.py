@@ -106,3 +106,24 @@ def test_entries_are_published_to_everyone_once_their_phase_has_closed(world: Wo
         session.get(Submission, submission_id).hidden = True  # the team takes it off the board
         session.commit()
     assert world.client.get(f"/api/v1/published/{submission_id}").status_code == 404
+
+
+def test_a_picture_follows_the_chosen_version_and_layout(world: World) -> None:
+    _scenes_public(world, True)
+    submission_id = submit_scored(world, world.team_id, HUMAN, [uniform(0.9)], "Human")
+    pictures = {
+        (version, layout): _picture(world, submission_id, version=version, layout=layout)
+        for version in ("v1.1", "v2.2")
+        for layout in ("wide", "narrow")
+    }
+    assert all(picture.status_code == 200 for picture in pictures.values())
+    widths = {key: int.from_bytes(picture.content[16:20], "big") for key, picture in pictures.items()}
+    assert widths == {
+        ("v1.1", "wide"): 1100,
+        ("v2.2", "wide"): 1100,
+        ("v1.1", "narrow"): 360,
+        ("v2.2", "narrow"): 360,
+    }
+    assert len({picture.content for picture in pictures.values()}) == 4  # each version drawn as scored
+    assert len(list((world.settings.data_dir / "pictures").iterdir())) == 4
+    assert _picture(world, submission_id, layout="huge").status_code == 422
