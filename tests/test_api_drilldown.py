@@ -4,6 +4,7 @@ scenes are public and tokens it may see; organisers see every scene; a picture i
 from __future__ import annotations
 
 import json
+import re
 from datetime import timedelta
 
 from server_testing import REFERENCE_SUBMISSIONS, World, add_team, submit_scored, uniform
@@ -98,10 +99,11 @@ def test_entries_are_published_to_everyone_once_their_phase_has_closed(world: Wo
     }
     picture = world.client.get(f"/api/v1/published/{submission_id}/scenes/{TOKEN}.png")
     assert picture.status_code == 200 and picture.content.startswith(b"\x89PNG")
-    assert (
-        f'/submissions/{submission_id}">Human</a>'
-        in world.client.get("/", params={"phase": world.phase}).text
-    )
+    board = world.client.get("/", params={"phase": world.phase}).text
+    assert f'/submissions/{submission_id}">Human</a>' in board
+    assert re.search(
+        f'<tr[^>]* data-href="[^"]*/submissions/{submission_id}"', board
+    )  # the whole row opens it
     with world.session() as session:
         session.get(Submission, submission_id).hidden = True  # the team takes it off the board
         session.commit()
