@@ -572,6 +572,13 @@ def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_e
     )
     token = _api(demo, "GET", f"/submissions/{entry['id']}/tokens", demo.team_token).json()[0]["token"]
     baseline = _baseline_id(demo)
+    # Two tokens a page, so that the demo's dozen tokens go over several pages.
+    script = httpx.get(f"{demo.url}/static/submission.js", timeout=5).text
+    assert "const DIFF_PAGE = 25;" in script
+    paged = script.replace("const DIFF_PAGE = 25;", "const DIFF_PAGE = 2;")
+    page.route(
+        "**/static/submission.js", lambda route: route.fulfill(body=paged, content_type="text/javascript")
+    )
     page.goto(f"{demo.url}/submissions/{entry['id']}?version=v2.2&token={token}&compare={baseline}")
     page.wait_for_function("document.querySelector('#scene-image').naturalWidth > 0")
     layout = "wide" if width == DESKTOP else "narrow"
@@ -603,7 +610,9 @@ def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_e
             if following.count() == 0 or following.is_disabled():
                 break
             following.click()
-    assert len(listed) == len(set(listed)) == better + worse > 0
+    assert len(listed) == len(set(listed)) == better + worse > 2
+    for name, count in (("better", better), ("worse", worse)):
+        assert page.locator(f"#diff-{name}-pages").is_visible() == (count > 2)
     link = page.locator("#diff-worse tbody td.token a, #diff-better tbody td.token a").first
     chosen = link.inner_text()
     assert f"token={chosen}" in (link.get_attribute("href") or "")
