@@ -36,7 +36,7 @@ from scorer.scene import SceneFormatError, load_scene, scene_file_hash, scene_pa
 from scorer.simulation import simulate
 from scorer.trajectory import SCORING_INTERVAL_S, initial_state, pdm_references
 from scorer.two_stage.split import TwoStageSplitError
-from scorer.two_stage.starts import SyntheticStarts, synthetic_starts
+from scorer.two_stage.starts import StageTwoPlace, SyntheticStarts, stage_two_place, synthetic_starts
 from scorer.versions import VersionName, cached_together, get_version
 
 AGENT = 1  # proposal 0 is the PDM-Closed reference
@@ -70,6 +70,7 @@ class Explanation:
         tuple[str, shapely.Polygon], ...
     ]  # the map's crosswalks and walkways: (layer, polygon)
     synthetic_starts: SyntheticStarts | None = None  # a stage-one token's stage two (two-stage versions)
+    stage_two_place: StageTwoPlace | None = None  # a synthetic token's place in the stage mapping (likewise)
 
 
 def _cache(scene: Path, cache_dir: Path, token: str, version: VersionName) -> MetricCache:
@@ -165,7 +166,8 @@ def explain_split_token(
     split_dir: Path, cache_dir: Path, token: str, poses: FloatArray, version: str
 ) -> Explanation:
     """Return the explanation (`explain_token`) of `poses` on `token` of the split at `split_dir`; under a
-    two-stage version, a stage-one token's carries the synthetic starts of its stage two. Raises TokenError
+    two-stage version, a stage-one token's carries the synthetic starts of its stage two, a synthetic token's
+    its place in the stage mapping. Raises TokenError
     for a token the split lacks or a stage mapping that cannot be read."""
     scenes = scene_paths(split_dir)
     if token not in scenes:
@@ -175,6 +177,7 @@ def explain_split_token(
         return explanation
     try:
         starts = synthetic_starts(split_dir, token, poses, explanation.agent_states[0, :3])
+        place = stage_two_place(split_dir, token)
     except (TwoStageSplitError, SceneFormatError) as error:
         raise TokenError(f"the stage mapping of split {Path(split_dir).name}: {error}") from None
-    return replace(explanation, synthetic_starts=starts)
+    return replace(explanation, synthetic_starts=starts, stage_two_place=place)

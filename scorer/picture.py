@@ -549,4 +549,10 @@ def _title(explanation: Explanation, width: int) -> str:
             if explanation.synthetic_starts.weights.uniform_fallback[0]
             else "."
         )
+    place = explanation.stage_two_place
+    if place is not None:
+        notes.append(
+            f"Stage two: synthetic start {place.index + 1} of {place.count} of {place.stage_one}, weighted by "
+            f"its distance to that token's endpoint."
+        )
     return "\n".join([*lines, *textwrap.wrap(" ".join(notes), width)])

@@ -205,12 +205,14 @@ def test_a_stage_one_token_carries_its_synthetic_starts_with_the_official_weight
         assert starts.weights.weight.tolist() == [official[successor] for successor in successors]
         svg = render(explanation, "svg").decode()
         assert "synthetic start, weight" in svg and f"{starts.weights.weight.max():.2f}" in svg
-    synthetic = group.now_tokens[0]
-    assert (
-        explain_split_token(
-            REACTIVE, cache_dir, synthetic, _reactive_poses("human", synthetic), "v2.2-two-stage"
-        ).synthetic_starts
-        is None
+    synthetic = group.previous_tokens[1]
+    explanation = explain_split_token(
+        REACTIVE, cache_dir, synthetic, _reactive_poses("human", synthetic), "v2.2-two-stage"
+    )
+    assert explanation.synthetic_starts is None
+    assert explanation.stage_two_place == (group.previous, 1, len(group.pairs))
+    assert f"synthetic start 2 of 5 of {group.previous}" in " ".join(
+        render(explanation, "svg").decode().split()
     )
 
 

@@ -3,13 +3,15 @@
 A stage-one token's stage two is the set of synthetic scenes its mapping entry pairs with it (`now2` for the
 original frame, `prev2` for the frame 0.5 s before it). Each one starts from a perturbed ego state 4 s later,
 and weighs by how close that start lies to where the submitted plan ends (`scorer.two_stage.weights`): the
-drill-down picture draws those starts with their weights, computed exactly as the aggregation computes them.
+drill-down picture draws those starts with their weights, computed exactly as the aggregation computes them,
+and says of a synthetic token which stage-one token weighs it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -28,6 +30,29 @@ class SyntheticStarts:
     start_poses: FloatArray  # (n, 3) each one's ego rear axle at its start: x, y, heading (global frame)
     endpoint: FloatArray  # (2,) the stage-one token's last submitted pose, in the global frame
     weights: WeightSets
+
+
+class StageTwoPlace(NamedTuple):
+    """Where a synthetic token sits in its split's stage mapping."""
+
+    stage_one: str  # the stage-one token whose endpoint weighs it
+    index: int  # its place among that token's synthetic starts
+    count: int
+
+
+def stage_two_place(split_dir: Path, token: str) -> StageTwoPlace | None:
+    """Return the place of synthetic `token` in the stage mapping of the split at `split_dir`; None where the
+    split has no mapping or the mapping has no such stage-two token."""
+    if not (Path(split_dir) / MAPPING_FILE).is_file():
+        return None
+    for group in load_two_stage_split(split_dir).groups or ():
+        for stage_one, successors in (
+            (group.original, group.now_tokens),
+            (group.previous, group.previous_tokens),
+        ):
+            if token in successors:
+                return StageTwoPlace(stage_one, successors.index(token), len(successors))
+    return None
 
 
 def synthetic_starts(
