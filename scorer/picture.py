@@ -552,7 +552,7 @@ def _title(explanation: Explanation, width: int) -> str:
     place = explanation.stage_two_place
     if place is not None:
         notes.append(
-            f"Stage two: synthetic start {place.index + 1} of {place.count} of {place.stage_one}, weighted by "
+            f"Stage two: synthetic start {place.position + 1} of {place.starts} of {place.stage_one}, weighted by "
             f"its distance to that token's endpoint."
         )
     return "\n".join([*lines, *textwrap.wrap(" ".join(notes), width)])

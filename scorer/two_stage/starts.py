@@ -36,8 +36,8 @@ class StageTwoPlace(NamedTuple):
     """Where a synthetic token sits in its split's stage mapping."""
 
     stage_one: str  # the stage-one token whose endpoint weighs it
-    index: int  # its place among that token's synthetic starts
-    count: int
+    position: int  # its place among that token's synthetic starts, from 0
+    starts: int  # how many synthetic starts that token has
 
 
 def stage_two_place(split_dir: Path, token: str) -> StageTwoPlace | None:
