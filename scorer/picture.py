@@ -176,9 +176,11 @@ def render(explanation: Explanation, image_format: str = "png", layout: LayoutNa
 
 
 def _box(axes: Axes, corners: FloatArray, **style: Any) -> Artist:
+    """Draw a closed polygon in data coordinates. As an artist, not a patch: the view is set at the end, so
+    the axes need not widen their data limits patch by patch (two thirds of a picture's time otherwise)."""
     from matplotlib.patches import Polygon
 
-    return axes.add_patch(Polygon(corners, closed=True, **style))
+    return axes.add_artist(Polygon(corners, closed=True, **style))
 
 
 def _ego_box(states: FloatArray, step: int, origin: FloatArray) -> FloatArray:
@@ -188,10 +190,8 @@ def _ego_box(states: FloatArray, step: int, origin: FloatArray) -> FloatArray:
 
 def _fill(axes: Axes, polygon: Any, origin: FloatArray, **style: Any) -> Artist:
     """Draw a map polygon (a multipolygon part by part) relative to `origin`; return its first patch."""
-    patches = [
-        axes.fill(*(np.asarray(part.exterior.coords) - origin).T, **style)[0]
-        for part in getattr(polygon, "geoms", [polygon])
-    ]
+    parts = getattr(polygon, "geoms", [polygon])
+    patches = [_box(axes, np.asarray(part.exterior.coords)[:, :2] - origin, **style) for part in parts]
     return patches[0]
 
 
