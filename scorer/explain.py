@@ -42,6 +42,17 @@ from scorer.versions import VersionName, cached_together, get_version
 AGENT = 1  # proposal 0 is the PDM-Closed reference
 
 
+# The result column each kind of infraction takes down.
+INFRACTION_COLUMNS = {
+    "collision": "no_at_fault_collisions",
+    "time to collision": "time_to_collision_within_bound",
+    "off the drivable area": "drivable_area_compliance",
+    "oncoming traffic": "driving_direction_compliance",
+    "red light": "traffic_light_compliance",
+    "lane keeping": "lane_keeping",
+}
+
+
 @dataclass(frozen=True)
 class Infraction:
     """The first infraction of one kind: when, and the object involved (None for the map's)."""
@@ -59,6 +70,7 @@ class Explanation:
     token: str
     version: VersionName
     metrics: dict[str, float]  # the submission's result columns, the token scored alone (v2.2's EC: NaN)
+    filtered: tuple[str, ...]  # the columns the human filter set to 1 (v2): the logged human fails them too
     reference_metrics: dict[str, float]  # PDM-Closed's, scored beside it
     reference_states: FloatArray  # (41, 11) PDM-Closed's trajectory as the simulator tracks it
     agent_states: FloatArray  # (41, 11) the submitted trajectory as the simulator tracks it
@@ -137,10 +149,12 @@ def explain_token(
         infractions.append(
             Infraction("red light", round(light_step * SCORING_INTERVAL_S, 1), None, lane, "lane", light)
         )
+    row = token_result(cache, None, scores, 0, metric_version)
     return Explanation(
         token=token,
         version=metric_version.name,
-        metrics=token_result(cache, None, scores, 0, metric_version).metrics,
+        metrics=row.metrics,
+        filtered=tuple(row.detail.get("human_filter", {}).get("overridden", ())),
         reference_metrics={
             column: float(getattr(token_scores, column)[0])
             for column in metric_version.result_columns

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from scorer.drivable_map import CARPARK_AREA, INTERSECTION, LANE, LANE_CONNECTOR, ROADBLOCK
-from scorer.explain import Explanation, Infraction
+from scorer.explain import INFRACTION_COLUMNS, Explanation, Infraction
 from scorer.geometry import FloatArray
 from scorer.metrics.ego_box import ego_box_points, ego_corners
 from scorer.trajectory import SCORING_INTERVAL_S, STATE_SIZE, StateIndex
@@ -431,9 +431,10 @@ def _draw_infraction(
         bbox={"boxstyle": "circle,pad=0.25", "facecolor": color, "edgecolor": "white", "linewidth": 0.8},
         arrowprops={"arrowstyle": "-", "color": color, "linewidth": 1.0, "shrinkA": 0, "shrinkB": 0},
     )
-    return Patch(
-        facecolor="none", edgecolor=color, linewidth=1.8, label=f"{number}  {_infraction_label(infraction)}"
-    )
+    label = f"{number}  {_infraction_label(infraction)}"
+    if INFRACTION_COLUMNS[infraction.kind] in explanation.filtered:
+        label += "\n    counts 1: the logged human fails it too"
+    return Patch(facecolor="none", edgecolor=color, linewidth=1.8, label=label)
 
 
 def _infraction_label(infraction: Infraction) -> str:

@@ -225,3 +225,14 @@ def test_plot_command_draws_a_two_stage_token_and_prints_its_weights(cache_dir: 
     assert result.exit_code == 0, result.output
     assert _png_size(out.read_bytes()) == (360, 740)
     assert "synthetic start e9b2a5358b4ab7d6c: weight 0.9579" in result.output
+
+
+def test_an_infraction_the_human_filter_forgives_says_so(cache_dir: Path) -> None:
+    token = "4c70af93eabf64c4"
+    predictions = _predictions(REFERENCE, "swerve_offroad")
+    (row,) = score_tokens(REFERENCE, cache_dir, predictions, "v2.2", [token])
+    explanation = explain_token(scene_paths(REFERENCE)[token], cache_dir, token, predictions[token], "v2.2")
+    assert explanation.filtered == tuple(row.detail["human_filter"]["overridden"]) == ("lane_keeping",)
+    assert "lane keeping" in [infraction.kind for infraction in explanation.infractions]
+    assert explanation.metrics["lane_keeping"] == 1.0
+    assert b"counts 1: the logged human fails it too" in render(explanation, "svg")
