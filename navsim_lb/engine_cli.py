@@ -17,6 +17,7 @@ from navsim_lb.terminal import console, fail, output, progress_bar, warn, warn_a
 from scorer.versions import DEFAULT_VERSION, LOG_REPLAY_VERSIONS, VERSIONS, VersionName, cached_together
 
 if TYPE_CHECKING:
+    from scorer.geometry import FloatArray
     from scorer.submission import Submission, TwoStageSubmission
     from scorer.versions import MetricVersion
 
@@ -25,6 +26,11 @@ MAX_NOTES_SHOWN = 20  # per seed: what the official script would have crashed on
 
 # The pictures draw with matplotlib, an optional extra of the engine's install.
 PLOT_EXTRA = "pip install 'navsim-leaderboard[plot]'"
+
+
+class PictureLayout(StrEnum):
+    wide = "wide"
+    narrow = "narrow"
 
 
 class BaselineKind(StrEnum):
@@ -225,6 +231,16 @@ def _score_two_stage(
     output.print(two_stage_summary_table(results, version, title))
 
 
+def _predictions_per_seed(path: Path, version: VersionName) -> list[dict[str, FloatArray]]:
+    """Return each seed's token -> poses of a submission file: both stages' under a two-stage version."""
+    if not VERSIONS[version].two_stage:
+        return list(_read_submission(path).seeds)
+    from scorer.two_stage.score import submitted_rows
+
+    loaded = _read_two_stage_submission(path)
+    return [submitted_rows(loaded, seed) for seed in range(len(loaded.first_stage))]
+
+
 def plot(
     split: Annotated[Path, typer.Argument(help="split directory")],
     submission: Annotated[Path, typer.Argument(help="submission file (JSON or NAVSIM pickle)")],
@@ -233,37 +249,43 @@ def plot(
     version: Annotated[VersionName, typer.Option(help="metric version")] = DEFAULT_VERSION,
     seed: Annotated[int, typer.Option(help="seed of a multi-seed submission")] = 0,
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
+    layout: Annotated[
+        PictureLayout, typer.Option(help="wide: legend beside the map; narrow: for a phone, legend below")
+    ] = PictureLayout.wide,
 ) -> None:
-    """Draw why a token scored what it did: map, objects, trajectories, the first infraction of each kind."""
+    """Draw why a token scored what it did: map, objects, trajectories, the first infraction of each kind;
+    under a reactive version the vehicles as simulated, and on a two-stage split (a two-stage version) a
+    stage-one token's synthetic starts with their weights."""
     if find_spec("matplotlib") is None:  # finding the module does not import it: start-up stays fast
         raise fail(f"`navsim-lb plot` draws with matplotlib, not installed here: {PLOT_EXTRA}")
     from scorer.evaluate import TokenError
-    from scorer.explain import explain_token
+    from scorer.explain import explain_split_token
     from scorer.picture import render
-    from scorer.scene import SceneFormatError, scene_paths
+    from scorer.scene import SceneFormatError
 
     image_format = out.suffix.lower().removeprefix(".")
     if image_format not in ("png", "svg"):
         raise fail(f"{out}: the picture must end in .png or .svg")
-    loaded = _read_submission(submission)
-    if not 0 <= seed < len(loaded.seeds):
-        raise fail(f"{submission} has {len(loaded.seeds)} seed(s); --seed {seed} does not exist")
-    if token not in loaded.seeds[seed]:
+    seeds = _predictions_per_seed(submission, version)
+    if not 0 <= seed < len(seeds):
+        raise fail(f"{submission} has {len(seeds)} seed(s); --seed {seed} does not exist")
+    if token not in seeds[seed]:
         raise fail(f"{submission} has no prediction for token {token}")
     warn_about_kernels()
     try:
-        scenes = scene_paths(split)
-        if token not in scenes:
-            raise TokenError(f"token {token} is not part of split {split.name}")
-        explanation = explain_token(
-            scenes[token], cache_dir or default_cache_dir(split), token, loaded.seeds[seed][token], version
+        explanation = explain_split_token(
+            split, cache_dir or default_cache_dir(split), token, seeds[seed][token], version
         )
     except (TokenError, SceneFormatError) as error:
         raise fail(str(error)) from None
-    out.write_bytes(render(explanation, image_format))
+    out.write_bytes(render(explanation, image_format, layout.value))
     score = explanation.metrics["score"]
     label = VERSIONS[explanation.version].score_label
     console.print(f"{token}: {label} {version} {100 * score:.1f}; wrote {out}")
+    if explanation.synthetic_starts is not None:
+        starts = explanation.synthetic_starts
+        for synthetic, weight in zip(starts.tokens, starts.weights.weight, strict=True):
+            console.print(f"  synthetic start {synthetic}: weight {weight:.4f}")
     for infraction in explanation.infractions:
         involved = (
             f" with {infraction.object_type} {infraction.object_token}" if infraction.object_token else ""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, AwareDatetime, BaseModel, ConfigDict, Field, HttpUrl, StringConstraints
 
@@ -139,6 +139,14 @@ class AdminSubmissionOut(SubmissionOut):
     charged: bool
     failure_kind: str | None
     error_detail: str | None
+
+
+class ComparableOut(SubmissionOut):
+    """An entry a submission may be compared with, token by token."""
+
+    kind: Literal["yours", "published", "baseline"] = Field(
+        description="yours: another of the team's; published: an entry of a closed phase, open to all; baseline"
+    )
 
 
 class SubmissionPatch(BaseModel):

@@ -4,6 +4,7 @@ scenes are public and tokens it may see; organisers see every scene; a picture i
 from __future__ import annotations
 
 import json
+import re
 from datetime import timedelta
 
 from server_testing import REFERENCE_SUBMISSIONS, World, add_team, submit_scored, uniform
@@ -98,11 +99,33 @@ def test_entries_are_published_to_everyone_once_their_phase_has_closed(world: Wo
     }
     picture = world.client.get(f"/api/v1/published/{submission_id}/scenes/{TOKEN}.png")
     assert picture.status_code == 200 and picture.content.startswith(b"\x89PNG")
-    assert (
-        f'/submissions/{submission_id}">Human</a>'
-        in world.client.get("/", params={"phase": world.phase}).text
-    )
+    board = world.client.get("/", params={"phase": world.phase}).text
+    assert f'/submissions/{submission_id}">Human</a>' in board
+    assert re.search(
+        f'<tr[^>]* data-href="[^"]*/submissions/{submission_id}"', board
+    )  # the whole row opens it
     with world.session() as session:
         session.get(Submission, submission_id).hidden = True  # the team takes it off the board
         session.commit()
     assert world.client.get(f"/api/v1/published/{submission_id}").status_code == 404
+
+
+def test_a_picture_follows_the_chosen_version_and_layout(world: World) -> None:
+    _scenes_public(world, True)
+    submission_id = submit_scored(world, world.team_id, HUMAN, [uniform(0.9)], "Human")
+    pictures = {
+        (version, layout): _picture(world, submission_id, version=version, layout=layout)
+        for version in ("v1.1", "v2.2")
+        for layout in ("wide", "narrow")
+    }
+    assert all(picture.status_code == 200 for picture in pictures.values())
+    widths = {key: int.from_bytes(picture.content[16:20], "big") for key, picture in pictures.items()}
+    assert widths == {
+        ("v1.1", "wide"): 1100,
+        ("v2.2", "wide"): 1100,
+        ("v1.1", "narrow"): 360,
+        ("v2.2", "narrow"): 360,
+    }
+    assert len({picture.content for picture in pictures.values()}) == 4  # each version drawn as scored
+    assert len(list((world.settings.data_dir / "pictures").iterdir())) == 4
+    assert _picture(world, submission_id, layout="huge").status_code == 422

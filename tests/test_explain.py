@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from devkit_kernels import UNDER_DEVKIT_KERNELS, V1_VERSIONS, devkit_tolerance
 from typer.testing import CliRunner
@@ -15,10 +16,12 @@ from navsim_lb import engine_cli
 from navsim_lb.cli import app
 from navsim_lb.engine_cli import PLOT_EXTRA
 from scorer.evaluate import score_tokens
-from scorer.explain import explain_token
+from scorer.explain import explain_split_token, explain_token
+from scorer.geometry import box_corners
 from scorer.picture import render
 from scorer.scene import scene_paths
 from scorer.submission import load_submission
+from scorer.two_stage.split import load_two_stage_split
 from scorer.versions import EPDMS_COLUMNS, METRIC_COLUMNS
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -128,3 +131,108 @@ def test_a_v2_2_explanation_is_the_tokens_row_scored_alone_and_its_picture_names
         k: v for k, v in row.metrics.items() if k != "two_frame_extended_comfort"
     }
     assert render(explanation, "svg").count(b"EPDMS v2.2") == 1
+
+
+REACTIVE = FIXTURES / "epdms-two-stage-reactive"
+TWO_STAGE_EXPECTED = FIXTURES / "epdms-two-stage" / "expected"
+
+
+def _reactive_poses(family: str, token: str) -> np.ndarray:
+    with gzip.open(REACTIVE / "predictions.json.gz", "rt") as handle:
+        return np.array(json.load(handle)[family][token])
+
+
+def _png_size(png: bytes) -> tuple[int, int]:
+    return int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+
+
+def test_a_red_light_is_an_infraction_of_its_own_and_pictures_are_byte_stable(cache_dir: Path) -> None:
+    token = "1186b040a779327a"
+    explanation = explain_token(
+        scene_paths(REFERENCE)[token], cache_dir, token, _predictions(REFERENCE, "cv_accel")[token], "v2.2"
+    )
+    (light,) = [infraction for infraction in explanation.infractions if infraction.kind == "red light"]
+    assert light.red_light is not None and light.object_token == "484284" and light.time_s == 3.6
+    assert explanation.metrics["traffic_light_compliance"] == 0.0
+    svg = render(explanation, "svg")
+    assert svg == render(explanation, "svg"), "an SVG must not change between equal renders"
+    text = svg.decode()
+    for entry in (
+        "lane under a red light",
+        "3  red light at 3.6 s on lane 484284",
+        "drivable: roadblock",
+        "walkway (not drivable)",
+        "crosswalk (not drivable)",
+        "not drivable (white)",
+    ):
+        assert entry in text, entry
+    wide, narrow = render(explanation, "png"), render(explanation, "png", "narrow")
+    assert wide == render(explanation, "png")
+    assert _png_size(wide) == (1100, 660) and _png_size(narrow) == (360, 740)
+
+
+def test_under_reactive_traffic_the_picture_holds_the_vehicles_as_simulated(cache_dir: Path) -> None:
+    """The explanation's objects are those the reactive version scored: each vehicle of step 10 where the
+    official IDM trace has it, not where the log (or the cache's vehicle-free observation) has it."""
+    token = "05ef979906eefe4a"
+    with gzip.open(REACTIVE / "trace" / "human.idm_trace.jsonl.gz", "rt") as handle:
+        trace = next(row for row in map(json.loads, handle) if row["token"] == token)
+    explanation = explain_split_token(
+        REACTIVE, cache_dir, token, _reactive_poses("human", token), "v2.2-two-stage"
+    )
+    observation = explanation.observation
+    column = {track: index for index, track in enumerate(observation.tokens)}
+    vehicles = trace["idm"]["vehicle_boxes"][10]
+    assert vehicles
+    for track, x, y, heading, length, width, *_ in vehicles:
+        expected = box_corners(np.array(x), np.array(y), np.array(heading), length / 2, width / 2)
+        assert observation.present[10, column[track]], track
+        assert np.allclose(observation.corners[10, column[track]], expected, rtol=0, atol=1e-9), track
+        assert not explanation.cache.observation.present[10, column[track]], track
+    assert b"simulated, every 1 s" in render(explanation, "svg")
+
+
+def test_a_stage_one_token_carries_its_synthetic_starts_with_the_official_weights(cache_dir: Path) -> None:
+    with gzip.open(TWO_STAGE_EXPECTED / "human.tokens.jsonl.gz", "rt") as handle:
+        official = {row["token"]: row["weight"] for row in map(json.loads, handle) if row["stage"] == "two"}
+    group = load_two_stage_split(REACTIVE).groups[0]
+    for token, successors in ((group.original, group.now_tokens), (group.previous, group.previous_tokens)):
+        explanation = explain_split_token(
+            REACTIVE, cache_dir, token, _reactive_poses("human", token), "v2.2-two-stage"
+        )
+        starts = explanation.synthetic_starts
+        assert starts is not None and starts.tokens == successors
+        assert starts.weights.weight.tolist() == [official[successor] for successor in successors]
+        svg = render(explanation, "svg").decode()
+        assert "synthetic start, weight" in svg and f"{starts.weights.weight.max():.2f}" in svg
+    synthetic = group.previous_tokens[1]
+    explanation = explain_split_token(
+        REACTIVE, cache_dir, synthetic, _reactive_poses("human", synthetic), "v2.2-two-stage"
+    )
+    assert explanation.synthetic_starts is None
+    assert explanation.stage_two_place == (group.previous, 1, len(group.pairs))
+    assert f"synthetic start 2 of 5 of {group.previous}" in " ".join(
+        render(explanation, "svg").decode().split()
+    )
+
+
+def test_plot_command_draws_a_two_stage_token_and_prints_its_weights(cache_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "drill-down.png"
+    submission = FIXTURES / "epdms-two-stage" / "submissions" / "human.json"
+    arguments = [str(REACTIVE), str(submission), "05ef979906eefe4a", "--out", str(out)]
+    options = ["--version", "v2.2-two-stage", "--layout", "narrow", "--cache-dir", str(cache_dir)]
+    result = CliRunner().invoke(app, ["plot", *arguments, *options])
+    assert result.exit_code == 0, result.output
+    assert _png_size(out.read_bytes()) == (360, 740)
+    assert "synthetic start e9b2a5358b4ab7d6c: weight 0.9579" in result.output
+
+
+def test_an_infraction_the_human_filter_forgives_says_so(cache_dir: Path) -> None:
+    token = "4c70af93eabf64c4"
+    predictions = _predictions(REFERENCE, "swerve_offroad")
+    (row,) = score_tokens(REFERENCE, cache_dir, predictions, "v2.2", [token])
+    explanation = explain_token(scene_paths(REFERENCE)[token], cache_dir, token, predictions[token], "v2.2")
+    assert explanation.filtered == tuple(row.detail["human_filter"]["overridden"]) == ("lane_keeping",)
+    assert "lane keeping" in [infraction.kind for infraction in explanation.infractions]
+    assert explanation.metrics["lane_keeping"] == 1.0
+    assert b"counts 1: the logged human fails it too" in render(explanation, "svg")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -112,9 +113,9 @@ def _page(browser: Browser, width: int = 1280) -> Page:
     return page
 
 
-def _screenshot(page: Page, name: str) -> None:
+def _screenshot(page: Page, name: str, full_page: bool = True) -> None:
     SCREENSHOTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=SCREENSHOTS / f"{name}.png", full_page=True)
+    page.screenshot(path=SCREENSHOTS / f"{name}.png", full_page=full_page)
 
 
 def _scores(page: Page) -> list[float]:
@@ -263,7 +264,7 @@ def test_a_team_signs_in_sees_every_problem_then_watches_its_upload_scored(
     assert page.locator("#histograms figure").count() == 1 + 6  # PDMS and every subscore of v1.1
     expect(page.locator("#breakdown thead")).to_contain_text("Constant Velocity")  # next to the baselines
     assert page.locator("#worst tbody tr").count() == 12  # fewer tokens than the list shows
-    page.locator("#worst tbody td.token button").first.click()
+    page.locator("#worst tbody td.token a").first.click()
     page.wait_for_selector("#scene:not([hidden])")
     page.wait_for_function("document.querySelector('#scene-image').naturalWidth > 0")
     expect(page.locator("#scene-caption")).to_contain_text("PDMS v1.1")
@@ -346,7 +347,7 @@ def test_the_admin_console_follows_a_rerun_and_a_rescore_without_a_reload(
     row.get_by_role("link").click()  # the submission page, read with the organiser's token
     page.wait_for_selector("#histograms figure")
     expect(page.locator("#title")).to_contain_text("Noisy human (demo)")
-    page.locator("#worst tbody td.token button").first.click()
+    page.locator("#worst tbody td.token a").first.click()
     page.wait_for_function("document.querySelector('#scene-image').naturalWidth > 0")
     page.go_back()
     page.wait_for_selector("#dashboard:not([hidden])")
@@ -548,3 +549,83 @@ def test_the_rescore_report_fits_a_phone(demo: Demo, browser: Browser) -> None:
     expect(page.locator("#summary")).to_contain_text("complete", timeout=SCORING_TIMEOUT_MS)
     _fits(page)
     _screenshot(page, "rescore-report-390")
+
+
+def _baseline_id(demo: Demo) -> int:
+    rows = httpx.get(f"{demo.url}/api/v1/leaderboard", timeout=5).json()["rows"]
+    return min(row["submission_id"] for row in rows if row["baseline"])
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_every_token(
+    demo: Demo, browser: Browser, width: int
+) -> None:
+    """A link with ?version=&token=&compare= opens the page on that token's picture under that version, the
+    whole picture in the window (the phone's layout on a phone); the comparison with a baseline lists every
+    differing token, page by page, each a link that draws its scene; the histograms' ticks read in %."""
+    page = _team_page(browser, demo, width, demo.team_token)
+    page.set_viewport_size({"width": width, "height": 768 if width == DESKTOP else 844})
+    pictures: list[str] = []
+    page.on("request", lambda request: pictures.append(request.url) if ".png?" in request.url else None)
+    entry = next(
+        s for s in _api(demo, "GET", "/submissions", demo.team_token).json() if s["status"] == "scored"
+    )
+    token = _api(demo, "GET", f"/submissions/{entry['id']}/tokens", demo.team_token).json()[0]["token"]
+    baseline = _baseline_id(demo)
+    # Two tokens a page, so that the demo's dozen tokens go over several pages.
+    script = httpx.get(f"{demo.url}/static/submission.js", timeout=5).text
+    assert "const DIFF_PAGE = 25;" in script
+    paged = script.replace("const DIFF_PAGE = 25;", "const DIFF_PAGE = 2;")
+    page.route(
+        "**/static/submission.js", lambda route: route.fulfill(body=paged, content_type="text/javascript")
+    )
+    page.goto(f"{demo.url}/submissions/{entry['id']}?version=v2.2&token={token}&compare={baseline}")
+    page.wait_for_function("document.querySelector('#scene-image').naturalWidth > 0")
+    layout = "wide" if width == DESKTOP else "narrow"
+    assert any("version=v2.2" in url and f"layout={layout}" in url for url in pictures), pictures
+    assert page.evaluate("document.querySelector('#scene-image').naturalWidth") == (
+        1100 if width == DESKTOP else 360
+    )
+    expect(page.locator("#scene-caption")).to_contain_text("EPDMS v2.2")
+    expect(page.locator("#version-tabs [aria-current=page]")).to_have_text("EPDMS v2.2")
+    box = page.locator("#scene-image").bounding_box()
+    viewport = page.viewport_size
+    assert box is not None and viewport is not None
+    assert box["width"] <= viewport["width"] and box["height"] <= viewport["height"], box
+    page.evaluate("document.querySelector('#scene-title').scrollIntoView({block: 'start'})")
+    box = page.locator("#scene-image").bounding_box()
+    assert box is not None and box["y"] >= 0 and box["y"] + box["height"] <= viewport["height"], box
+    _fits(page)
+    _screenshot(page, f"drilldown-{width}", full_page=False)  # the window as the user sees it
+
+    # The comparison: every differing token over the pages, each a link to its drill-down here.
+    expect(page.locator("#diff-counts")).to_contain_text("better")
+    counts = page.locator("#diff-counts").inner_text()
+    better, worse = (int(counts.split(" better")[0].split()[-1]), int(counts.split(" worse")[0].split()[-1]))
+    listed = []
+    for name in ("better", "worse"):
+        while True:
+            listed += page.locator(f"#diff-{name} tbody td.token a").all_inner_texts()
+            following = page.locator(f"#diff-{name}-pages button", has_text="next")
+            if following.count() == 0 or following.is_disabled():
+                break
+            following.click()
+    assert len(listed) == len(set(listed)) == better + worse > 2
+    for name, count in (("better", better), ("worse", worse)):
+        assert page.locator(f"#diff-{name}-pages").is_visible() == (count > 2)
+    link = page.locator("#diff-worse tbody td.token a, #diff-better tbody td.token a").first
+    chosen = link.inner_text()
+    assert f"token={chosen}" in (link.get_attribute("href") or "")
+    link.click()
+    expect(page.locator("#scene-title")).to_have_text(f"Scene drill-down: {chosen}")
+    expect(page.locator("#scene-image")).to_have_attribute("alt", re.compile(f"scene {chosen} under"))
+    assert f"token={chosen}" in page.url and f"compare={baseline}" in page.url
+    page.locator("#diff").scroll_into_view_if_needed()
+    _fits(page)
+    _screenshot(page, f"diff-{width}")
+
+    # Histograms: ticks in %, at least 11 px tall on screen.
+    ticks = page.locator("#histograms figure").first.locator("text")
+    assert "100 %" in ticks.all_text_contents()
+    heights = [ticks.nth(i).bounding_box()["height"] for i in range(ticks.count())]  # type: ignore[index]
+    assert min(heights) >= 11, heights

@@ -92,7 +92,7 @@ def _scored_in_parts(
     return merged
 
 
-def _start_pose(path: Path | None) -> tuple[float, float, float]:
+def start_pose(path: Path | None) -> tuple[float, float, float]:
     """Return the ego rear axle at t = 0 (x, y, heading) as the metric cache's EgoState reports it, read from the
     scene file of a token that did not score; unknown where the scene cannot be read."""
     if path is None:
@@ -121,7 +121,7 @@ def two_stage_tokens(
     starts: Mapping[str, Sequence[float]] = {
         item.result.token: item.states[0, :3].tolist() for item in scored
     }
-    start_poses = np.array([starts.get(token) or _start_pose(paths.get(token)) for token in tokens])
+    start_poses = np.array([starts.get(token) or start_pose(paths.get(token)) for token in tokens])
     endpoints = global_endpoints(np.stack([predictions[token] for token in tokens]), start_poses)
     return [
         TwoStageToken(results[token], (start[0], start[1]), (end[0], end[1]))

@@ -18,10 +18,11 @@ from sqlalchemy.orm import Session
 from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import AdminDep, SessionDep
 from server.models import Approval, Status, Submission
-from server.params import PNG_RESPONSE, Offset, OptionalRowId, RowId, SceneToken, SeedIndex
+from server.params import PNG_RESPONSE, Offset, OptionalRowId, PictureLayout, RowId, SceneToken, SeedIndex
 from server.schemas import (
     AdminSubmissionOut,
     AuditOut,
+    ComparableOut,
     DisqualifyIn,
     HideIn,
     PhaseIn,
@@ -41,6 +42,7 @@ from server.schemas import (
     TokenRow,
 )
 from server.services import admin as actions
+from server.services.comparisons import comparable_entries, comparison_rows
 from server.services.leaderboard import leaderboard_view
 from server.services.pictures import scene_picture
 from server.services.presenters import phase_view, stage_group_views, submission_views, token_result_views
@@ -311,12 +313,13 @@ def scene_picture_route(
     token: SceneToken,
     version: VersionName = DEFAULT_VERSION,
     seed: SeedIndex = 0,
+    layout: PictureLayout = "wide",
 ) -> Response:
     """The picture that explains a submission's score on any token of any split."""
     submission = get_submission(session, submission_id)
     settings = request.app.state.settings
     return Response(
-        scene_picture(submission, token, version, seed, admin=True, settings=settings),
+        scene_picture(submission, token, version, seed, layout, admin=True, settings=settings),
         media_type="image/png",
     )
 
@@ -330,6 +333,26 @@ def stage_groups(
 ) -> StageGroupsOut:
     """A two-stage submission's groups per seed."""
     return stage_group_views(session, get_submission(session, submission_id), version)
+
+
+@router.get("/submissions/{submission_id}/comparable")
+def comparable(session: SessionDep, _admin: AdminDep, submission_id: RowId) -> list[ComparableOut]:
+    """What a submission may be compared with: its team's other scored submissions on the split, the
+    entries published on it and its baselines."""
+    return comparable_entries(session, get_submission(session, submission_id), owner=True)
+
+
+@router.get("/submissions/{submission_id}/comparable/{other_id}/tokens")
+def comparable_token_rows(
+    session: SessionDep,
+    _admin: AdminDep,
+    submission_id: RowId,
+    other_id: RowId,
+    version: VersionName = DEFAULT_VERSION,
+) -> list[TokenRow]:
+    """Per-token results, on every token, of an entry the submission may be compared with."""
+    submission = get_submission(session, submission_id)
+    return comparison_rows(session, submission, other_id, version, owner=True, admin=True)
 
 
 @router.get("/submissions/{submission_id}/tokens")

@@ -9,8 +9,9 @@ from fastapi.responses import JSONResponse, Response
 from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import SessionDep, TokenDep
 from server.models import Approval, Scope
-from server.params import PNG_RESPONSE, RowId, SceneToken, SeedIndex
+from server.params import PNG_RESPONSE, PictureLayout, RowId, SceneToken, SeedIndex
 from server.schemas import (
+    ComparableOut,
     HealthOut,
     LeaderboardOut,
     MeOut,
@@ -23,6 +24,7 @@ from server.schemas import (
     TeamRegistered,
     TokenRow,
 )
+from server.services.comparisons import comparable_entries, comparison_rows
 from server.services.health import health_report
 from server.services.leaderboard import cached_board
 from server.services.pictures import scene_picture
@@ -129,6 +131,21 @@ def published_token_rows(
     return token_result_views(session, submission, version, only_failed=False, admin=False)
 
 
+@router.get("/published/{submission_id}/comparable", tags=["published"])
+def published_comparable(session: SessionDep, submission_id: RowId) -> list[ComparableOut]:
+    """What a published entry may be compared with: the entries published on its split and its baselines."""
+    return comparable_entries(session, published_submission(session, submission_id), owner=False)
+
+
+@router.get("/published/{submission_id}/comparable/{other_id}/tokens", tags=["published"])
+def published_comparable_token_rows(
+    session: SessionDep, submission_id: RowId, other_id: RowId, version: VersionName = DEFAULT_VERSION
+) -> list[TokenRow]:
+    """Per-token results of a published entry or baseline beside a published entry."""
+    submission = published_submission(session, submission_id)
+    return comparison_rows(session, submission, other_id, version, owner=False, admin=False)
+
+
 @router.get(
     "/published/{submission_id}/scenes/{token}.png",
     response_class=Response,
@@ -142,9 +159,10 @@ def published_scene_picture(
     token: SceneToken,
     version: VersionName = DEFAULT_VERSION,
     seed: SeedIndex = 0,
+    layout: PictureLayout = "wide",
 ) -> Response:
     """The drill-down picture of a published entry on one token (splits whose scenes are public only)."""
     submission = published_submission(session, submission_id)
     settings = request.app.state.settings
-    picture = scene_picture(submission, token, version, seed, admin=False, settings=settings)
+    picture = scene_picture(submission, token, version, seed, layout, admin=False, settings=settings)
     return Response(picture, media_type="image/png")

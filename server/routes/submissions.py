@@ -13,8 +13,9 @@ from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import ApprovedTeamDep, SessionDep, TeamDep, approved_team_of, counted_upload, current_token
 from server.body_limit import upload_too_large
 from server.models import Phase, Status
-from server.params import PNG_RESPONSE, Offset, RowId, SceneToken, SeedIndex
+from server.params import PNG_RESPONSE, Offset, PictureLayout, RowId, SceneToken, SeedIndex
 from server.schemas import (
+    ComparableOut,
     StageGroupsOut,
     SubmissionAccepted,
     SubmissionOut,
@@ -22,6 +23,7 @@ from server.schemas import (
     TokenRow,
     ValidationReport,
 )
+from server.services.comparisons import comparable_entries, comparison_rows
 from server.services.pictures import scene_picture
 from server.services.presenters import stage_group_views, submission_views, token_result_views
 from server.services.splits import resolve_phase, split_tokens, upload_stages
@@ -192,6 +194,26 @@ def token_rows(
     return token_result_views(session, submission, version, only_failed, admin=False)
 
 
+@router.get("/submissions/{submission_id}/comparable")
+def comparable(session: SessionDep, team: TeamDep, submission_id: RowId) -> list[ComparableOut]:
+    """What one of the team's submissions may be compared with: its other scored submissions on the split,
+    the entries published on it (their phase closed) and the split's baselines."""
+    return comparable_entries(session, get_submission(session, submission_id, team.id), owner=True)
+
+
+@router.get("/submissions/{submission_id}/comparable/{other_id}/tokens")
+def comparable_token_rows(
+    session: SessionDep,
+    team: TeamDep,
+    submission_id: RowId,
+    other_id: RowId,
+    version: VersionName = DEFAULT_VERSION,
+) -> list[TokenRow]:
+    """Per-token results of an entry the submission may be compared with, on the tokens the team may see."""
+    submission = get_submission(session, submission_id, team.id)
+    return comparison_rows(session, submission, other_id, version, owner=True, admin=False)
+
+
 @router.get(
     "/submissions/{submission_id}/scenes/{token}.png", response_class=Response, responses=PNG_RESPONSE
 )
@@ -203,10 +225,11 @@ def scene_picture_route(
     token: SceneToken,
     version: VersionName = DEFAULT_VERSION,
     seed: SeedIndex = 0,
+    layout: PictureLayout = "wide",
 ) -> Response:
     """The picture that explains the score on one token: map, objects, trajectories, first infractions.
     Only for splits whose scenes are public, on tokens of the subsets the team may see."""
     submission = get_submission(session, submission_id, team.id)
     settings = request.app.state.settings
-    picture = scene_picture(submission, token, version, seed, admin=False, settings=settings)
+    picture = scene_picture(submission, token, version, seed, layout, admin=False, settings=settings)
     return Response(picture, media_type="image/png")

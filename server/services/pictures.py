@@ -2,13 +2,16 @@
 
 A picture shows a scene's map and objects, so teams see it only on splits whose scenes are public
 (`Split.scenes_public`; a hidden test split's never are) and only on tokens of the subsets they may see;
-organisers see every scene. Pictures are rendered once per (scene file, submission file, version, seed):
-the scene's hash is in the key, so a changed scene never shows a stale picture.
+organisers see every scene. Pictures are rendered once per (scene file, submission file, version, seed,
+layout): the scene's hash is in the key, so a changed scene never shows a stale picture. The version decides
+what is drawn: under a reactive one the vehicles as they reacted, under a two-stage one a stage-one token's
+synthetic starts with their weights (the engine reads them from the split's stage mapping).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from scorer.files import write_atomically
 from server.models import Status, Submission
@@ -52,11 +55,14 @@ def scene_picture(
     token: str,
     version: str,
     seed: int,
+    layout: Literal["wide", "narrow"],
     admin: bool,
     settings: Settings,
 ) -> bytes:
-    """Return the PNG that explains the submission's score on `token` (rendered once, then from disk)."""
-    from scorer.explain import explain_token
+    """Return the PNG that explains the submission's score on `token` under `version`, in a layout for a
+    desktop ("wide") or a phone ("narrow") (rendered once, then from disk)."""
+    from scorer.evaluate import TokenError
+    from scorer.explain import explain_split_token
     from scorer.picture import render
     from scorer.scene import scene_file_hash
     from scorer.submission import load_submission
@@ -65,7 +71,7 @@ def scene_picture(
     path = (
         settings.data_dir
         / "pictures"
-        / f"{scene_file_hash(scene)}-{submission.sha256}-{version}-{seed}-{token}.png"
+        / f"{scene_file_hash(scene)}-{submission.sha256}-{version}-{seed}-{layout}-{token}.png"
     )
     if path.exists():
         return path.read_bytes()
@@ -74,7 +80,14 @@ def scene_picture(
         seeds = load_submission(
             read_file(settings.storage_dir, submission.stored_name), submission.filename
         ).seeds
-    explanation = explain_token(scene, settings.cache_dir, token, seeds[seed][token], version)
-    picture = render(explanation, "png")
+    if token not in seeds[seed]:
+        raise NotFound(f"submission {submission.id} has no prediction for token {token} (seed {seed})")
+    try:
+        explanation = explain_split_token(
+            Path(submission.split.directory), settings.cache_dir, token, seeds[seed][token], version
+        )
+    except TokenError:  # its text may name server paths: the team is told what, not where
+        raise Conflict(f"the scene of token {token} cannot be drawn under {version}") from None
+    picture = render(explanation, "png", layout)
     write_atomically(path, picture, durable=False)  # rendered again when missing
     return picture

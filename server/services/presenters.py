@@ -176,13 +176,19 @@ def phase_view(phase: Phase) -> PhaseOut:
 
 
 def token_result_views(
-    session: Session, submission: Submission, version: str, only_failed: bool, admin: bool
+    session: Session,
+    submission: Submission,
+    version: str,
+    only_failed: bool,
+    admin: bool,
+    seen_as: Submission | None = None,
 ) -> list[TokenRow]:
-    """Return the per-token rows of a submission's current run on the tokens the caller may see."""
+    """Return the per-token rows of a submission's current run on the tokens the caller may see: of that
+    submission, or of `seen_as` when the rows are read beside it (a comparison: its phase decides)."""
     subsets = subset_tokens(submission.split)
     allowed = {
         token
-        for name in visible_subsets(submission.split, submission.phase, admin=admin)
+        for name in visible_subsets(submission.split, (seen_as or submission).phase, admin=admin)
         for token in subsets[name]
     }
     query = select(TokenResultRow).where(

@@ -1,12 +1,15 @@
 // Submission page: the per-metric breakdown next to the phase's baselines, histograms of per-token PDMS
-// and of each subscore, the tokens that lost most, and a per-token diff with another of the team's
-// submissions. Everything comes from the team API (common.js); histograms are drawn as inline SVG.
+// and of each subscore (in %, as the tables), the tokens that lost most, the drill-down picture of a token,
+// and a per-token diff with another of the team's submissions, a published entry or a baseline. Everything
+// comes from the API (common.js); histograms are drawn as inline SVG. The address keeps the chosen version,
+// subset, token and comparison (?version=&subset=&token=&compare=), so that any view can be linked to.
 "use strict";
 
 const PAGE = JSON.parse($("#page-data").textContent);
 const LABELS = PAGE.labels; // devkit column -> short name
 const WORST_SHOWN = 15;
-const DIFF_SHOWN = 10;
+const DIFF_PAGE = 25;
+const PHONE = window.matchMedia("(max-width: 700px)");
 // The owning team reads it with its token; an organiser who opened the admin console, with the admin's;
 // anyone else, once the entry is published (its phase has closed), through the public routes.
 const ADMIN_TOKEN_KEY = "navsim-lb-admin-token";
@@ -14,7 +17,42 @@ const mode = () => (token() ? "team" : sessionStorage.getItem(ADMIN_TOKEN_KEY) ?
 const bearer = () => (mode() === "admin" ? sessionStorage.getItem(ADMIN_TOKEN_KEY) : token());
 const scoped = (path) => ({ team: path, admin: `/admin${path}`, public: path.replace("/submissions/", "/published/") })[mode()];
 const read = (path) => api("GET", scoped(path), { bearer: bearer() });
-const state = { submission: null, version: PAGE.default_version, subset: null, rows: {}, others: [] };
+const ADDRESS = new URLSearchParams(location.search);
+const state = {
+  submission: null,
+  version: PAGE.versions.includes(ADDRESS.get("version")) ? ADDRESS.get("version") : PAGE.default_version,
+  subset: ADDRESS.get("subset"),
+  token: ADDRESS.get("token"),
+  compare: ADDRESS.get("compare") || "",
+  rows: {},
+  others: [],
+  pages: { better: 0, worse: 0 },
+};
+
+// The address of this page with the current choices, and `changes` over them.
+function address(changes = {}, submissionId = PAGE.submission_id) {
+  const chosen = { version: state.version, subset: state.subset, token: state.token, compare: state.compare, ...changes };
+  const query = new URLSearchParams(Object.entries(chosen).filter(([, value]) => value));
+  return `/submissions/${submissionId}?${query}`;
+}
+const remember = () => history.replaceState(null, "", address());
+
+// A token as a link to its drill-down: on this page it draws the scene in place; the address opens it too.
+function sceneLink(token, submissionId = PAGE.submission_id, text = token) {
+  const link = document.createElement("a");
+  link.href = `${address({ token, compare: submissionId === PAGE.submission_id ? state.compare : "" }, submissionId)}#scene-title`;
+  link.textContent = text;
+  link.className = "token-link";
+  link.title = submissionId === PAGE.submission_id ? "draw this scene" : "open this token on that entry's page";
+  if (submissionId === PAGE.submission_id) {
+    link.addEventListener("click", (event) => {
+      if (event.ctrlKey || event.metaKey || event.shiftKey) return;
+      event.preventDefault();
+      showScene(token);
+    });
+  }
+  return link;
+}
 
 const label = (column) => (column === "score" ? PAGE.score_labels[state.version] : LABELS[column] || column);
 const defined = (value) => value !== null && value !== undefined;
@@ -74,40 +112,46 @@ function overrides(entry) {
   }).join(" · ");
 }
 
+// Counts of per-token values (0-1) in `bins` equal bins, drawn in % as the tables show them; the text is
+// sized for the width the grid gives a figure (at least 250 px), so it reads at 12 px or more.
 function histogram(title, values, bins) {
-  const width = 260, height = 120, pad = 18;
+  const width = 300, height = 140, left = 34, right = 10, top = 8, axis = 118;
   const counts = new Array(bins).fill(0);
   for (const value of values.filter(defined)) counts[Math.min(bins - 1, Math.max(0, Math.floor(value * bins)))] += 1;
-  const top = Math.max(1, ...counts);
-  const bar = (width - 2 * pad) / bins;
+  const most = Math.max(1, ...counts);
+  const bar = (width - left - right) / bins;
+  const range = (index) => `${Math.round((100 * index) / bins)}–${Math.round((100 * (index + 1)) / bins)} %`;
   const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
-  svg.setAttribute("viewBox", `0 0 ${width} ${height + 16}`);
+  const add = (name, attributes, text) => {
+    const element = document.createElementNS(svg.namespaceURI, name);
+    for (const [key, value] of Object.entries(attributes)) element.setAttribute(key, value);
+    if (text !== undefined) element.textContent = text;
+    svg.append(element);
+    return element;
+  };
+  svg.setAttribute("viewBox", `0 0 ${width} ${height}`);
   svg.setAttribute("role", "img");
-  svg.setAttribute("aria-label", `${title}: ${counts.map((count, i) => `${count} tokens in ${(i / bins).toFixed(2)}–${((i + 1) / bins).toFixed(2)}`).join(", ")}`);
+  svg.setAttribute("aria-label", `${title}: ${counts.map((count, i) => `${count} tokens in ${range(i)}`).join(", ")}`);
   counts.forEach((count, index) => {
-    const rect = document.createElementNS(svg.namespaceURI, "rect");
-    const h = (count / top) * (height - pad);
-    rect.setAttribute("x", pad + index * bar + 0.5);
-    rect.setAttribute("y", height - h);
-    rect.setAttribute("width", Math.max(1, bar - 1));
-    rect.setAttribute("height", h);
-    rect.setAttribute("class", index === bins - 1 ? "bar full" : "bar");
+    const h = (count / most) * (axis - top);
+    const rect = add("rect", {
+      x: left + index * bar + 0.5, y: axis - h, width: Math.max(1, bar - 1), height: h,
+      class: index === bins - 1 ? "bar full" : "bar",
+    });
     const tip = document.createElementNS(svg.namespaceURI, "title");
-    tip.textContent = `${count} token(s) with ${(index / bins).toFixed(2)} ≤ value ${index === bins - 1 ? "≤" : "<"} ${((index + 1) / bins).toFixed(2)}`;
+    tip.textContent = `${count} token(s) in ${range(index)}`;
     rect.append(tip);
-    svg.append(rect);
   });
-  for (const [x, text] of [[pad, "0"], [width / 2, "0.5"], [width - pad, "1"]]) {
-    const tick = document.createElementNS(svg.namespaceURI, "text");
-    tick.setAttribute("x", x);
-    tick.setAttribute("y", height + 13);
-    tick.setAttribute("text-anchor", "middle");
-    tick.textContent = text;
-    svg.append(tick);
+  add("line", { x1: left, x2: width - right, y1: axis + 0.5, y2: axis + 0.5, class: "axis" });
+  add("line", { x1: left - 0.5, x2: left - 0.5, y1: top, y2: axis, class: "axis" });
+  for (const [at, text] of [[0, "0"], [0.5, "50"], [1, "100 %"]]) {
+    const x = left + at * (width - left - right);
+    add("text", { x, y: axis + 17, "text-anchor": at === 1 ? "end" : "middle" }, text);
   }
+  for (const [y, text] of [[top + 10, String(most)], [axis, "0"]]) add("text", { x: left - 5, y, "text-anchor": "end" }, text);
   const figure = document.createElement("figure");
   const caption = document.createElement("figcaption");
-  caption.textContent = values.some(defined) ? `${title} (max bar: ${top} tokens)`
+  caption.textContent = values.some(defined) ? `${title}: tokens per value (in %)`
     : `${title} (undefined on every token: none has its log's frame 0.5 s earlier here)`;
   figure.append(caption, svg);
   return figure;
@@ -131,10 +175,10 @@ async function render() {
   const scored = PAGE.versions.filter((version) => version in submission.results);
   const versionTabs = $("#version-tabs");
   versionTabs.replaceChildren(...(scored.length ? scored : PAGE.versions).map((version) =>
-    tab(`${PAGE.score_labels[version]} ${version}`, version === state.version, () => { state.version = version; render(); })));
+    tab(`${PAGE.score_labels[version]} ${version}`, version === state.version, () => { state.version = version; rendered(); })));
   for (const element of document.querySelectorAll(".score-label")) element.textContent = label("score");
   $("#subset-tabs").replaceChildren(...subsets.map((subset) =>
-    tab(`${subset} tokens`, subset === state.subset, () => { state.subset = subset; render(); })));
+    tab(`${subset} tokens`, subset === state.subset, () => { state.subset = subset; rendered(); })));
   const summary = results[state.subset];
   if (!summary) {
     $("#page-error").textContent = submission.status === "scored" ? "No results on this subset." : `This submission is ${submission.status}.`;
@@ -192,7 +236,7 @@ async function render() {
   worst.replaceChildren();
   for (const entry of [...tokens].sort((a, b) => a.values.score - b.values.score).slice(0, WORST_SHOWN)) {
     const row = worst.insertRow();
-    cell(row, button(entry.token, () => showScene(entry.token), "draw this scene"), "token");
+    cell(row, sceneLink(entry.token), "token");
     cell(row, pct(entry.values.score), "num");
     const short = columns.filter((column) => defined(entry.values[column]) && entry.values[column] < 1)
       .map((column) => `${label(column)} ${pct(entry.values[column])}`);
@@ -201,6 +245,13 @@ async function render() {
   }
   renderFilter(tokens);
   await renderDiff(tokens, summary, columns);
+  remember();
+}
+
+// After a change of version or subset: the page again, and the open scene redrawn under the new choice.
+async function rendered() {
+  await render();
+  if (state.token) await showScene(state.token, { scroll: false });
 }
 
 // Two stages: per group each frame's stage-one score, its weighted stage two and the weights, lowest first.
@@ -263,16 +314,22 @@ function renderFilter(tokens) {
   body.replaceChildren();
   for (const entry of filtered.sort((a, b) => a.values.score - b.values.score).slice(0, FILTER_SHOWN)) {
     const row = body.insertRow();
-    cell(row, button(entry.token, () => showScene(entry.token), "draw this scene"), "token");
+    cell(row, sceneLink(entry.token), "token");
     cell(row, pct(entry.values.score), "num");
     cell(row, overrides(entry));
   }
 }
 
-async function showScene(token) {
+// The drill-down picture of a token under the chosen version: the wide layout (legend beside the map) on a
+// desktop, the narrow one (legend under a map cropped around your path) on a phone.
+async function showScene(token, { scroll = true } = {}) {
   const figure = $("#scene");
-  const query = new URLSearchParams({ version: state.version });
-  $("#scene-note").textContent = `Drawing ${token}…`;
+  const layout = PHONE.matches ? "narrow" : "wide";
+  const query = new URLSearchParams({ version: state.version, layout });
+  state.token = token;
+  remember();
+  $("#scene-title").textContent = `Scene drill-down: ${token}`;
+  $("#scene-note").textContent = `Drawing ${token} under ${label("score")} ${state.version}…`;
   try {
     const response = await fetch(`${API}${scoped(`/submissions/${state.submission.id}/scenes/${token}.png`)}?${query}`, {
       headers: { Authorization: `Bearer ${bearer()}` },
@@ -281,23 +338,67 @@ async function showScene(token) {
     const image = $("#scene-image");
     if (image.src) URL.revokeObjectURL(image.src);
     image.src = URL.createObjectURL(await response.blob());
-    image.alt = `Bird's-eye view of scene ${token} under ${label("score")} ${state.version}`;
-    $("#scene-caption").textContent = `${token}, ${label("score")} ${state.version}: metres from the ego's start; objects white now, grey every second ahead; red: the first infraction of each kind and the object involved.`;
+    await image.decode().catch(() => {});
+    image.alt = `Bird's-eye view of scene ${token} under ${label("score")} ${state.version}: the map, the objects, ` +
+      "the trajectories and the first infraction of each kind, with a legend";
+    $("#scene-caption").textContent = `${token} under ${label("score")} ${state.version}. Metres from the ego's start; ` +
+      "every mark is in the legend; numbered boxes are the first infraction of each kind.";
     figure.hidden = false;
     $("#scene-note").textContent = "";
-    figure.scrollIntoView({ behavior: "smooth", block: "start" });
+    if (scroll) $("#scene-title").scrollIntoView({ block: "start" });
   } catch (error) {
     figure.hidden = true;
     $("#scene-note").textContent = describeError(error);
   }
 }
 
+const KIND_LABELS = { yours: "Your submissions", published: "Published entries", baseline: "Baselines" };
+const entryName = (entry) => `${entry.kind === "yours" ? `${entry.id}: ` : `${entry.team} · `}${entry.method}`;
+
+async function otherRows(other) {
+  const key = `compare/${other.id}/${state.version}`;
+  if (!(key in state.rows)) {
+    state.rows[key] = await read(`/submissions/${state.submission.id}/comparable/${other.id}/tokens?version=${state.version}`);
+  }
+  return state.rows[key];
+}
+
+// One page of a list of changed tokens, with its pager: each token a link to its drill-down here, the other
+// entry's value a link to its own drill-down where it has a page (baselines have none).
+function changeList(name, list, other) {
+  const table = $(`#diff-${name}`);
+  const tbody = table.tBodies[0];
+  tbody.replaceChildren();
+  const pages = Math.max(1, Math.ceil(list.length / DIFF_PAGE));
+  state.pages[name] = Math.min(state.pages[name], pages - 1);
+  const start = state.pages[name] * DIFF_PAGE;
+  for (const change of list.slice(start, start + DIFF_PAGE)) {
+    const row = tbody.insertRow();
+    cell(row, sceneLink(change.token), "token");
+    cell(row, pct(change.here), "num");
+    cell(row, other.kind === "baseline" ? pct(change.there) : sceneLink(change.token, other.id, pct(change.there)), "num");
+    cell(row, pointChange(change.here - change.there), `num ${name}`);
+  }
+  if (!list.length) cell(tbody.insertRow(), "none", "empty").colSpan = 4;
+  const pager = $(`#diff-${name}-pages`);
+  pager.hidden = pages <= 1;
+  const turn = (step) => () => { state.pages[name] += step; changeList(name, list, other); };
+  const previous = button("← previous", turn(-1), `tokens before ${start + 1}`);
+  const next = button("next →", turn(1), `tokens after ${Math.min(start + DIFF_PAGE, list.length)}`);
+  previous.disabled = state.pages[name] === 0;
+  next.disabled = state.pages[name] >= pages - 1;
+  const where = document.createElement("span");
+  where.textContent = `${start + 1}–${Math.min(start + DIFF_PAGE, list.length)} of ${list.length}`;
+  pager.replaceChildren(previous, where, next);
+}
+
 async function renderDiff(tokens, summary, columns) {
-  const otherId = $("#other").value;
-  $("#diff").hidden = !otherId;
-  if (!otherId) return;
-  const other = state.others.find((submission) => String(submission.id) === otherId);
+  const other = state.others.find((entry) => String(entry.id) === state.compare);
+  $("#diff").hidden = !other;
+  if (!other) return;
+  $("#other").value = state.compare;
   const otherSummary = (other.results[state.version] || {})[state.subset];
+  $("#diff-other-name").textContent = entryName(other);
   const means = $("#diff-means tbody");
   means.replaceChildren();
   for (const column of ["score", ...columns]) {
@@ -310,23 +411,16 @@ async function renderDiff(tokens, summary, columns) {
     // Colour only a change that shows in the rounded figure.
     cell(row, shown, shown.startsWith("+") ? "num better" : shown.startsWith("-") ? "num worse" : "num");
   }
-  const theirs = new Map(perToken(await tokenRows(other.id, state.version), columns).map((entry) => [entry.token, entry]));
+  const theirs = new Map(perToken(await otherRows(other), columns).map((entry) => [entry.token, entry]));
   const changes = tokens.filter((entry) => theirs.has(entry.token))
     .map((entry) => ({ token: entry.token, here: entry.values.score, there: theirs.get(entry.token).values.score }));
   const better = changes.filter((c) => c.here > c.there).sort((a, b) => (b.here - b.there) - (a.here - a.there));
   const worse = changes.filter((c) => c.here < c.there).sort((a, b) => (a.here - a.there) - (b.here - b.there));
-  $("#diff-counts").textContent = `Per token: ${better.length} better, ${worse.length} worse, ${changes.length - better.length - worse.length} the same (of ${changes.length} tokens both scored).`;
-  for (const [table, list] of [["#diff-better", better], ["#diff-worse", worse]]) {
-    const tbody = $(`${table} tbody`);
-    tbody.replaceChildren();
-    for (const change of list.slice(0, DIFF_SHOWN)) {
-      const row = tbody.insertRow();
-      cell(row, change.token, "token");
-      cell(row, pct(change.here), "num");
-      cell(row, pct(change.there), "num");
-    }
-    if (!list.length) cell(tbody.insertRow(), "none", "empty").colSpan = 3;
-  }
+  $("#diff-counts").textContent = `Per token: ${better.length} better, ${worse.length} worse, ` +
+    `${changes.length - better.length - worse.length} the same (of ${counted(changes.length, "token")} both scored). ` +
+    "Every differing token is listed, the largest change first; open one to draw its scene.";
+  changeList("better", better, other);
+  changeList("worse", worse, other);
 }
 
 async function load() {
@@ -352,14 +446,22 @@ async function load() {
   ].filter(Boolean);
   $("#sanctions").textContent = sanctions.join(" ");
   $("#sanctions").hidden = !sanctions.length;
-  const mine = { team: "/submissions", admin: `/submissions?team_id=${submission.team_id}` }[mode()];
-  state.others = mine ? (await read(mine)).filter((s) => s.id !== submission.id && s.status === "scored") : [];
+  state.others = await read(`/submissions/${submission.id}/comparable`).catch(() => []);
   $("#compare").hidden = !state.others.length;
   const select = $("#other");
-  select.replaceChildren(new Option("choose…", ""), ...state.others.map((s) => new Option(`${s.id}: ${s.method}`, s.id)));
-  select.addEventListener("change", () => render());
+  const groups = Object.entries(KIND_LABELS).map(([kind, text]) => {
+    const group = document.createElement("optgroup");
+    group.label = text;
+    group.append(...state.others.filter((entry) => entry.kind === kind).map((entry) => new Option(entryName(entry), entry.id)));
+    return group;
+  }).filter((group) => group.children.length);
+  select.replaceChildren(new Option("choose…", ""), ...groups);
+  select.value = state.others.some((entry) => String(entry.id) === state.compare) ? state.compare : "";
+  state.compare = select.value;
+  select.addEventListener("change", () => { state.compare = select.value; state.pages = { better: 0, worse: 0 }; render(); });
   if (!(state.version in submission.results)) state.version = Object.keys(submission.results)[0] || state.version;
   await render();
+  if (state.token) await showScene(state.token);
 }
 
 $("#signin").addEventListener("submit", async (event) => {
