@@ -165,6 +165,10 @@ class TokenRow(BaseModel):
         default_factory=dict,
         description="how the row came about (v2.2: the human filter's overrides, two-frame comfort's partner)",
     )
+    ec_undefined: str | None = Field(
+        None,
+        description="v2.2: why two-frame extended comfort (EC) is undefined on this row; null where it is not",
+    )
 
 
 class LeaderboardRow(BaseModel):

@@ -11,13 +11,16 @@ from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 
-from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, VERSIONS, VersionName
+from scorer.ec_undefined import NO_TOKEN_PAIRED
+from scorer.submission import MAX_SEEDS
+from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, OFFICIAL_REPOSITORY, VERSIONS, VersionName
 from server.auth import SessionDep
 from server.numbers import counted, percent
 from server.params import RowId
 from server.runs import BOARD_VERSIONS
 from server.services.errors import ServiceError
 from server.services.leaderboard import cached_board
+from server.services.rules import PAPERS, SUBSCORES, all_version_rules, header_title, subscore
 from server.services.splits import list_phases
 from server.services.submissions import get_submission
 
@@ -26,6 +29,8 @@ WEB_DIR = Path(str(files("server.web")))
 TEMPLATES = Jinja2Templates(directory=WEB_DIR / "templates")
 TEMPLATES.env.filters["percent"] = percent  # the one rounding of every figure (server.numbers)
 TEMPLATES.env.globals["counted"] = counted
+TEMPLATES.env.globals["header_title"] = header_title  # a board header's full name and meaning
+TEMPLATES.env.globals["subscore"] = subscore
 router = APIRouter(include_in_schema=False)
 SCORE_LABELS = {name: VERSIONS[name].score_label for name in BOARD_VERSIONS}  # PDMS or EPDMS per version
 
@@ -64,6 +69,7 @@ def leaderboard_page(
         "query": query,
         "here": here,
         "ddc_role": VERSIONS[VersionName(version)].ddc_role if version in VERSIONS else "",
+        "ec_undefined": NO_TOKEN_PAIRED,
     }
     status = 200
     try:
@@ -77,6 +83,19 @@ def leaderboard_page(
         context["error"] = error.message
         status = error.http_status
     return TEMPLATES.TemplateResponse(request, "leaderboard.html", context, status_code=status)
+
+
+@router.get("/rules", response_class=HTMLResponse)
+def rules_page(request: Request) -> HTMLResponse:
+    """The rules: each metric version's subscores, formula, weights and official code; seeds, ties, papers."""
+    context = {
+        "subscores": SUBSCORES,
+        "versions": all_version_rules(),
+        "papers": PAPERS,
+        "repository": OFFICIAL_REPOSITORY,
+        "max_seeds": MAX_SEEDS,
+    }
+    return TEMPLATES.TemplateResponse(request, "rules.html", context)
 
 
 @router.get("/admin", response_class=HTMLResponse)
