@@ -19,6 +19,7 @@ from server.numbers import counted, percent
 from server.params import RowId
 from server.runs import BOARD_VERSIONS
 from server.services.errors import ServiceError
+from server.services.integrity_checks import integrity_thresholds
 from server.services.leaderboard import cached_board
 from server.services.rules import PAPERS, SUBSCORES, all_version_rules, header_title, subscore
 from server.services.splits import list_phases
@@ -103,6 +104,12 @@ def admin_page(request: Request) -> HTMLResponse:
     """The admin dashboard; it holds no data itself and asks the admin API with the token typed in."""
     context = {"versions": list(BOARD_VERSIONS), "default_version": DEFAULT_VERSION}
     return TEMPLATES.TemplateResponse(request, "admin.html", context)
+
+
+@router.get("/admin/integrity", response_class=HTMLResponse)
+def integrity_page(request: Request) -> HTMLResponse:
+    """The integrity checks' flags with their evidence, read with the organiser's token; the organiser decides."""
+    return TEMPLATES.TemplateResponse(request, "integrity.html", {"thresholds": integrity_thresholds()})
 
 
 @router.get("/admin/rescores/{rescore_id}", response_class=HTMLResponse)
