@@ -19,14 +19,13 @@ from scorer.human import is_synthetic
 
 SYNTHETIC = "a synthetic scene (17-character token) has no logged frame before it to compare its plan with"
 UNPAIRED = (
-    f"no frame of its log starts within {ADJACENT_GAP_S:g} s before it in the split: it is the first of its log"
-    " here, so there is no earlier plan to compare its plan with"
+    f"no frame of its log starts within {ADJACENT_GAP_S:g} s before it in the split (it is the first of its log"
+    " here, or the one before is further back), so there is no earlier plan to compare with"
 )
 # An entry's mean over a subset is undefined when no token of it has EC.
 NO_TOKEN_PAIRED = (
     "undefined on every token of this subset: no token has the frame of its log 0.5 s earlier in the split, so"
-    " there is no earlier plan to compare with and EC's weight drops out of each token's score (/14 instead"
-    " of /16), as in the official code"
+    " there is no earlier plan to compare with"
 )
 
 

@@ -624,7 +624,8 @@ def test_an_organiser_reads_an_integrity_flag_with_its_evidence_and_decides(
     expect(row).to_contain_text("Leaked log", timeout=60_000)
     expect(row).to_contain_text("median displacement to the logged human future 0.0000 m")
     row.locator("summary", has_text="evidence").click()
-    expect(row.locator("pre")).to_contain_text("closest_tokens")
+    expect(row.locator("details dl")).to_contain_text("closest tokens")
+    expect(row.locator("details dl")).to_contain_text("ade m 0")
     submission_id = int(row.locator("td").nth(1).inner_text().split()[0])
 
     def admin_view() -> dict:

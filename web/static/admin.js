@@ -222,18 +222,6 @@ function fillAudit() {
 }
 
 // An audit entry's details as lines a person reads ("reason: …"), wrapping where a value is long.
-function detailList(details) {
-  if (!Object.keys(details).length) return "–";
-  const list = document.createElement("dl");
-  for (const [key, value] of Object.entries(details)) {
-    const shown = value === null ? "–" : Array.isArray(value) ? value.join(", ") || "none"
-      : typeof value === "object" ? JSON.stringify(value) : String(value);
-    list.append(Object.assign(document.createElement("dt"), { textContent: key.replaceAll("_", " ") }),
-      Object.assign(document.createElement("dd"), { textContent: shown }));
-  }
-  return list;
-}
-
 async function refreshLive() {
   state.submissions = await api("GET", `${ADMIN}/submissions?limit=300`);
   fillQueue();

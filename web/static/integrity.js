@@ -1,5 +1,5 @@
 // Integrity checks (organisers only): run the checks of a split, read each flag with its evidence, and decide
-// with the console's moderation actions (moderation.js), each asking first. Follows a running check until done.
+// with the console's moderation actions (console.js), each asking first. Follows a running check until done.
 "use strict";
 
 const FOLLOW_EVERY_MS = 2000;
@@ -8,8 +8,7 @@ let following = null;
 
 function evidence(flag) {
   const details = document.createElement("details");
-  details.append(Object.assign(document.createElement("summary"), { textContent: "evidence" }),
-    Object.assign(document.createElement("pre"), { textContent: JSON.stringify(flag.evidence, null, 2) }));
+  details.append(Object.assign(document.createElement("summary"), { textContent: "evidence" }), detailList(flag.evidence));
   return group(Object.assign(document.createElement("p"), { textContent: flag.summary, className: "finding" }), details);
 }
 

@@ -1,6 +1,7 @@
-// What the admin pages share: the confirmation every action that changes or hides data asks first (the
-// #confirm dialog, templates/_confirm.html), and the moderation of a submission (hide, disqualify, and back).
-// Each page defines `refresh()`, called after an action, and has a #message line. Loaded after common.js.
+// What the organisers' pages share: the confirmation every action that changes or hides data asks first (the
+// #confirm dialog, templates/_confirm.html), the moderation of a submission (hide, disqualify, and back), and
+// a record's details as a readable list. Each page defines `refresh()`, called after an action, and has a
+// #message line. Loaded after common.js.
 "use strict";
 
 const ADMIN = "/admin";
@@ -68,4 +69,22 @@ function moderation(s) {
         reason: true,
       }, (reason) => api("POST", `${path}/disqualify`, { json: { disqualified: true, reason } })),
   ];
+}
+
+// A value in words: lists joined, records as "key value" pairs, nothing as "–".
+function shownValue(value) {
+  if (value === null || value === undefined) return "–";
+  if (Array.isArray(value)) return value.map(shownValue).join("; ") || "none";
+  if (typeof value === "object") return Object.entries(value).map(([key, item]) => `${key.replaceAll("_", " ")} ${shownValue(item)}`).join(", ");
+  return String(value);
+}
+
+function detailList(details) {
+  if (!Object.keys(details).length) return "–";
+  const list = document.createElement("dl");
+  for (const [key, value] of Object.entries(details)) {
+    list.append(Object.assign(document.createElement("dt"), { textContent: key.replaceAll("_", " ") }),
+      Object.assign(document.createElement("dd"), { textContent: shownValue(value) }));
+  }
+  return list;
 }
