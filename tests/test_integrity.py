@@ -3,22 +3,28 @@ team probing the hidden set are flagged with their evidence; honest entries are 
 
 from __future__ import annotations
 
+import json
 from functools import cache
 from pathlib import Path
 
 import numpy as np
+import pytest
+import typer
 from server_testing import REFERENCE_DIR, World, add_team, phase_row, team_row
+from typer.testing import CliRunner
 
 from scorer.baselines import baseline_submission
 from scorer.geometry import FloatArray
 from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionMetadata, dump_submission_json
+from server.cli import register
 from server.db import transaction
 from server.models import Submission
 from server.services.integrity_checks import LEAK_MEDIAN_ADE_M, MOVING_M, displacements
 from server.services.splits import split_tokens
 from server.services.submissions import create_submission
 from server.services.validation import validate_upload
+from server.settings import get_settings
 
 Seed = dict[str, FloatArray]
 
@@ -161,3 +167,26 @@ def test_the_console_page_states_the_thresholds_and_holds_no_data(world: World) 
     assert page.status_code == 200
     assert f"under {LEAK_MEDIAN_ADE_M:g} m" in page.text and "within\n    1 cm" in page.text
     assert "integrity.js" in page.text and "console.js" in page.text
+
+
+def test_the_command_line_checks_a_split_and_prints_each_flag(
+    world: World, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    leaker, _ = add_team(world.factory, "leaker")
+    leak_id = _submit(world, leaker, _baseline("human"), "oracle")
+    monkeypatch.setenv("DATA_DIR", str(world.settings.data_dir))
+    monkeypatch.setenv("DATABASE_URL", world.settings.database_url)
+    get_settings.cache_clear()
+    app = typer.Typer()
+    register(app)
+    with transaction(world.factory) as session:
+        split = phase_row(session, world.phase).split.name
+    try:
+        result = CliRunner().invoke(app, ["admin", "check-integrity", split])
+    finally:
+        get_settings.cache_clear()
+    assert result.exit_code == 0, result.output
+    (line,) = result.stdout.splitlines()
+    flag = json.loads(line)
+    assert (flag["kind"], flag["submission_id"]) == ("leaked_log", leak_id)
+    assert "1 entry read; 1 flag" in result.stderr

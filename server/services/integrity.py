@@ -76,34 +76,37 @@ def start_check(session: Session, actor: ApiToken | None, split: Split) -> Integ
 
 
 def run_check(session_factory: sessionmaker[Session], settings: Settings, check_id: int) -> None:
-    """Run a recorded check: read the split's entries, compute the flags, replace the split's older checks."""
+    """Run a recorded check in a transaction of its own (the API's, once its answer is sent)."""
     with transaction(session_factory) as session:
         check = session.get(IntegrityCheck, check_id)
-        if check is None:
-            return
-        try:
-            findings, entries, skipped = _findings(session, settings, check.split)
-        except Exception as error:  # an organiser's tool: say what failed, keep the service up
-            log.exception("integrity check %s failed", check_id)
-            check.error, check.finished_at = f"{type(error).__name__}: {error}", utc_now()
-            return
-        session.execute(
-            delete(IntegrityCheck).where(
-                IntegrityCheck.split_id == check.split_id, IntegrityCheck.id != check.id
+        if check is not None:
+            complete_check(session, settings, check)
+
+
+def complete_check(session: Session, settings: Settings, check: IntegrityCheck) -> None:
+    """Read the check's split's entries, store the flags, and drop the split's older checks and their flags;
+    a check that fails records why."""
+    try:
+        findings, entries, skipped = _findings(session, settings, check.split)
+    except Exception as error:  # an organiser's tool: say what failed, keep the service up
+        log.exception("integrity check %s failed", check.id)
+        check.error, check.finished_at = f"{type(error).__name__}: {error}", utc_now()
+        return
+    session.execute(
+        delete(IntegrityCheck).where(IntegrityCheck.split_id == check.split_id, IntegrityCheck.id != check.id)
+    )
+    for finding in findings:
+        session.add(
+            IntegrityFlag(
+                check_id=check.id,
+                kind=finding.kind,
+                submission_id=finding.submission_id,
+                other_submission_id=finding.other_submission_id,
+                summary=finding.summary,
+                evidence=finding.evidence,
             )
         )
-        for finding in findings:
-            session.add(
-                IntegrityFlag(
-                    check_id=check.id,
-                    kind=finding.kind,
-                    submission_id=finding.submission_id,
-                    other_submission_id=finding.other_submission_id,
-                    summary=finding.summary,
-                    evidence=finding.evidence,
-                )
-            )
-        check.entries, check.skipped, check.finished_at = entries, skipped, utc_now()
+    check.entries, check.skipped, check.finished_at = entries, skipped, utc_now()
 
 
 def _findings(
