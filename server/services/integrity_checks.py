@@ -4,7 +4,7 @@ how alike two entries are, and which of a team's uploads differ in only a few to
 Trajectories come aligned on the split's tokens: (tokens, 8, 2) arrays of x, y in the current ego frame, NaN
 where an entry has no pose for a token. Only positions count: a copy with its headings changed is still a copy.
 
-Thresholds, and why (figures: `benchmarks/integrity_calibration.py`, on the reference and synthetic scenes):
+Thresholds, and why (figures: `benchmarks/integrity.py`, on the reference and synthetic scenes):
 
 - Leaked log. An honest planner's per-token average displacement (ADE) to the human over 4 s has a median of
   decimetres to metres: on the 32 moving tokens of the reference scenes, 0.35 m for the demo's "noisy human"
@@ -150,13 +150,15 @@ def near_duplicates(entries: list[Entry], tokens: list[str]) -> list[Finding]:
     ends = np.stack([entry.poses[:, -1] for entry in entries]) if entries else np.zeros((0, len(tokens), 2))
     findings = []
     for later in range(len(entries)):
+        # Per earlier entry at once: the fraction of tokens whose last poses are within SAME_POSE_M.
+        gaps = ends[:later] - ends[later]
+        close_ends = (np.einsum("etk,etk->et", gaps, gaps) <= SAME_POSE_M**2).mean(axis=1)
         for earlier in range(later):
             first, second = entries[earlier], entries[later]
             if first.team == second.team:
                 continue
             same_file = first.sha256 == second.sha256
-            close_ends = np.hypot(*(ends[later] - ends[earlier]).T) <= SAME_POSE_M
-            if not same_file and close_ends.mean() < NEAR_COPY_FRACTION:
+            if not same_file and close_ends[earlier] < NEAR_COPY_FRACTION:
                 continue
             common, differs = differing_tokens(first.poses, second.poses)
             shared = int(common.sum())
