@@ -648,3 +648,21 @@ def test_an_organiser_reads_an_integrity_flag_with_its_evidence_and_decides(
     seen = _api(demo, "GET", f"/submissions/{submission_id}", team_token).json()
     assert seen["disqualified"] is True and "leaked" not in json.dumps(seen).lower()
     assert _api(demo, "GET", "/admin/integrity", team_token).status_code in (401, 403)
+
+
+def test_the_submission_page_spells_out_its_metrics_and_why_ec_is_undefined(
+    demo: Demo, browser: Browser
+) -> None:
+    board = httpx.get(f"{demo.url}/api/v1/leaderboard", timeout=10).json()["rows"]
+    entry = next(row for row in board if row["team"] == "demo-team")["submission_id"]
+    page = _team_page(browser, demo, DESKTOP, demo.team_token)
+    page.goto(f"{demo.url}/submissions/{entry}")
+    page.get_by_role("link", name="EPDMS v2.2").click()
+    expect(page.locator("#histograms figure")).to_have_count(1 + 9)
+    rows = page.locator("#breakdown tbody tr")
+    assert "no at-fault collisions" in (rows.nth(1).locator("th").get_attribute("title") or "")
+    ec = rows.filter(has=page.locator("th", has_text="EC"))
+    assert "two-frame extended comfort" in (ec.locator("th").get_attribute("title") or "")
+    assert "no token has the frame of its log 0.5 s earlier" in (
+        ec.locator(".meter").first.get_attribute("title") or ""
+    )

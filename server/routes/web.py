@@ -13,7 +13,14 @@ from fastapi.templating import Jinja2Templates
 
 from scorer.ec_undefined import NO_TOKEN_PAIRED
 from scorer.submission import MAX_SEEDS
-from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, OFFICIAL_REPOSITORY, VERSIONS, VersionName
+from scorer.versions import (
+    ALL_RESULT_COLUMNS,
+    DEFAULT_VERSION,
+    METRIC_LABELS,
+    OFFICIAL_REPOSITORY,
+    VERSIONS,
+    VersionName,
+)
 from server.auth import SessionDep
 from server.numbers import counted, percent
 from server.params import RowId
@@ -141,6 +148,8 @@ def submission_page(request: Request, session: SessionDep, submission_id: RowId)
         "default_version": DEFAULT_VERSION,
         "labels": METRIC_LABELS,
         "ddc_roles": {name: VERSIONS[name].ddc_role for name in BOARD_VERSIONS},
+        "titles": {column: header_title(column) for column in ALL_RESULT_COLUMNS if column != "score"},
+        "ec_undefined": NO_TOKEN_PAIRED,
     }
     return TEMPLATES.TemplateResponse(
         request, "submission.html", {"submission_id": submission_id, "page": page}

@@ -160,7 +160,7 @@ async function render() {
     const name = document.createElement("th");
     name.scope = "row";
     name.textContent = column === "driving_direction_compliance" ? `${label(column)} (${PAGE.ddc_roles[state.version]})` : label(column);
-    name.title = column;
+    name.title = PAGE.titles[column] || `${label(column)}, mean over tokens`;
     row.append(name);
     for (const value of [summary[column], ...reference.map((entry) => entry[column])]) {
       const td = cell(row, "", "num");
@@ -168,6 +168,7 @@ async function render() {
       meter.className = "meter";
       meter.style.setProperty("--fill", `${Math.round(100 * (value ?? 0))}%`);
       meter.textContent = pct(value);
+      if (column === "two_frame_extended_comfort" && !defined(value)) meter.title = `EC ${PAGE.ec_undefined}`;
       td.append(meter);
     }
   }
