@@ -28,6 +28,7 @@ class VersionName(StrEnum):
 
 
 DEFAULT_VERSION = VersionName.V1_1  # NAVSIM's current release: what a leaderboard shows unless asked
+OFFICIAL_REPOSITORY = "https://github.com/autonomousvision/navsim"
 
 
 @dataclass(frozen=True)
@@ -89,6 +90,8 @@ class MetricVersion:
     planner: ScorerConfig  # PDMScorerConfig() dataclass defaults, used inside PDM-Closed
     result_columns: tuple[str, ...]  # the result CSV's columns, in its order
     official_code: str  # the devkit release whose results the version reproduces
+    official_ref: str  # the tag or commit of OFFICIAL_REPOSITORY that code is
+    official_script: str  # the devkit's script there whose numbers the version reproduces
     score_label: str = "PDMS"  # the score's name in the papers
     average_row: str = "average"  # the token column of the result CSV's mean row
     observation_frames: int = 10  # 2 Hz frames after the current one in the observation (x 5 steps at 10 Hz)
@@ -176,6 +179,20 @@ METRIC_LABELS = {
     "two_frame_extended_comfort": "EC",
     "score": "PDMS",
 }
+# Their names in full, as the papers spell them out, for the people reading the short ones.
+METRIC_NAMES = {
+    "no_at_fault_collisions": "no at-fault collisions",
+    "drivable_area_compliance": "drivable area compliance",
+    "driving_direction_compliance": "driving direction compliance",
+    "traffic_light_compliance": "traffic light compliance",
+    "ego_progress": "ego progress",
+    "time_to_collision_within_bound": "time to collision within bound",
+    "comfort": "comfort",
+    "lane_keeping": "lane keeping",
+    "history_comfort": "history comfort",
+    "two_frame_extended_comfort": "two-frame extended comfort",
+    "score": "PDM score",
+}
 
 # NAVSIM v2.2's one-stage EPDMS, and the base of its pre-fix variant below.
 _V2_2 = MetricVersion(
@@ -184,6 +201,8 @@ _V2_2 = MetricVersion(
     planner=_V2_2_SCORER,
     result_columns=EPDMS_COLUMNS,
     official_code="NAVSIM v2.2 (tag v2.2, commit 359c7f7, one-stage, non-reactive, human filter on)",
+    official_ref="v2.2",
+    official_script="navsim/planning/script/run_pdm_score_one_stage.py",
     score_label="EPDMS",
     average_row="average_all_frames",
     observation_frames=8,
@@ -199,6 +218,8 @@ VERSIONS: dict[VersionName, MetricVersion] = {
         planner=replace(_V1_0_SCORER, progress_distance_threshold=0.1),
         result_columns=METRIC_COLUMNS,
         official_code="NAVSIM v1.0 (tag v1.0), nuplan-devkit v1.2",
+        official_ref="v1.0",
+        official_script="navsim/planning/script/run_pdm_score.py",
     ),
     VersionName.V1_1: MetricVersion(
         name=VersionName.V1_1,
@@ -214,6 +235,8 @@ VERSIONS: dict[VersionName, MetricVersion] = {
             "score",
         ),
         official_code="NAVSIM v1.1 (tag v1.1), nuplan-devkit v1.2",
+        official_ref="v1.1",
+        official_script="navsim/planning/script/run_pdm_score.py",
     ),
     VersionName.V2_2: _V2_2,
     # The v2.2 tree before the human-filter fix, whose results papers published before 2025-09-29 report: the same
@@ -225,6 +248,7 @@ VERSIONS: dict[VersionName, MetricVersion] = {
             "NAVSIM v2.2 before the human-filter fix (commit 8021f918b907360ac5ae6fbc252b5f96f04db966, the parent of "
             "359c7f7; one-stage, non-reactive, human filter on, score unfiltered)"
         ),
+        official_ref="8021f918b907360ac5ae6fbc252b5f96f04db966",
         human_filter_rescores=False,
         shares_cache_of=VersionName.V2_2,
         published_by_default=False,
@@ -240,6 +264,8 @@ VERSIONS: dict[VersionName, MetricVersion] = {
             "NAVSIM v2.2 (tag v2.2, commit 359c7f7, run_pdm_score_from_submission.py: two-stage, reactive IDM "
             "traffic, human filter on)"
         ),
+        official_ref="v2.2",
+        official_script="navsim/planning/script/run_pdm_score_from_submission.py",
         score_label="EPDMS",
         average_row="average_all_frames",
         observation_frames=8,

@@ -449,3 +449,37 @@ class WorkerHeartbeat(Base):
     name: Mapped[str] = mapped_column(String(255), primary_key=True)  # Celery node name, e.g. celery@host
     started_at: Mapped[datetime] = mapped_column(UTCDateTime)
     seen_at: Mapped[datetime] = mapped_column(UTCDateTime, index=True)
+
+
+class IntegrityCheck(Base):
+    """One run of the integrity checks over a split's entries, started by an organiser
+    (`server.services.integrity`); its flags replace those of the split's previous check."""
+
+    __tablename__ = "integrity_checks"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    split_id: Mapped[int] = mapped_column(ForeignKey("splits.id"), index=True)
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    entries: Mapped[int] = mapped_column(Integer, default=0)  # the submissions read
+    skipped: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list)  # unreadable ones, and why
+    error: Mapped[str | None] = mapped_column(Text)
+
+    split: Mapped[Split] = relationship()
+
+
+class IntegrityFlag(Base):
+    """A suspicion about a submission, with its evidence, for organisers only: it decides nothing by itself."""
+
+    __tablename__ = "integrity_flags"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    check_id: Mapped[int] = mapped_column(ForeignKey("integrity_checks.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(32))  # leaked_log, near_duplicate, probing
+    submission_id: Mapped[int] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"), index=True)
+    other_submission_id: Mapped[int | None] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"))
+    summary: Mapped[str] = mapped_column(Text)
+    evidence: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+
+    check: Mapped[IntegrityCheck] = relationship()
+    submission: Mapped[Submission] = relationship(foreign_keys=[submission_id])

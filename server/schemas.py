@@ -173,6 +173,10 @@ class TokenRow(BaseModel):
         default_factory=dict,
         description="how the row came about (v2.2: the human filter's overrides, two-frame comfort's partner)",
     )
+    ec_undefined: str | None = Field(
+        None,
+        description="v2.2: why two-frame extended comfort (EC) is undefined on this row; null where it is not",
+    )
 
 
 class StageGroupOut(BaseModel):
@@ -451,3 +455,39 @@ class AuditOut(BaseModel):
     target_type: str
     target_id: str
     details: dict[str, Any]
+
+
+class IntegrityCheckIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    split: str | None = Field(None, description="the split to check; every registered split when left out")
+
+
+class IntegrityFlagOut(BaseModel):
+    id: int
+    kind: Literal["leaked_log", "near_duplicate", "probing"]
+    submission_id: int
+    other_submission_id: int | None = Field(description="near_duplicate: the earlier entry it copies")
+    team: str
+    method: str
+    admin_hidden: bool
+    disqualified: bool
+    summary: str = Field(description="the suspicion in one sentence, with its figures")
+    evidence: dict[str, Any] = Field(description="the figures behind it: quantiles, tokens, pairs")
+
+
+class IntegrityCheckOut(BaseModel):
+    id: int
+    split: str
+    started_at: datetime
+    finished_at: datetime | None = Field(description="null while the check runs")
+    entries: int = Field(description="the submissions read")
+    skipped: list[dict[str, Any]] = Field(description="submissions that could not be read, and why")
+    error: str | None
+    flags: list[IntegrityFlagOut]
+
+
+class IntegrityReport(BaseModel):
+    """Organisers only: each split's latest integrity check and its flags; none acts by itself."""
+
+    checks: list[IntegrityCheckOut]

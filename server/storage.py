@@ -88,3 +88,17 @@ def read_trajectories(storage_dir: Path, name: str, sha256: str) -> tuple[dict[s
             return tuple(seeds)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile):
         return None
+
+
+def submission_trajectories(
+    storage_dir: Path, name: str, sha256: str, filename: str
+) -> tuple[dict[str, FloatArray], ...]:
+    """Return each seed's token -> poses of a stored one-stage submission: the parsed copy, or else the file parsed
+    again (an upload stored before the parsed copies, or a copy lost). Raises SubmissionError when it cannot be
+    read as one."""
+    from scorer.submission import load_submission
+
+    seeds = read_trajectories(storage_dir, name, sha256)
+    if seeds is None:
+        seeds = load_submission(read_file(storage_dir, name), filename).seeds
+    return seeds

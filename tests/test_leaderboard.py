@@ -3,6 +3,7 @@ per team, multi-seed spread, unscored tokens counting 0, bootstrap intervals, ba
 
 from __future__ import annotations
 
+import html
 import math
 from datetime import timedelta
 
@@ -21,6 +22,7 @@ from server_testing import (
     upload_of,
 )
 
+from scorer.ec_undefined import NO_TOKEN_PAIRED, UNPAIRED
 from scorer.evaluate import TokenResult
 from scorer.versions import EPDMS_COLUMNS, LOG_REPLAY_VERSIONS, VERSIONS
 from server.db import transaction
@@ -377,6 +379,8 @@ def test_v2_2_board_has_its_columns_its_official_code_and_ec_over_the_tokens_tha
     )
     by_token = {r["token"]: r for r in tokens.json()}
     assert by_token[TOKENS[0]]["metrics"]["two_frame_extended_comfort"] is None
+    # An undefined EC says why: this token was never paired (the first of its log in the split).
+    assert by_token[TOKENS[0]]["ec_undefined"] == UNPAIRED and by_token[TOKENS[-1]]["ec_undefined"] is None
     # The team reads the filter's overrides and its own values there, not the human's scores on a hidden log.
     team_filter = {"overridden": ["lane_keeping"], "agent_before": {"lane_keeping": 0.0}}
     assert by_token[TOKENS[-1]]["detail"] == {
@@ -404,6 +408,13 @@ def test_v2_2_board_has_its_columns_its_official_code_and_ec_over_the_tokens_tha
     page = world.client.get("/", params={"version": "v2.2"})
     assert page.status_code == 200
     assert "EPDMS v2.2" in page.text and "commit 359c7f7" in page.text and ">EC<" in page.text
+    assert "#ec-undefined" not in page.text  # the entry shown has an EC
+    chosen = {"selected": True}
+    path = f"/api/v1/submissions/{undefined_everywhere}"
+    assert world.client.patch(path, json=chosen, headers=team).status_code == 200
+    page = world.client.get("/", params={"version": "v2.2"})
+    # The entry whose EC is undefined on every token says why where its – stands.
+    assert f'#ec-undefined" title="EC {NO_TOKEN_PAIRED}">–</a>' in html.unescape(page.text)
 
 
 def test_web_page_shows_rows_baseline_flag_and_interval(world: World) -> None:

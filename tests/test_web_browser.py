@@ -629,3 +629,121 @@ def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_e
     assert "100 %" in ticks.all_text_contents()
     heights = [ticks.nth(i).bounding_box()["height"] for i in range(ticks.count())]  # type: ignore[index]
     assert min(heights) >= 11, heights
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_the_rules_are_one_click_from_every_page_and_the_board_explains_its_headers(
+    demo: Demo, browser: Browser, width: int
+) -> None:
+    page = _page(browser, width)
+    for path in ("/", "/team", "/admin"):
+        page.goto(f"{demo.url}{path}")
+        expect(page.locator("header.site").get_by_role("link", name="Rules")).to_be_visible()
+    page.goto(f"{demo.url}/?version=v2.2")
+    header = page.locator('th[data-key="lane_keeping"]')
+    if width == DESKTOP:
+        assert "lane keeping" in (header.locator("button").get_attribute("title") or "")
+        # EC is undefined on every token of the demo (one token per log): its – says why and links the rules.
+        dash = page.locator("#leaderboard tbody tr").first.locator("a.undefined")
+        assert "no token has the frame of its log 0.5 s earlier" in (dash.get_attribute("title") or "")
+        header.get_by_role("link", name="LK in the rules").click()
+        expect(page.locator("#metric-LK")).to_contain_text("lane keeping")
+        assert page.url.endswith("/rules#metric-LK")
+    else:
+        expect(page.locator("#ec-undefined")).to_contain_text(
+            "no token has the frame of its log 0.5 s earlier"
+        )
+        page.locator("header.site").get_by_role("link", name="Rules").click()
+    expect(page.locator("h1")).to_have_text("Rules and scores")
+    section = page.locator("#version-v2\\.2")
+    expect(section.locator(".formula")).to_have_text(
+        "EPDMS = NC × DAC × TLC × DDC × (5·EP + 5·TTC + 2·LK + 2·HC + 2·EC) / 16"
+    )
+    expect(
+        section.get_by_role("link", name="navsim/planning/script/run_pdm_score_one_stage.py")
+    ).to_have_attribute(
+        "href",
+        "https://github.com/autonomousvision/navsim/blob/v2.2/navsim/planning/script/run_pdm_score_one_stage.py",
+    )
+    expect(page.locator("#seeds")).to_be_visible()
+    expect(page.get_by_role("link", name="NAVSIM: Data-Driven Non-Reactive")).to_have_attribute(
+        "href", "https://arxiv.org/abs/2406.15349"
+    )
+    _fits(page)
+    _screenshot(page, f"rules-{width}")
+
+
+def _leaked_entry(demo: Demo, team: str) -> str:
+    """Register a team as an organiser and upload, as it, the demo split's logged human future; return its token."""
+    from scorer.baselines import baseline_submission
+    from scorer.submission import dump_submission_json
+
+    created = _api(demo, "POST", "/admin/teams", demo.admin_token, json={"name": team})
+    assert created.status_code == 201, created.text
+    token = _api(
+        demo, "POST", f"/admin/teams/{created.json()['id']}/tokens", demo.admin_token, json={"name": "t"}
+    ).json()["token"]
+    (split_dir,) = (demo.data_dir / "splits").iterdir()
+    leaked = dump_submission_json(baseline_submission(split_dir, "human", f"Oracle {team}"))
+    uploaded = _api(demo, "POST", "/submissions", token, files={"file": ("oracle.json", leaked)})
+    assert uploaded.status_code == 202, uploaded.text
+    return token
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_an_organiser_reads_an_integrity_flag_with_its_evidence_and_decides(
+    demo: Demo, browser: Browser, width: int
+) -> None:
+    team = f"oracle-{width}"
+    team_token = _leaked_entry(demo, team)
+    page = _admin(browser, demo, width)
+    page.get_by_role("link", name="Integrity checks").click()
+    page.wait_for_selector("#checks:not([hidden])")
+    page.select_option("#split", "demo")
+    page.get_by_role("button", name="Run the checks").click()
+    row = page.locator("table.flags tbody tr", has_text=team).filter(has_text="Leaked log")
+    expect(row).to_contain_text("Leaked log", timeout=60_000)
+    expect(row).to_contain_text("median displacement to the logged human future 0.0000 m")
+    row.locator("summary", has_text="evidence").click()
+    expect(row.locator("details dl")).to_contain_text("closest tokens")
+    expect(row.locator("details dl")).to_contain_text("ade m 0")
+    submission_id = int(row.locator("td").nth(1).inner_text().split()[0])
+
+    def admin_view() -> dict:
+        return _api(demo, "GET", f"/admin/submissions/{submission_id}", demo.admin_token).json()
+
+    dialog = page.locator("#confirm")
+    row.get_by_role("button", name="disqualify").click()
+    expect(dialog).to_contain_text(f"Disqualify submission {submission_id}?")
+    dialog.get_by_role("button", name="Keep it as it is").click()
+    assert admin_view()["disqualified"] is False  # the flag alone changes nothing
+    _screenshot(page, f"integrity-{width}")
+    row.get_by_role("button", name="disqualify").click()
+    dialog.locator("textarea").fill("its trajectories are the logged future")
+    dialog.get_by_role("button", name="Disqualify it").click()
+    expect(row).to_contain_text("disqualified")
+    assert admin_view()["disqualified"] is True
+    _fits(page)
+    _screenshot(page, f"integrity-decided-{width}")
+    # The team sees the organiser's decision, never the flag.
+    seen = _api(demo, "GET", f"/submissions/{submission_id}", team_token).json()
+    assert seen["disqualified"] is True and "leaked" not in json.dumps(seen).lower()
+    assert _api(demo, "GET", "/admin/integrity", team_token).status_code in (401, 403)
+
+
+def test_the_submission_page_spells_out_its_metrics_and_why_ec_is_undefined(
+    demo: Demo, browser: Browser
+) -> None:
+    board = httpx.get(f"{demo.url}/api/v1/leaderboard", timeout=10).json()["rows"]
+    entry = next(row for row in board if row["team"] == "demo-team")["submission_id"]
+    page = _team_page(browser, demo, DESKTOP, demo.team_token)
+    page.goto(f"{demo.url}/submissions/{entry}")
+    page.get_by_role("link", name="EPDMS v2.2").click()
+    expect(page.locator("#histograms figure")).to_have_count(1 + 9)
+    rows = page.locator("#breakdown tbody tr")
+    assert "no at-fault collisions" in (rows.nth(1).locator("th").get_attribute("title") or "")
+    ec = rows.filter(has=page.locator("th", has_text="EC"))
+    assert "two-frame extended comfort" in (ec.locator("th").get_attribute("title") or "")
+    assert "no token has the frame of its log 0.5 s earlier" in (
+        ec.locator(".meter").first.get_attribute("title") or ""
+    )

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 from urllib.parse import quote
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, BackgroundTasks, Query, Request
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from sqlalchemy.orm import Session
 
@@ -25,6 +25,8 @@ from server.schemas import (
     ComparableOut,
     DisqualifyIn,
     HideIn,
+    IntegrityCheckIn,
+    IntegrityReport,
     PhaseIn,
     PhaseOut,
     QuotaIn,
@@ -43,10 +45,11 @@ from server.schemas import (
 )
 from server.services import admin as actions
 from server.services.comparisons import comparable_entries, comparison_rows
+from server.services.integrity import integrity_report, run_check, start_check
 from server.services.leaderboard import leaderboard_view
 from server.services.pictures import scene_picture
 from server.services.presenters import phase_view, stage_group_views, submission_views, token_result_views
-from server.services.splits import resolve_phase
+from server.services.splits import list_splits, resolve_phase, split_by_name
 from server.services.submissions import get_submission, list_submissions
 from server.services.teams import get_team, list_teams
 
@@ -248,6 +251,36 @@ def rescore(request: Request, session: SessionDep, admin: AdminDep, body: Rescor
     _enqueue(request, [submission.id for submission in queued])
     report = str(request.url_for("rescore_report_route", rescore_id=rescore_run.id))
     return RescoreStarted(id=rescore_run.id, queued=len(queued), report=report)
+
+
+@router.post("/integrity/checks", status_code=202)
+def integrity_check(
+    request: Request,
+    session: SessionDep,
+    admin: AdminDep,
+    body: IntegrityCheckIn,
+    background: BackgroundTasks,
+) -> IntegrityReport:
+    """Check a split's entries (or every split's) for a leaked log, copies between teams and probing. The check
+    runs once this answer is sent; GET /admin/integrity shows it and its flags when it is done."""
+    splits = [split_by_name(session, body.split)] if body.split is not None else list_splits(session)
+    checks = [start_check(session, admin, split) for split in splits]
+    session.commit()
+    for check in checks:
+        background.add_task(
+            run_check, request.app.state.session_factory, request.app.state.settings, check.id
+        )
+    report = integrity_report(session)
+    started = {check.id for check in checks}
+    return IntegrityReport.model_validate(
+        {"checks": [check for check in report["checks"] if check["id"] in started]}
+    )
+
+
+@router.get("/integrity")
+def integrity(session: SessionDep, _admin: AdminDep) -> IntegrityReport:
+    """Each split's latest integrity check and its flags, with their evidence (never shown to teams)."""
+    return IntegrityReport.model_validate(integrity_report(session))
 
 
 @router.get("/rescores/{rescore_id}", name="rescore_report_route")

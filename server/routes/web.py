@@ -11,13 +11,24 @@ from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 
-from scorer.versions import DEFAULT_VERSION, METRIC_LABELS, VERSIONS, VersionName
+from scorer.ec_undefined import NO_TOKEN_PAIRED
+from scorer.submission import MAX_SEEDS
+from scorer.versions import (
+    ALL_RESULT_COLUMNS,
+    DEFAULT_VERSION,
+    METRIC_LABELS,
+    OFFICIAL_REPOSITORY,
+    VERSIONS,
+    VersionName,
+)
 from server.auth import SessionDep
 from server.numbers import counted, percent
 from server.params import RowId
 from server.runs import BOARD_VERSIONS
 from server.services.errors import ServiceError
+from server.services.integrity_checks import integrity_thresholds
 from server.services.leaderboard import cached_board
+from server.services.rules import PAPERS, SUBSCORES, all_version_rules, header_title, subscore
 from server.services.splits import list_phases
 from server.services.submissions import get_submission
 
@@ -26,6 +37,8 @@ WEB_DIR = Path(str(files("server.web")))
 TEMPLATES = Jinja2Templates(directory=WEB_DIR / "templates")
 TEMPLATES.env.filters["percent"] = percent  # the one rounding of every figure (server.numbers)
 TEMPLATES.env.globals["counted"] = counted
+TEMPLATES.env.globals["header_title"] = header_title  # a board header's full name and meaning
+TEMPLATES.env.globals["subscore"] = subscore
 router = APIRouter(include_in_schema=False)
 SCORE_LABELS = {name: VERSIONS[name].score_label for name in BOARD_VERSIONS}  # PDMS or EPDMS per version
 
@@ -63,7 +76,8 @@ def leaderboard_page(
         "labels": METRIC_LABELS,
         "query": query,
         "here": here,
-        "ddc_role": "",
+        "ddc_role": VERSIONS[VersionName(version)].ddc_role if version in VERSIONS else "",
+        "ec_undefined": NO_TOKEN_PAIRED,
     }
     status = 200
     try:
@@ -81,11 +95,30 @@ def leaderboard_page(
     return TEMPLATES.TemplateResponse(request, "leaderboard.html", context, status_code=status)
 
 
+@router.get("/rules", response_class=HTMLResponse)
+def rules_page(request: Request) -> HTMLResponse:
+    """The rules: each metric version's subscores, formula, weights and official code; seeds, ties, papers."""
+    context = {
+        "subscores": SUBSCORES,
+        "versions": all_version_rules(),
+        "papers": PAPERS,
+        "repository": OFFICIAL_REPOSITORY,
+        "max_seeds": MAX_SEEDS,
+    }
+    return TEMPLATES.TemplateResponse(request, "rules.html", context)
+
+
 @router.get("/admin", response_class=HTMLResponse)
 def admin_page(request: Request) -> HTMLResponse:
     """The admin dashboard; it holds no data itself and asks the admin API with the token typed in."""
     context = {"versions": list(BOARD_VERSIONS), "default_version": DEFAULT_VERSION}
     return TEMPLATES.TemplateResponse(request, "admin.html", context)
+
+
+@router.get("/admin/integrity", response_class=HTMLResponse)
+def integrity_page(request: Request) -> HTMLResponse:
+    """The integrity checks' flags with their evidence, read with the organiser's token; the organiser decides."""
+    return TEMPLATES.TemplateResponse(request, "integrity.html", {"thresholds": integrity_thresholds()})
 
 
 @router.get("/admin/rescores/{rescore_id}", response_class=HTMLResponse)
@@ -117,6 +150,8 @@ def submission_page(request: Request, session: SessionDep, submission_id: RowId)
         "default_version": DEFAULT_VERSION,
         "labels": METRIC_LABELS,
         "ddc_roles": {name: VERSIONS[name].ddc_role for name in BOARD_VERSIONS},
+        "titles": {column: header_title(column) for column in ALL_RESULT_COLUMNS if column != "score"},
+        "ec_undefined": NO_TOKEN_PAIRED,
     }
     return TEMPLATES.TemplateResponse(
         request, "submission.html", {"submission_id": submission_id, "page": page}

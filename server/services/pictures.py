@@ -18,7 +18,7 @@ from server.models import Status, Submission
 from server.services.errors import Conflict, Forbidden, NotFound
 from server.services.splits import ALL_SUBSET, visible_subsets
 from server.settings import Settings
-from server.storage import read_file, read_trajectories
+from server.storage import submission_trajectories
 
 
 def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path:
@@ -65,7 +65,6 @@ def scene_picture(
     from scorer.explain import explain_split_token
     from scorer.picture import render
     from scorer.scene import scene_file_hash
-    from scorer.submission import load_submission
 
     scene = _checked(submission, token, seed, admin)
     path = (
@@ -75,11 +74,9 @@ def scene_picture(
     )
     if path.exists():
         return path.read_bytes()
-    seeds = read_trajectories(settings.storage_dir, submission.stored_name, submission.sha256)
-    if seeds is None:  # an upload stored before the parsed copies, or a copy lost
-        seeds = load_submission(
-            read_file(settings.storage_dir, submission.stored_name), submission.filename
-        ).seeds
+    seeds = submission_trajectories(
+        settings.storage_dir, submission.stored_name, submission.sha256, submission.filename
+    )
     if token not in seeds[seed]:
         raise NotFound(f"submission {submission.id} has no prediction for token {token} (seed {seed})")
     try:

@@ -9,6 +9,7 @@ from typing import Any, TypeVar
 from sqlalchemy import select
 from sqlalchemy.orm import Session, undefer
 
+from scorer.ec_undefined import ec_undefined_reason
 from scorer.versions import VersionName, get_version
 from server.models import Phase, Result, Submission, Summary, TokenResultRow
 from server.runs import run_versions
@@ -208,10 +209,20 @@ def token_result_views(
             error=row.error,
             metrics={column: getattr(row, column) for column in get_version(version).result_columns},
             detail=_detail(row.detail or {}, admin),
+            ec_undefined=_ec_undefined(row),
         )
         for row in rows
         if row.token in allowed
     ]
+
+
+def _ec_undefined(row: TokenResultRow) -> str | None:
+    """Return why a scored v2.2 row has no two-frame extended comfort, or None (defined, or not in the version)."""
+    if not row.valid or row.two_frame_extended_comfort is not None:
+        return None
+    if "two_frame_extended_comfort" not in get_version(row.metric_version).result_columns:
+        return None
+    return ec_undefined_reason(row.token, row.detail or {})
 
 
 def _detail(detail: dict[str, Any], admin: bool) -> dict[str, Any]:

@@ -3,42 +3,15 @@
 // every few seconds while the tab is visible; the rest after each action.
 "use strict";
 
-const ADMIN = "/admin";
 const LIVE_EVERY_MS = 3000;
 const ACTIVE = ["queued", "running"];
 const state = { submissions: [], teams: [], phases: [], audit: [], team: null };
-
-const say = (text) => { $("#message").textContent = text; };
 
 function age(since) {
   const seconds = Math.max(0, (Date.now() - Date.parse(since)) / 1000);
   if (seconds < 90) return `${Math.round(seconds)} s`;
   if (seconds < 5400) return `${Math.round(seconds / 60)} min`;
   return `${(seconds / 3600).toFixed(1)} h`;
-}
-
-// Every action that changes or hides data asks first, saying what it will do; with `reason`, it asks for one
-// (the team reads it). Answers the reason ("" without one), or null when the organiser keeps things as they are.
-async function ask({ title, text, confirm, reason = false }) {
-  const dialog = $("#confirm");
-  $("#confirm-title").textContent = title;
-  $("#confirm-text").textContent = text;
-  $("#confirm-ok").textContent = confirm;
-  $("#confirm-reason-label").hidden = !reason;
-  $("#confirm-reason").required = reason;
-  $("#confirm-reason").value = "";
-  dialog.returnValue = "";
-  dialog.showModal();
-  await new Promise((resolve) => dialog.addEventListener("close", resolve, { once: true }));
-  return dialog.returnValue === "confirm" ? $("#confirm-reason").value.trim() : null;
-}
-
-function act(label, question, action, title) {
-  return button(label, async () => {
-    const reason = await ask(question);
-    if (reason === null) return;
-    try { await action(reason); await refresh(); } catch (error) { say(describeError(error)); }
-  }, title);
 }
 
 // A new token's secret, shown once in a dialog with a copy button; gone from the page when it closes.
@@ -75,12 +48,6 @@ const cancelling = (s) => ({
   text: `${s.team}'s “${s.method}” stops being scored and is refunded to the team's quota. It cannot be resumed: a re-run would score it from the start.`,
   confirm: "Cancel it",
 });
-
-function group(...elements) {
-  const span = document.createElement("span");
-  span.append(...elements.filter(Boolean));
-  return span;
-}
 
 function progress(submission) {
   const bar = document.createElement("progress");
@@ -155,37 +122,14 @@ function fillSubmissions() {
     cell(row, when(s.submitted_at));
     const active = ACTIVE.includes(s.status);
     const path = `${ADMIN}/submissions/${s.id}`;
-    const entry = `${s.team}'s “${s.method}”`;
     cell(row, group(
       !active && act("re-run", {
         title: `Re-run submission ${s.id}?`,
-        text: `${entry} is scored again from the start under a new run; its current results stay shown until the new run is scored.`,
+        text: `${entryName(s)} is scored again from the start under a new run; its current results stay shown until the new run is scored.`,
         confirm: "Re-run it",
       }, () => api("POST", `${path}/rerun`), "score it again under a new run"),
       active && act("cancel", cancelling(s), () => api("POST", `${path}/cancel`)),
-      s.admin_hidden
-        ? act("show", {
-          title: `Show submission ${s.id} again?`,
-          text: `${entry} may return to the leaderboard, and its team may make it final again.`,
-          confirm: "Show it",
-        }, () => api("POST", `${path}/hide`, { json: { hidden: false } }))
-        : act("hide", {
-          title: `Hide submission ${s.id}?`,
-          text: `${entry} leaves the leaderboard. Its team sees that an organiser hid it, and cannot show it or make it final.`,
-          confirm: "Hide it",
-        }, () => api("POST", `${path}/hide`, { json: { hidden: true } })),
-      s.disqualified
-        ? act("requalify", {
-          title: `Lift the disqualification of submission ${s.id}?`,
-          text: `${entry} may return to the leaderboard (reason given: ${s.disqualified_reason || "none"}).`,
-          confirm: "Lift it",
-        }, () => api("POST", `${path}/disqualify`, { json: { disqualified: false, reason: "lifted" } }))
-        : act("disqualify", {
-          title: `Disqualify submission ${s.id}?`,
-          text: `${entry} leaves the leaderboard and cannot be its team's final entry. The team reads the reason you give.`,
-          confirm: "Disqualify it",
-          reason: true,
-        }, (reason) => api("POST", `${path}/disqualify`, { json: { disqualified: true, reason } })),
+      ...moderation(s),
     ));
   }
 }
@@ -278,18 +222,6 @@ function fillAudit() {
 }
 
 // An audit entry's details as lines a person reads ("reason: …"), wrapping where a value is long.
-function detailList(details) {
-  if (!Object.keys(details).length) return "–";
-  const list = document.createElement("dl");
-  for (const [key, value] of Object.entries(details)) {
-    const shown = value === null ? "–" : Array.isArray(value) ? value.join(", ") || "none"
-      : typeof value === "object" ? JSON.stringify(value) : String(value);
-    list.append(Object.assign(document.createElement("dt"), { textContent: key.replaceAll("_", " ") }),
-      Object.assign(document.createElement("dd"), { textContent: shown }));
-  }
-  return list;
-}
-
 async function refreshLive() {
   state.submissions = await api("GET", `${ADMIN}/submissions?limit=300`);
   fillQueue();

@@ -213,14 +213,16 @@ async function render() {
     const name = document.createElement("th");
     name.scope = "row";
     name.textContent = text;
-    name.title = column;
+    name.title = PAGE.titles[column] || `${label(column)}, mean over tokens`;
     row.append(name);
     for (const entry of [summary, ...reference]) {
       const td = cell(row, "", "num");
       const meter = document.createElement("span");
       meter.className = "meter";
-      meter.style.setProperty("--fill", `${Math.round(100 * (value(entry) ?? 0))}%`);
-      meter.textContent = pct(value(entry));
+      const shown = value(entry);
+      meter.style.setProperty("--fill", `${Math.round(100 * (shown ?? 0))}%`);
+      meter.textContent = pct(shown);
+      if (column === "two_frame_extended_comfort" && !defined(shown)) meter.title = `EC ${PAGE.ec_undefined}`;
       td.append(meter);
     }
   }

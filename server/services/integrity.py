@@ -1,0 +1,192 @@
+"""Integrity checks for organisers: flag entries that copy the hidden logged future, copy another team's
+entry, or probe the hidden set (`integrity_checks` has the arithmetic and its thresholds).
+
+An organiser starts a check of a split (the admin console, the admin API); it runs after the request has been
+answered, never in a team's request, and reads every non-baseline submission of the split from its stored
+trajectories. Its flags, with their evidence, replace the split's previous ones. Flags are shown to organisers
+only, and act on nothing: the organiser decides (hide, disqualify) with the usual actions.
+
+Cost on a navtest-size split (12,146 tokens; `benchmarks/integrity.py` on a 2-core Xeon): the human futures take
+35 ms a scene to read the first time (7 min for navtest, then read from disk), the leaked-log check 15 ms an
+entry, the near-identical check 1.5 s for 100 entries (it grows with their square), probing 1.2 s for 20 teams
+of 5 uploads; reading each entry's stored trajectories comes on top.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import delete, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from scorer.files import write_atomically
+from scorer.geometry import FloatArray
+from server.db import transaction
+from server.models import ApiToken, IntegrityCheck, IntegrityFlag, Split, Submission, utc_now
+from server.services.admin import audit
+from server.services.integrity_checks import Entry, Finding, leaked_log, near_duplicates, probing
+from server.services.splits import split_tokens
+from server.settings import Settings
+from server.storage import submission_trajectories
+
+log = logging.getLogger(__name__)
+POSES = 8
+
+
+def human_futures(split: Split, data_dir: Path) -> dict[str, FloatArray]:
+    """Return the logged human's 8 future positions (8, 2) of each original scene of a split, read from its
+    scenes once and then kept on disk by the split's content hash (synthetic scenes have none)."""
+    from scorer.human import human_future_poses, is_synthetic
+    from scorer.scene import load_scene, scene_paths
+
+    path = data_dir / "integrity" / f"human-{split.content_hash}-{split.id}.npz"
+    try:
+        with np.load(path, allow_pickle=False) as stored:
+            return dict(zip(stored["tokens"].tolist(), stored["positions"], strict=True))
+    except (OSError, ValueError, KeyError):
+        pass
+    futures = {
+        token: human_future_poses(load_scene(scene))[:, :2]
+        for token, scene in scene_paths(split.directory).items()
+        if not is_synthetic(token)
+    }
+    buffer = io.BytesIO()
+    np.savez(buffer, tokens=np.array(list(futures), dtype=str), positions=np.array(list(futures.values())))
+    write_atomically(path, buffer.getvalue(), durable=False)  # computed again when lost
+    return futures
+
+
+def _aligned(predictions: dict[str, FloatArray], tokens: list[str]) -> FloatArray:
+    """Return positions on the split's tokens (tokens, 8, 2) from token -> poses (8, >= 2), NaN where none."""
+    aligned = np.full((len(tokens), POSES, 2), np.nan)
+    for index, token in enumerate(tokens):
+        poses = predictions.get(token)
+        if poses is not None and np.shape(poses)[0] == POSES:
+            aligned[index] = np.asarray(poses, dtype=np.float64)[:, :2]
+    return aligned
+
+
+def start_check(session: Session, actor: ApiToken | None, split: Split) -> IntegrityCheck:
+    """Record an organiser's check of a split, to be run by `run_check` once the caller has committed."""
+    check = IntegrityCheck(split_id=split.id, skipped=[])
+    session.add(check)
+    session.flush()
+    audit(session, actor, "integrity_check", "split", split.id, split=split.name, check=check.id)
+    return check
+
+
+def run_check(session_factory: sessionmaker[Session], settings: Settings, check_id: int) -> None:
+    """Run a recorded check in a transaction of its own (the API's, once its answer is sent)."""
+    with transaction(session_factory) as session:
+        check = session.get(IntegrityCheck, check_id)
+        if check is not None:
+            complete_check(session, settings, check)
+
+
+def complete_check(session: Session, settings: Settings, check: IntegrityCheck) -> None:
+    """Read the check's split's entries, store the flags, and drop the split's older checks and their flags;
+    a check that fails records why."""
+    try:
+        findings, entries, skipped = _findings(session, settings, check.split)
+    except Exception as error:  # an organiser's tool: say what failed, keep the service up
+        log.exception("integrity check %s failed", check.id)
+        check.error, check.finished_at = f"{type(error).__name__}: {error}", utc_now()
+        return
+    session.execute(
+        delete(IntegrityCheck).where(IntegrityCheck.split_id == check.split_id, IntegrityCheck.id != check.id)
+    )
+    for finding in findings:
+        session.add(
+            IntegrityFlag(
+                check_id=check.id,
+                kind=finding.kind,
+                submission_id=finding.submission_id,
+                other_submission_id=finding.other_submission_id,
+                summary=finding.summary,
+                evidence=finding.evidence,
+            )
+        )
+    check.entries, check.skipped, check.finished_at = entries, skipped, utc_now()
+
+
+def _findings(
+    session: Session, settings: Settings, split: Split
+) -> tuple[list[Finding], int, list[dict[str, Any]]]:
+    """Return the findings on a split's non-baseline submissions, how many were read, and the skipped ones."""
+    from scorer.submission import SubmissionError
+
+    tokens = list(split_tokens(split))
+    futures = human_futures(split, settings.data_dir)
+    human = _aligned(futures, tokens)
+    submissions = session.scalars(
+        select(Submission)
+        .where(Submission.split_id == split.id, Submission.is_baseline.is_(False))
+        .order_by(Submission.created_at, Submission.id)
+    ).all()
+    findings: list[Finding] = []
+    entries: dict[str, list[Entry]] = defaultdict(list)
+    skipped = []
+    for submission in submissions:
+        try:
+            seeds = submission_trajectories(
+                settings.storage_dir, submission.stored_name, submission.sha256, submission.filename
+            )
+        except (OSError, SubmissionError) as error:
+            skipped.append({"submission": submission.id, "reason": type(error).__name__})
+            continue
+        aligned = [_aligned(predictions, tokens) for predictions in seeds]
+        leak = leaked_log(submission.id, aligned, human, tokens)
+        if leak is not None:
+            findings.append(leak)
+        entries[submission.team.name].append(
+            Entry(submission.id, submission.team.name, submission.sha256, aligned[0])
+        )
+    every = sorted((e for team in entries.values() for e in team), key=lambda e: e.submission_id)
+    findings += near_duplicates(every, tokens)
+    findings += [f for team in entries.values() if (f := probing(team, tokens)) is not None]
+    return findings, len(every), skipped
+
+
+def integrity_report(session: Session) -> dict[str, Any]:
+    """Return each split's latest check and its flags, each with the flagged submission's state."""
+    checks = session.scalars(select(IntegrityCheck).order_by(IntegrityCheck.id.desc())).all()
+    flags = session.scalars(select(IntegrityFlag).order_by(IntegrityFlag.id)).all()
+    by_check: dict[int, list[IntegrityFlag]] = defaultdict(list)
+    for flag in flags:
+        by_check[flag.check_id].append(flag)
+    return {
+        "checks": [
+            {
+                "id": check.id,
+                "split": check.split.name,
+                "started_at": check.started_at,
+                "finished_at": check.finished_at,
+                "entries": check.entries,
+                "skipped": check.skipped,
+                "error": check.error,
+                "flags": [_flag_view(flag) for flag in by_check[check.id]],
+            }
+            for check in checks
+        ]
+    }
+
+
+def _flag_view(flag: IntegrityFlag) -> dict[str, Any]:
+    submission = flag.submission
+    return {
+        "id": flag.id,
+        "kind": flag.kind,
+        "submission_id": flag.submission_id,
+        "other_submission_id": flag.other_submission_id,
+        "team": submission.team.name,
+        "method": submission.method,
+        "admin_hidden": submission.admin_hidden,
+        "disqualified": submission.disqualified,
+        "summary": flag.summary,
+        "evidence": flag.evidence,
+    }
