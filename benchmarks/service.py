@@ -1,4 +1,4 @@
-"""The service end to end: a submission from POST to its leaderboard row, and leaderboard GET latency.
+"""The service end to end: a submission from POST to its leaderboard row, and the API's latency per route.
 
 For each backend (embedded: SQLite + SQLite broker; services: PostgreSQL + Redis) and each worker size
 (1 and 2 scoring processes), on a fresh database with the split's metric cache already built:
@@ -7,12 +7,16 @@ For each backend (embedded: SQLite + SQLite broker; services: PostgreSQL + Redis
   2 s cache is on as in production), against the engine alone scoring the same tokens, seeds and versions
   with as many processes (`score_seeds`, as the workers call it; warm, one BLAS thread each and at the
   workers' niceness, as the workers run): the service's target is at most SERVICE_TARGET times that;
-- with the workers idle, GET /leaderboard at a fixed rate from one open-loop client on loopback and report
-  p50/p99 latency, measured from each request's scheduled start (a slow answer delays no later request).
+- with the workers idle, GET /leaderboard at a fixed rate from an open-loop client on loopback and report
+  p50/p95/p99 latency, measured from each request's scheduled start (a slow answer delays no later request).
 
-With --load N: the leaderboard at --rate for --seconds while N uploads are scored by the largest worker
-size, on each backend: p50/p99 latency, errors, and a check that every upload was scored exactly once
-(one row per token, version and seed; one leaderboard entry per version).
+With --load N, on each backend with the largest worker size, for --seconds: the public reads the leaderboard
+at --rate and its web page at a tenth of that, while a team uploads N entries spread over that time, dry-runs
+each (POST /submissions:validate) and polls their status 4 times a second; p50/p95/p99 latency and errors per
+route, the load average before and after (other work on the host shows there), how many uploads were still
+being scored when the load ended, and a check that every upload was scored exactly once (one row per token,
+version and seed; one leaderboard entry per version). The target (issue 26): the leaderboard at 200/s with
+p99 at most 100 ms, the upload routes below 1 s, while 2 workers score on the same 2 cores.
 
 Every run starts with a header that describes the host (benchmarks/host.py). With each worker size it gives
 the CPU seconds the worker's and the API's processes used from POST to row, against the engine's (on a host
@@ -22,7 +26,8 @@ from /proc just before the worker is stopped. (RUSAGE_CHILDREN would give one ma
 benchmark ever waited for, API and workers alike.)
 
 Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--seeds 1] [--rate 200] [--seconds 10]
-       [--backends embedded,services] [--workers 1,2] [--load 20]
+       [--backends embedded,services] [--workers 1,2] [--load 6] [--nice 10]
+(Uploads are rate-limited to 30 a minute per token: with --load, keep 2N uploads per minute below that.)
 """
 
 from __future__ import annotations
@@ -41,9 +46,9 @@ import sys
 import tempfile
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.synchronize import Barrier
 from pathlib import Path
 
@@ -81,6 +86,7 @@ POSTGRES_URL = os.environ.get("NAVSIM_LB_BENCH_POSTGRES", "postgresql+psycopg://
 REDIS_URL = os.environ.get("NAVSIM_LB_BENCH_REDIS", "redis://127.0.0.1:6379/0")
 SPLIT_SEED = 11
 CONNECTIONS = 64  # concurrent clients of the leaderboard load
+REQUEST_TIMEOUT_S = 30.0
 SERVICE_TARGET = 1.25  # POST to leaderboard row against the engine alone
 # How often the client asks whether its upload is scored: each answer costs the API a few ms of the CPU the
 # workers score on, so asking 20 times a second would slow what it measures by several percent.
@@ -238,39 +244,158 @@ def post_to_row(client: httpx.Client, entry: Path) -> tuple[float, float]:
     return scored, time.perf_counter() - started
 
 
-async def leaderboard_latency(url: str, rate: float, seconds: float) -> tuple[float, float, int, int]:
-    """GET /leaderboard open-loop at `rate` per second; return p50 and p99 in ms, answers and errors.
+@dataclass
+class Latencies:
+    """What one route answered under load: each answer's latency (seconds from its schedule) and the errors."""
 
-    CONNECTIONS clients take the requests in schedule order, each sent at its scheduled time or as soon as a
-    client is free; latency counts from the schedule, so a slow server is charged for the wait as well.
+    seconds: list[float] = field(default_factory=list)
+    errors: int = 0
+
+    def text(self) -> str:
+        if not self.seconds:
+            return f"no answer ({self.errors} errors)"
+        p50, p95, p99 = np.percentile(np.array(self.seconds) * 1000, [50, 95, 99])
+        return f"p50 {p50:.1f} ms, p95 {p95:.1f} ms, p99 {p99:.1f} ms ({len(self.seconds)} answered, {self.errors} errors)"
+
+
+class Connection:
+    """One requester's own HTTP/1.1 connection, kept alive, for GETs; and the shared httpx client for uploads.
+
+    The GETs are written and read by hand: httpx spent about 3.4 ms of the client's CPU per request against
+    the API's 0.9 ms, so on a shared host the load client, not the API, fell behind its schedule (and charged
+    the API for it). Bodies come with a Content-Length: uvicorn sends one for every answer here.
+    """
+
+    def __init__(self, url: str, token: str | None, http: httpx.AsyncClient) -> None:
+        address = httpx.URL(url)
+        self.host, self.port, self.http = address.host, address.port or 80, http
+        self.head = f"Host: {self.host}:{self.port}\r\n" + (
+            f"Authorization: Bearer {token}\r\n" if token else ""
+        )
+        self.streams: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+
+    async def get(self, target: str) -> int:
+        """GET `target`; return the status code (the body is read and dropped)."""
+        if self.streams is None:
+            self.streams = await asyncio.open_connection(self.host, self.port)
+        reader, writer = self.streams
+        try:
+            writer.write(f"GET {target} HTTP/1.1\r\n{self.head}\r\n".encode())
+            head = (await reader.readuntil(b"\r\n\r\n")).decode("latin-1").lower()
+            length = next((line for line in head.split("\r\n") if line.startswith("content-length:")), None)
+            if length is None:
+                raise ValueError(f"an answer to {target} without a Content-Length")
+            await reader.readexactly(int(length.split(":", 1)[1]))
+        except (OSError, ValueError, asyncio.IncompleteReadError):
+            self.close()
+            raise
+        if "connection: close" in head:
+            self.close()
+        return int(head.split(" ", 2)[1])
+
+    def close(self) -> None:
+        if self.streams is not None:
+            self.streams[1].close()
+            self.streams = None
+
+
+# A request of a route, given a connection and the request's index; it returns the status code.
+Send = Callable[[Connection, int], Awaitable[int]]
+
+
+@dataclass(frozen=True)
+class Stream:
+    """Requests of one route, sent open-loop at `rate` per second by `connections` requesters."""
+
+    route: str
+    send: Send
+    rate: float
+    connections: int
+    expected: int = 200
+    team: bool = False  # sent with the team's token
+
+
+def board_streams(rate: float) -> list[Stream]:
+    """The public's reads: the leaderboard's JSON at `rate`, its web page at a tenth of that."""
+
+    async def board(connection: Connection, _: int) -> int:
+        return await connection.get("/api/v1/leaderboard?version=v1.1")
+
+    async def page(connection: Connection, _: int) -> int:
+        return await connection.get("/")
+
+    return [
+        Stream("GET /api/v1/leaderboard", board, rate, CONNECTIONS),
+        Stream("GET / (the board's page)", page, rate / 10, CONNECTIONS // 8),
+    ]
+
+
+def upload_streams(entries: list[bytes], seconds: float, ids: list[int]) -> list[Stream]:
+    """A team's uploads of `entries` spread over `seconds` (their ids appended to `ids`), as many dry runs
+    of them, and the team asking for its uploads' status 4 times a second."""
+    rate = len(entries) / seconds
+
+    async def upload(connection: Connection, index: int) -> int:
+        files = {"file": (f"entry-{index}.json", entries[index])}
+        response = await connection.http.post("/api/v1/submissions", files=files)
+        if response.status_code == 202:
+            ids.append(response.json()["id"])
+        return response.status_code
+
+    async def dry_run(connection: Connection, index: int) -> int:
+        files = {"file": (f"entry-{index}.json", entries[index])}
+        return (await connection.http.post("/api/v1/submissions:validate", files=files)).status_code
+
+    async def status(connection: Connection, index: int) -> int:
+        if not ids:  # nothing uploaded yet: the list of the team's submissions
+            return await connection.get("/api/v1/submissions")
+        return await connection.get(f"/api/v1/submissions/{ids[index % len(ids)]}")
+
+    return [
+        Stream("POST /api/v1/submissions", upload, rate, len(entries), expected=202, team=True),
+        Stream("POST /api/v1/submissions:validate", dry_run, rate, len(entries), team=True),
+        Stream("GET /api/v1/submissions/{id}", status, 4.0, 4, team=True),
+    ]
+
+
+async def route_latencies(
+    url: str, token: str, streams: list[Stream], seconds: float
+) -> dict[str, Latencies]:
+    """Send every stream open-loop for `seconds`; return each route's latencies.
+
+    A stream's requesters take its requests in schedule order, each sent at its scheduled time or as soon as
+    a requester is free; latency counts from the schedule, so a slow server is charged for the wait as well.
     (One task per request would make the client itself the bottleneck once thousands wait for a connection.)
     """
-    count = int(rate * seconds)
-    latencies: list[float] = []
-    errors = 0
-    schedule = iter(range(count))
-    limits = httpx.Limits(max_connections=CONNECTIONS, max_keepalive_connections=CONNECTIONS)
-    async with httpx.AsyncClient(base_url=url, limits=limits, timeout=30) as client:
+    measured = {stream.route: Latencies() for stream in streams}
+    headers = {"Authorization": f"Bearer {token}"}
+    async with httpx.AsyncClient(base_url=url, timeout=60, headers=headers) as http:
         start = time.perf_counter() + 0.2
 
-        async def requester() -> None:
-            nonlocal errors
+        async def requester(stream: Stream, schedule: Iterator[int]) -> None:
+            latencies = measured[stream.route]
+            connection = Connection(url, token if stream.team else None, http)
             for index in schedule:
-                scheduled = start + index / rate
+                scheduled = start + index / stream.rate
                 await asyncio.sleep(max(0.0, scheduled - time.perf_counter()))
                 try:
-                    response = await client.get("/api/v1/leaderboard", params={"version": "v1.1"})
-                except httpx.HTTPError:
-                    errors += 1
+                    status = await asyncio.wait_for(stream.send(connection, index), REQUEST_TIMEOUT_S)
+                except (httpx.HTTPError, OSError, ValueError, asyncio.IncompleteReadError, TimeoutError):
+                    connection.close()
+                    latencies.errors += 1
                     continue
-                if response.status_code != 200:
-                    errors += 1
+                if status != stream.expected:
+                    latencies.errors += 1
                     continue
-                latencies.append(time.perf_counter() - scheduled)
+                latencies.seconds.append(time.perf_counter() - scheduled)
+            connection.close()
 
-        await asyncio.gather(*(requester() for _ in range(CONNECTIONS)))
-    p50, p99 = np.percentile(np.array(latencies) * 1000, [50, 99])
-    return float(p50), float(p99), len(latencies), errors
+        requesters = []
+        for stream in streams:
+            schedule = iter(range(int(stream.rate * seconds)))
+            requesters += [requester(stream, schedule) for _ in range(stream.connections)]
+        await asyncio.gather(*requesters)
+    return measured
 
 
 def session_processes(leader: int) -> dict[int, tuple[list[str], list[str]]]:
@@ -320,7 +445,8 @@ class Running:
 
     root: Path  # scratch directory
     url: str
-    client: httpx.Client  # a team's
+    token: str  # a team's
+    client: httpx.Client  # with that token
     database_url: str
     worker_pid: int
     api_pid: int
@@ -332,8 +458,8 @@ class Running:
 
 
 @contextmanager
-def running(kind: str, workers: int, split: Path, cache: Path) -> Iterator[Running]:
-    """Run API and worker on a fresh backend for the block."""
+def running(kind: str, workers: int, split: Path, cache: Path, nice: int) -> Iterator[Running]:
+    """Run API and worker (its consumers `nice` below it) on a fresh backend for the block."""
     with tempfile.TemporaryDirectory(prefix="navsim-lb-bench-") as tmp, ExitStack() as stack:
         root = Path(tmp)
         variables = stack.enter_context(backend(kind, root)) | {"CACHE_DIR": str(cache)}
@@ -341,7 +467,9 @@ def running(kind: str, workers: int, split: Path, cache: Path) -> Iterator[Runni
         database_url = Settings(**variables).database_url  # type: ignore[arg-type]  # keys are the aliases
         token, index_s = set_up(database_url, split)
         worker_log = root / "worker.log"
-        worker = stack.enter_context(child_process(worker_command(workers, reaper=True), env, worker_log))
+        worker = stack.enter_context(
+            child_process(worker_command(workers, reaper=True, nice=nice), env, worker_log)
+        )
         port = free_port()
         api = stack.enter_context(child_process(api_command("127.0.0.1", port), env, root / "api.log"))
         url = f"http://127.0.0.1:{port}"
@@ -350,7 +478,7 @@ def running(kind: str, workers: int, split: Path, cache: Path) -> Iterator[Runni
         )
         wait_until(lambda: answers(client), timeout=60)
         wait_until(lambda: "ready." in worker_log.read_text(errors="replace"), timeout=60)
-        yield Running(root, url, client, database_url, worker.pid, api.pid, index_s)
+        yield Running(root, url, token, client, database_url, worker.pid, api.pid, index_s)
 
 
 @dataclass(frozen=True)
@@ -359,20 +487,30 @@ class Measured:
     on_board: float  # and to its leaderboard row
     cpu: float  # CPU seconds the worker and the API used meanwhile
     index_s: float  # Running's
-    latency: tuple[float, float, int, int] | None  # leaderboard_latency's, if asked
+    latency: Latencies | None  # of the leaderboard, if asked
     peaks: tuple[float, list[float]] | None  # worker_peak_rss's
 
 
 def measure(
-    kind: str, workers: int, split: Path, cache: Path, entry: Path, latency_load: tuple[float, float] | None
+    kind: str,
+    workers: int,
+    split: Path,
+    cache: Path,
+    entry: Path,
+    latency_load: tuple[float, float] | None,
+    nice: int,
 ) -> Measured:
     """Run one configuration on a fresh backend: POST-to-row times of `entry` and the CPU they took, then
     leaderboard latency if asked, and the worker's peak RSS."""
-    with running(kind, workers, split, cache) as service:
+    with running(kind, workers, split, cache, nice) as service:
         cpu = service.cpu_seconds()
         scored, on_board = post_to_row(service.client, entry)
         cpu = service.cpu_seconds() - cpu
-        latency = asyncio.run(leaderboard_latency(service.url, *latency_load)) if latency_load else None
+        latency = None
+        if latency_load:
+            rate, seconds = latency_load
+            board = board_streams(rate)[0]
+            latency = asyncio.run(route_latencies(service.url, service.token, [board], seconds))[board.route]
         return Measured(scored, on_board, cpu, service.index_s, latency, worker_peak_rss(service.worker_pid))
 
 
@@ -393,27 +531,54 @@ def scored_once(database_url: str, submission_ids: list[int], tokens: int, seeds
     return problems
 
 
+@dataclass(frozen=True)
+class Loaded:
+    """The service under load: each route's latencies, the load average before and after, how many uploads
+    were still being scored when the load ended, the seconds until all were, what is wrong with their
+    records, and the worker's peak RSS."""
+
+    latencies: dict[str, Latencies]
+    load_average: tuple[tuple[float, float, float], tuple[float, float, float]]
+    unscored_at_end: int
+    total_s: float
+    problems: list[str]
+    peaks: tuple[float, list[float]] | None
+
+
 def under_load(
-    kind: str, workers: int, split: Path, cache: Path, uploads: int, seeds: int, rate: float, seconds: float
-) -> tuple[tuple[float, float, int, int], float, list[str], tuple[float, list[float]] | None]:
-    """Leaderboard latency at `rate` while `uploads` submissions are scored; the seconds until all are; what
-    is wrong with their records; the worker's peak RSS."""
-    with running(kind, workers, split, cache) as service:
-        client = service.client
+    kind: str,
+    workers: int,
+    split: Path,
+    cache: Path,
+    uploads: int,
+    seeds: int,
+    rate: float,
+    seconds: float,
+    nice: int,
+) -> Loaded:
+    """Read the board at `rate` (and its page) for `seconds` while a team uploads `uploads` submissions,
+    spread over that time, dry-runs them and polls their status; then wait until all are scored."""
+    with running(kind, workers, split, cache, nice) as service:
+        entries = [
+            entry_file(split, service.root / f"entry-{index}.json", seed=index, seeds=seeds).read_bytes()
+            for index in range(uploads)
+        ]
+        ids: list[int] = []
+        streams = board_streams(rate) + upload_streams(entries, seconds, ids)
+        before = os.getloadavg()
         started = time.perf_counter()
-        ids = []
-        for index in range(uploads):
-            entry = entry_file(split, service.root / f"entry-{index}.json", seed=index, seeds=seeds)
-            response = client.post("/api/v1/submissions", files={"file": (entry.name, entry.read_bytes())})
-            assert response.status_code == 202, response.text
-            ids.append(response.json()["id"])
-        latency = asyncio.run(leaderboard_latency(service.url, rate, seconds))
-        done = lambda: all(
-            client.get(f"/api/v1/submissions/{i}").json()["status"] in ("scored", "failed") for i in ids
+        latencies = asyncio.run(route_latencies(service.url, service.token, streams, seconds))
+        after = os.getloadavg()
+        client = service.client
+        unscored = lambda: sum(
+            client.get(f"/api/v1/submissions/{i}").json()["status"] not in ("scored", "failed") for i in ids
         )
-        wait_until(done, timeout=3600, poll_s=1.0)
-        return (
-            latency,
+        unscored_at_end = unscored()
+        wait_until(lambda: unscored() == 0, timeout=3600, poll_s=1.0)
+        return Loaded(
+            latencies,
+            (before, after),
+            unscored_at_end,
             time.perf_counter() - started,
             scored_once(service.database_url, ids, split_size(split), seeds),
             worker_peak_rss(service.worker_pid),
@@ -433,6 +598,9 @@ def main() -> None:
     parser.add_argument("--backends", default="embedded,services")
     parser.add_argument("--workers", default="1,2")
     parser.add_argument("--load", type=int, default=0, help="uploads scored while the leaderboard is read")
+    parser.add_argument(
+        "--nice", type=int, default=SCORING_NICENESS, help="the workers' `navsim-lb worker --nice`"
+    )
     args = parser.parse_args()
     print("\n".join(host_header()), flush=True)  # before any thread or process starts (host.py says why)
 
@@ -440,17 +608,28 @@ def main() -> None:
     sizes = [int(n) for n in args.workers.split(",")]
     if args.load:
         for kind in args.backends.split(","):
-            loaded, total, problems, peaks = under_load(
-                kind, max(sizes), split, cache, args.load, args.seeds, args.rate, args.seconds
+            loaded = under_load(
+                kind, max(sizes), split, cache, args.load, args.seeds, args.rate, args.seconds, args.nice
             )
-            p50, p99, answered, errors = loaded
+            before, after = (" ".join(f"{value:.2f}" for value in load) for load in loaded.load_average)
             print(
-                f"{kind}: GET /leaderboard {args.rate:.0f}/s for {args.seconds:.0f} s while {args.load} uploads of "
-                f"{args.tokens} tokens x {args.seeds} seeds were scored by {max(sizes)} worker processes: "
-                f"p50 {p50:.1f} ms, p99 {p99:.1f} ms ({answered} answered, {errors} errors); "
-                f"all scored after {total:.0f} s; "
-                + ("every upload scored exactly once" if not problems else f"PROBLEMS: {problems}")
-                + f"; worker peak RSS (MiB): {peak_rss_text(peaks)}",
+                f"{kind}: {args.seconds:.0f} s of GET /leaderboard at {args.rate:.0f}/s (and its page at a tenth)"
+                f" while a team uploaded {args.load} entries of {args.tokens} tokens x {args.seeds} seeds, dry-ran"
+                f" them and polled them, scored by {max(sizes)} worker processes at niceness {args.nice}; load"
+                f" average {before} before, {after} after; {loaded.unscored_at_end} uploads still being scored"
+                " when the load ended:",
+                flush=True,
+            )
+            for route, latencies in loaded.latencies.items():
+                print(f"  {route:34} {latencies.text()}")
+            print(
+                f"  all scored after {loaded.total_s:.0f} s; "
+                + (
+                    "every upload scored exactly once"
+                    if not loaded.problems
+                    else f"PROBLEMS: {loaded.problems}"
+                )
+                + f"; worker peak RSS (MiB): {peak_rss_text(loaded.peaks)}",
                 flush=True,
             )
         return
@@ -472,7 +651,7 @@ def main() -> None:
         for workers in sizes:
             # Leaderboard latency once per backend, with the largest worker idle beside the API.
             load = (args.rate, args.seconds) if workers == max(sizes) else None
-            measured = measure(kind, workers, split, cache, entry, load)
+            measured = measure(kind, workers, split, cache, entry, load, args.nice)
             seconds, cpu = engine[workers]
             print(
                 f"{kind:10} {workers:>7} {measured.scored:>8.1f} {measured.on_board:>9.1f} {seconds:>7.1f}"
@@ -482,11 +661,8 @@ def main() -> None:
             )
             if measured.latency is not None:
                 latencies[kind] = measured.latency
-    for kind, (p50, p99, answered, errors) in latencies.items():
-        print(
-            f"GET /leaderboard {kind}: {args.rate:.0f}/s for {args.seconds:.0f} s: "
-            f"p50 {p50:.1f} ms, p99 {p99:.1f} ms ({answered} answered, {errors} errors)"
-        )
+    for kind, latency in latencies.items():
+        print(f"GET /leaderboard {kind}: {args.rate:.0f}/s for {args.seconds:.0f} s: {latency.text()}")
 
 
 def free_port() -> int:

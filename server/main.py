@@ -133,6 +133,9 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     app.state.broker_status = broker_status
     app.state.live_workers = live_workers
     app.state.leaderboard_cache = TTLCache(settings.leaderboard_cache_seconds)
+    app.state.page_cache = TTLCache(
+        settings.leaderboard_cache_seconds
+    )  # the board's page (server.routes.web)
     app.state.rate_limits = RateLimits(settings.rate_limit_storage)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)

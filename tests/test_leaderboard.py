@@ -28,10 +28,12 @@ from scorer.versions import EPDMS_COLUMNS, LOG_REPLAY_VERSIONS, VERSIONS
 from server.db import transaction
 from server.models import Submission, utc_now
 from server.numbers import counted, percent
-from server.runs import claim_submission, mark_scored, write_chunk_results
+from server.routes import web
+from server.runs import BOARD_VERSIONS, claim_submission, mark_scored, write_chunk_results
 from server.runs._aggregate import bootstrap_cis
 from server.services.leaderboard import rank_change_report
 from server.services.submissions import add_baselines, create_submission
+from server.ttl_cache import TTLCache
 
 TOKENS = reference_tokens()
 
@@ -427,6 +429,26 @@ def test_web_page_shows_rows_baseline_flag_and_interval(world: World) -> None:
     assert (
         unknown.status_code == 422
         and "unknown metric version &#39;v9&#39;; known: v1.0, v1.1, v2.2" in unknown.text
+    )
+
+
+def test_the_board_page_is_rendered_once_per_cache_period_and_address(
+    world: World, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    state = world.client.app.state  # type: ignore[attr-defined]
+    state.page_cache, state.leaderboard_cache = TTLCache(60), TTLCache(60)  # as in production, with 60 s
+    renders: list[str] = []
+    phases = web.list_phases
+    monkeypatch.setattr(web, "list_phases", lambda *args, **kw: renders.append("page") or phases(*args, **kw))
+    first = world.client.get("/")
+    submit_scored(world, world.team_id, b"a", [uniform(0.755)], "Later method")
+    again = world.client.get("/")
+    assert first.status_code == again.status_code == 200 and renders == ["page"]
+    assert again.text == first.text and "Later method" not in again.text  # until the period ends
+    # Its links are absolute: a page asked at another address is its own.
+    elsewhere = world.client.get("/", headers={"Host": "elsewhere.example"})
+    assert (
+        renders == ["page", "page"] and 'href="http://elsewhere.example/static/style.css"' in elsewhere.text
     )
 
 

@@ -1,28 +1,22 @@
 """The workers' Celery app, configured from `server.settings` with the broker and queue the API sends to.
 
-Each consumer is one process running one task at a time (`--pool solo`, under worker.supervisor, which keeps
-the time limits from what the consumer reports here). Delivery is at least once: a task is acknowledged after
-it ran (`acks_late`) and the broker's visibility timeout outlasts the hard time limit (server.queue); the
-reaper (worker.reaper) sends again what a dead process held. Every task is therefore idempotent.
+Each consumer is one process running one task at a time (`--pool solo`, under worker.supervisor, which sets
+its priority and BLAS threads, and keeps the time limits from what the consumer reports here). Delivery is at
+least once: a task is acknowledged after it ran (`acks_late`) and the broker's visibility timeout outlasts
+the hard time limit (server.queue); the reaper (worker.reaper) sends again what a dead process held. Every
+task is therefore idempotent.
 No result backend: results live in SQL (worker.tasks explains why no chord is needed).
 """
 
 from __future__ import annotations
 
-import os
 from typing import ClassVar
 
-# Chunk time is dominated by small numpy linear algebra (pinv): parallelism comes from worker processes,
-# and BLAS threads on top would only fight over the same cores. Set before the tasks import numpy.
-for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_variable, "1")
-
 from celery import Celery, Task, bootsteps
-from celery.signals import task_postrun, task_prerun, worker_process_init, worker_ready
+from celery.signals import task_postrun, task_prerun, worker_ready
 
 from server.queue import celery_config
 from server.settings import Settings, get_settings
-from worker import SCORING_NICENESS
 from worker.heartbeat import DatabaseHeartbeat
 from worker.logs import LOG_FORMAT, TASK_LOG_FORMAT
 from worker.supervised import become_supervised, report_busy, report_idle
@@ -35,11 +29,6 @@ EMBEDDED_POLL_S = 0.1
 def chunk_soft_time_limit(settings: Settings) -> float:
     """Return the soft time limit of a chunk: it stops itself and fails its run cleanly before the hard limit."""
     return settings.task_time_limit - SOFT_LIMIT_MARGIN_S
-
-
-@worker_process_init.connect
-def _lower_priority(**_: object) -> None:
-    os.nice(SCORING_NICENESS)
 
 
 @worker_ready.connect

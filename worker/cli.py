@@ -8,12 +8,19 @@ from typing import Annotated
 
 import typer
 
+from worker import SCORING_NICENESS
+
 DEFAULT_APP = "worker.app"
 DEFAULT_NAME = "navsim-lb"
 
 
 def worker_command(
-    concurrency: int, reaper: bool, loglevel: str = "info", app: str = DEFAULT_APP, name: str = DEFAULT_NAME
+    concurrency: int,
+    reaper: bool,
+    loglevel: str = "info",
+    app: str = DEFAULT_APP,
+    name: str = DEFAULT_NAME,
+    nice: int = SCORING_NICENESS,
 ) -> list[str]:
     """Return the command line of `navsim-lb worker` with these options, run by this interpreter."""
     command = [
@@ -24,6 +31,7 @@ def worker_command(
         f"--loglevel={loglevel}",
         f"--app={app}",
         f"--name={name}",
+        f"--nice={nice}",
     ]
     return command + (["--reaper"] if reaper else [])
 
@@ -43,6 +51,15 @@ def run_worker(
     name: Annotated[
         str, typer.Option(help="consumers are named NAME-1@host, NAME-2@host, ...")
     ] = DEFAULT_NAME,
+    nice: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            max=19,
+            help="how much lower the scoring consumers run than the supervisor (Unix niceness): on a host"
+            " shared with the API they yield the CPU to its requests; 0 keeps the same priority",
+        ),
+    ] = SCORING_NICENESS,
 ) -> None:
     """Score chunks of submissions (v1.0, v1.1, v2.2): one consumer process per core, each started again when
     it dies or outlasts its time limit."""
@@ -50,7 +67,7 @@ def run_worker(
 
     if concurrency < 0 or (concurrency == 0 and not reaper):
         raise typer.BadParameter("run at least one consumer, or the reaper alone (--concurrency 0 --reaper)")
-    raise typer.Exit(supervise(concurrency, reaper, app, name, loglevel))
+    raise typer.Exit(supervise(concurrency, reaper, app, name, loglevel, nice))
 
 
 def register(app: typer.Typer) -> None:

@@ -18,6 +18,13 @@ The supervisor:
   hands its work on (a stopped chunk beat);
 - on SIGTERM or SIGINT, asks every child for a warm shutdown (each finishes its task) and exits after them.
 It imports no Celery app: a wedged broker or database cannot stop it.
+
+Scoring is batch work that shares its host with the API in the demo and in a one-host deployment: each
+consumer starts at a lower priority (`--nice`, 10 by default: the kernel then gives it about a tenth of what a
+request's process gets while both want a core) and with one BLAS thread (parallelism comes from the
+consumers; OpenBLAS's threads would spin on the cores the API answers on). Both are set before the consumer's
+interpreter starts: scorer loads numpy's OpenBLAS at its first import, which reads OPENBLAS_NUM_THREADS once.
+The reaper keeps the supervisor's priority: its passes are short, and must not wait behind scoring.
 """
 
 from __future__ import annotations
@@ -29,7 +36,8 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import partial
 from types import FrameType
 
 from worker.supervised import STATUS_FD
@@ -40,6 +48,9 @@ TICK_S = 0.5
 YOUNG_S = 10.0  # a child that dies younger than this may die of its start: it is started again after a wait
 BACKOFF_MAX_S = 30.0
 LOG_FORMAT = "[%(asctime)s: %(levelname)s/supervisor] %(message)s"
+ONE_BLAS_THREAD = {
+    variable: "1" for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+}
 
 
 @dataclass
@@ -59,6 +70,8 @@ class Child:
 
     name: str
     command: list[str]
+    niceness: int = 0  # added to the supervisor's, before the child's program starts
+    environment: dict[str, str] = field(default_factory=dict)  # over the supervisor's
     process: subprocess.Popen[bytes] | None = None
     status: int | None = None  # the read end of the child's status pipe
     pending: bytes = b""
@@ -70,9 +83,12 @@ class Child:
 
     def start(self, selector: selectors.BaseSelector) -> None:
         read, write = os.pipe()
-        env = {**os.environ, STATUS_FD: str(write)}
+        env = {**os.environ, **self.environment, STATUS_FD: str(write)}
         # Same process group: a supervisor's own supervisor (the demo, a test) stops the lot with one signal.
-        self.process = subprocess.Popen(self.command, env=env, pass_fds=(write,))
+        # Niceness is per thread on Linux: set before exec, every thread of the child has it (the supervisor
+        # runs no thread of its own, so a function before exec is safe).
+        lower = partial(os.nice, self.niceness) if self.niceness else None
+        self.process = subprocess.Popen(self.command, env=env, pass_fds=(write,), preexec_fn=lower)
         os.close(write)
         os.set_blocking(read, False)
         self.status, self.pending, self.holding, self.killed = read, b"", None, False
@@ -214,12 +230,18 @@ def _declare_queue() -> None:
         log.warning("the broker's queue was not declared", exc_info=True)
 
 
-def supervise(concurrency: int, reaper: bool, app: str, name: str, loglevel: str) -> int:
-    """Run `concurrency` consumers (named NAME-1@host, ...) and, with `reaper`, the reaper; return the exit code."""
+def supervise(concurrency: int, reaper: bool, app: str, name: str, loglevel: str, niceness: int) -> int:
+    """Run `concurrency` consumers (named NAME-1@host, ...), `niceness` below the supervisor, and, with
+    `reaper`, the reaper; return the exit code."""
     logging.basicConfig(level=loglevel.upper(), format=LOG_FORMAT)
     _declare_queue()
     children = [
-        Child(f"consumer {index}", consumer_command(app, f"{name}-{index}@%h", loglevel))
+        Child(
+            f"consumer {index}",
+            consumer_command(app, f"{name}-{index}@%h", loglevel),
+            niceness,
+            ONE_BLAS_THREAD,
+        )
         for index in range(1, concurrency + 1)
     ]
     if reaper:

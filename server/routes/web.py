@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import partial
 from importlib.resources import files
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 
@@ -54,25 +57,49 @@ def error_page(
     return TEMPLATES.TemplateResponse(request, "error.html", context, status_code=status, headers=headers)
 
 
+@dataclass(frozen=True)
+class Page:
+    """A rendered page, kept for the leaderboard's cache period (`app.state.page_cache`)."""
+
+    body: bytes
+    status: int
+
+
 @router.get("/", response_class=HTMLResponse)
-def leaderboard_page(
+async def leaderboard_page(
     request: Request,
-    session: SessionDep,
     version: str | None = None,
     subset: str | None = None,
     phase: str | None = None,
 ) -> HTMLResponse:
-    """The public leaderboard: tabs per phase, metric version and subset; the table sorts in the browser."""
+    """The public leaderboard: tabs per phase, metric version and subset; the table sorts in the browser.
+
+    Rendered once per cache period and query, like the board it shows (server.ttl_cache says how): the page
+    is read as often as the board, and rendering it took ten times the board's cost in the API's CPU. Its
+    links are absolute, so the address it was asked at is part of the key."""
+    cache = request.app.state.page_cache
+    key = (str(request.base_url), version, subset, phase)
+    page = cache.get(key)
+    if page is None:  # the database is only asked off the event loop
+        render = partial(_leaderboard_page, request, version, subset, phase)
+        page = await run_in_threadpool(cache.get_or_compute, key, render)
+    return HTMLResponse(page.body, status_code=page.status)
+
+
+def _leaderboard_page(request: Request, version: str | None, subset: str | None, phase: str | None) -> Page:
     query = {"version": version, "subset": subset, "phase": phase}
 
     def here(**changes: str | None) -> str:
         """Return the query string of this page with `changes` applied (None drops a parameter)."""
         return "?" + urlencode({k: v for k, v in (query | changes).items() if v is not None})
 
+    state = request.app.state
+    with state.session_factory() as session:
+        phases = [phase.name for phase in list_phases(session, newest_first=True)]
     context: dict[str, Any] = {
         "versions": list(BOARD_VERSIONS),
         "score_labels": SCORE_LABELS,
-        "phases": [phase.name for phase in list_phases(session, newest_first=True)],
+        "phases": phases,
         "labels": METRIC_LABELS,
         "query": query,
         "here": here,
@@ -81,7 +108,6 @@ def leaderboard_page(
     }
     status = 200
     try:
-        state = request.app.state
         board = cached_board(
             state.leaderboard_cache, state.session_factory, version, subset, "score", phase
         ).view
@@ -92,7 +118,8 @@ def leaderboard_page(
     except ServiceError as error:
         context["error"] = error.message
         status = error.http_status
-    return TEMPLATES.TemplateResponse(request, "leaderboard.html", context, status_code=status)
+    response = TEMPLATES.TemplateResponse(request, "leaderboard.html", context, status_code=status)
+    return Page(bytes(response.body), response.status_code)
 
 
 @router.get("/rules", response_class=HTMLResponse)

@@ -307,12 +307,12 @@ def cached_board(
     sort: str,
     phase: str | None,
 ) -> Board:
-    """Return the public leaderboard for the query, from the short-lived `cache` when it is fresh."""
-    key = (version, subset, sort, phase)
-    board = cache.get(key)
-    if board is None:
+    """Return the public leaderboard for the query, from the short-lived `cache` (computed once at a time,
+    the expired board served meanwhile: `TTLCache.get_or_compute`)."""
+
+    def compute() -> Board:
         with sessions() as session:
             view = leaderboard_view(session, version, subset, sort, phase)
-        board = Board(view, _json(view))
-        cache.put(key, board)
-    return board
+        return Board(view, _json(view))
+
+    return cache.get_or_compute((version, subset, sort, phase), compute)
