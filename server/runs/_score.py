@@ -9,6 +9,7 @@ from pathlib import Path
 from time import perf_counter
 from typing import TYPE_CHECKING
 
+from server.object_store import ObjectStore
 from server.runs._job import ChunkInputs, trajectories
 
 if TYPE_CHECKING:
@@ -29,7 +30,7 @@ class ScoredChunk:
     admin_note: str | None = None  # what admins read of the run's problems (the team sees per-token errors)
 
 
-def score_chunk(inputs: ChunkInputs, storage_dir: Path, cache_dir: Path) -> ScoredChunk:
+def score_chunk(inputs: ChunkInputs, store: ObjectStore, cache_dir: Path) -> ScoredChunk:
     """Score the chunk's tokens without rows (raises Rejected when the run's file cannot be used)."""
     # The engine is heavy: the API imports this package without it.
     from scorer.evaluate import TokenResult, score_seeds
@@ -45,7 +46,7 @@ def score_chunk(inputs: ChunkInputs, storage_dir: Path, cache_dir: Path) -> Scor
         return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
-    seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, storage_dir)))
+    seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
     started = perf_counter()
     rows = score_seeds(job.split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))

@@ -69,10 +69,10 @@ def scene_picture(
     )
     if path.exists():
         return path.read_bytes()
-    seeds = read_trajectories(settings.storage_dir, submission.stored_name, submission.sha256)
+    seeds = read_trajectories(settings.submission_store, submission.stored_name, submission.sha256)
     if seeds is None:  # an upload stored before the parsed copies, or a copy lost
         seeds = load_submission(
-            read_file(settings.storage_dir, submission.stored_name), submission.filename
+            read_file(settings.submission_store, submission.stored_name), submission.filename
         ).seeds
     explanation = explain_token(scene, settings.cache_dir, token, seeds[seed][token], version)
     picture = render(explanation, "png")
