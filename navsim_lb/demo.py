@@ -29,6 +29,8 @@ from scorer.versions import DEFAULT_VERSION
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
 
+    from server.object_store import ObjectStore
+
 # The server's modules, SQLAlchemy and httpx are imported where they are used: every `navsim-lb` command
 # imports this module to register `demo`, and none of the others should pay for them.
 
@@ -67,7 +69,7 @@ def _warm_cache(split_dir: Path, cache_dir: Path, scenes: int) -> None:
 
 
 def _set_up(
-    factory: sessionmaker[Session], split_dir: Path, storage_dir: Path
+    factory: sessionmaker[Session], split_dir: Path, store: ObjectStore
 ) -> tuple[list[int], dict[str, str]]:
     """Register split, baselines, phase and team if missing; return the baselines to queue and new tokens."""
     from sqlalchemy import select
@@ -84,7 +86,7 @@ def _set_up(
         queued = []
         if split is None:
             # Synthetic scenes: teams may see them in the drill-down pictures.
-            split, baselines = add_split(session, None, SPLIT, split_dir, None, True, storage_dir)
+            split, baselines = add_split(session, None, SPLIT, split_dir, None, True, store)
             queued = [submission.id for submission in baselines]
         if session.scalar(select(Phase.id).where(Phase.name == PHASE)) is None:
             create_phase(session, PHASE, split)
@@ -219,7 +221,7 @@ def demo(
     _warm_cache(split_dir, settings.cache_dir, scene_count)
     engine = make_engine(settings.database_url)
     factory = make_session_factory(engine)
-    queued, tokens = _set_up(factory, split_dir, settings.storage_dir)
+    queued, tokens = _set_up(factory, split_dir, settings.submission_store)
     tokens_file = data_dir / "demo-tokens.json"
     tokens_file.write_text(json.dumps(tokens, indent=1) + "\n")
     tokens_file.chmod(0o600)

@@ -143,7 +143,7 @@ def register_split_command(
     public = public_tokens.read_text().split() if public_tokens is not None else None
     settings = get_settings()
     with _session() as session:
-        baselines_to = settings.storage_dir if baselines else None
+        baselines_to = settings.submission_store if baselines else None
         split, added = add_split(session, None, name, directory, public, scenes_public, baselines_to)
         queued = [submission.id for submission in added]
         summary = (

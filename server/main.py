@@ -23,6 +23,7 @@ from server.body_limit import BodySizeLimit
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import require_migrated
 from server.models import Split
+from server.object_store import StoreUnavailable
 from server.queue import broker_status, enqueue_submission, live_workers
 from server.rate_limits import RateLimits
 from server.routes import admin, monitoring, public, submissions, web
@@ -56,16 +57,25 @@ def _service_error(request: Request, error: Exception) -> Response:
 
 
 DATABASE_DOWN = "the database is not answering right now; nothing was changed, try again in a few seconds"
-DATABASE_RETRY_AFTER_S = 5
+STORE_DOWN = (
+    "the file store is not answering right now; nothing was stored and no submission was created, "
+    "upload the file again in a minute"
+)
+OUTAGE_RETRY_AFTER_S = 5
 
 
-def _database_down(request: Request, error: Exception) -> Response:
-    """A database outage is a 503 the client may retry, not a 500: the transaction was rolled back."""
-    log.error("database unavailable during %s %s: %s", request.method, request.url.path, error)
-    headers = {"Retry-After": str(DATABASE_RETRY_AFTER_S)}
-    if _answers_json(request):
-        return JSONResponse({"detail": DATABASE_DOWN}, status_code=503, headers=headers)
-    return web.error_page(request, 503, f"NAVSIM Leaderboard: {DATABASE_DOWN}.", headers)
+def _outage(message: str) -> Callable[[Request, Exception], Response]:
+    """Return the handler of an outage (the database's, the object store's): a 503 the client may retry, not
+    a 500, since the transaction was rolled back and no row names what was not stored."""
+
+    def answer(request: Request, error: Exception) -> Response:
+        log.error("outage during %s %s: %s", request.method, request.url.path, error)
+        headers = {"Retry-After": str(OUTAGE_RETRY_AFTER_S)}
+        if _answers_json(request):
+            return JSONResponse({"detail": message}, status_code=503, headers=headers)
+        return web.error_page(request, 503, f"NAVSIM Leaderboard: {message}.", headers)
+
+    return answer
 
 
 async def _http_error(request: Request, error: Exception) -> Response:
@@ -98,7 +108,7 @@ def register_configured_splits(app: FastAPI) -> None:
                 if session.scalar(select(Split.id).where(Split.name == name)) is not None:
                     continue
                 split, baselines = add_split(
-                    session, None, name, directory, None, False, settings.storage_dir
+                    session, None, name, directory, None, False, settings.submission_store
                 )
                 queued = [submission.id for submission in baselines]
         except IntegrityError:
@@ -112,7 +122,8 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     """Return the API and web app on a migrated database; raises NotMigratedError (with the fix) otherwise."""
     settings = settings or get_settings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    settings.storage_dir.mkdir(parents=True, exist_ok=True)
+    if not settings.storage_url:
+        settings.storage_dir.mkdir(parents=True, exist_ok=True)
     engine = make_engine(settings.database_url)
     require_migrated(engine)
 
@@ -145,7 +156,8 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     upload_checks = {API_PREFIX + path: check for path, check in submissions.UPLOAD_CHECKS.items()}
     app.add_middleware(UploadGate, checks=upload_checks)
     for outage in (OperationalError, InterfaceError):
-        app.add_exception_handler(outage, _database_down)
+        app.add_exception_handler(outage, _outage(DATABASE_DOWN))
+    app.add_exception_handler(StoreUnavailable, _outage(STORE_DOWN))
     app.include_router(public.router, prefix=API_PREFIX)
     app.include_router(submissions.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)

@@ -8,6 +8,10 @@ from pathlib import Path
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from server.object_store import LocalStore, ObjectStore, is_store_url, open_store
+
+SUBMISSIONS_PREFIX, METRIC_CACHE_PREFIX = "submissions", "metric-cache"
+
 
 class Settings(BaseSettings):
     """Where the server keeps its state and which splits it serves; each field reads the env var of its name."""
@@ -20,6 +24,10 @@ class Settings(BaseSettings):
     # Defaults below are derived from data_dir when left empty.
     database_url: str = Field("", validation_alias="DATABASE_URL")
     broker_url: str = Field("", validation_alias="BROKER_URL")
+    # An object store shared by the API and every worker, s3://bucket/prefix (server.object_store; endpoint,
+    # keys and region from the AWS_* variables): uploads under submissions/, published metric caches under
+    # metric-cache/. Empty: uploads in storage_dir, caches only in cache_dir (one machine, or a shared disk).
+    storage_url: str = Field("", validation_alias="STORAGE_URL")
     # Where uploads and metric caches live, as configured (None: under data_dir; see the properties).
     storage_dir_option: Path | None = Field(None, validation_alias="STORAGE_DIR")
     cache_dir_option: Path | None = Field(None, validation_alias="CACHE_DIR")
@@ -53,12 +61,28 @@ class Settings(BaseSettings):
         if not self.broker_url:
             # kombu's SQLAlchemy transport: a broker in an SQLite file, no server to run.
             self.broker_url = f"sqla+sqlite:///{self.data_dir / 'broker.sqlite'}"
+        if self.storage_url and not is_store_url(self.storage_url):
+            raise ValueError(f"STORAGE_URL {self.storage_url!r}: an object store is s3://bucket/prefix")
         return self
 
     @property
     def storage_dir(self) -> Path:
-        """Where uploaded files are stored."""
+        """Where uploaded files are stored without an object store."""
         return self.storage_dir_option or self.data_dir / "submissions"
+
+    @property
+    def submission_store(self) -> ObjectStore:
+        """Where uploaded files are stored: the object store's submissions/, else storage_dir."""
+        if self.storage_url:
+            return open_store(f"{self.storage_url.rstrip('/')}/{SUBMISSIONS_PREFIX}")
+        return LocalStore(self.storage_dir)
+
+    @property
+    def cache_store(self) -> ObjectStore | None:
+        """Where workers publish the metric caches they build for each other (None: cache_dir is the only one)."""
+        if self.storage_url:
+            return open_store(f"{self.storage_url.rstrip('/')}/{METRIC_CACHE_PREFIX}")
+        return None
 
     @property
     def cache_dir(self) -> Path:

@@ -246,7 +246,7 @@ def claimed_submission(world: World, payload: bytes) -> Submission:
     with transaction(world.factory) as session:
         team, phase = team_row(session, world.team_id), phase_row(session, "test")
         submission, _ = create_submission(
-            session, team, phase, upload_of(payload), world.settings.storage_dir
+            session, team, phase, upload_of(payload), world.settings.submission_store
         )
         assert claim_submission(session, submission.id, "test-worker") == 1
         return submission
@@ -270,7 +270,7 @@ def submit_scored(
             team_row(session, team_id),
             phase_row(session, phase),
             upload_of(payload, seeds=len(per_seed), method=method),
-            world.settings.storage_dir,
+            world.settings.submission_store,
             now=now,
         )
         submission_id = submission.id

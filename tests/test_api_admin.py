@@ -181,7 +181,7 @@ def test_admin_sees_failures_in_detail_teams_only_the_summary(world: World) -> N
             team_row(session, world.team_id),
             phase_row(session, "test"),
             upload_of(b"x"),
-            world.settings.storage_dir,
+            world.settings.submission_store,
         )
         run = claim_submission(session, submission.id, "w")
         mark_failed(

@@ -47,7 +47,7 @@ def test_a_team_compares_with_its_own_published_entries_and_baselines_only(world
     with transaction(world.factory) as session:
         session.get(Submission, hidden).hidden = True
         split = session.query(Split).filter_by(name="reference").one()
-        baseline = add_baselines(session, split, world.settings.storage_dir)[0].id
+        baseline = add_baselines(session, split, world.settings.submission_store)[0].id
     score_run(world.factory, baseline, [uniform(0.3)])
 
     assert {(entry["id"], entry["kind"]) for entry in _comparable(world, mine)} == {
@@ -80,7 +80,7 @@ def test_a_comparison_shows_only_the_tokens_the_compared_submission_reveals(worl
     mine = submit_scored(world, world.team_id, b"mine", [uniform(0.9)], "Mine", phase="halves")
     with transaction(world.factory) as session:
         split = session.query(Split).filter_by(name="halved").one()
-        baseline = add_baselines(session, split, world.settings.storage_dir)[0].id
+        baseline = add_baselines(session, split, world.settings.submission_store)[0].id
     score_run(world.factory, baseline, [uniform(0.3)])
     status, rows = _rows(world, mine, baseline)
     assert status == 200 and sorted(row["token"] for row in rows) == tokens[:10]

@@ -56,7 +56,7 @@ def test_upload_is_accepted_queued_and_shown(world: World) -> None:
     assert detail["authors"] == "reference run"  # from the file when no form field overrides it
     # Beside the file, the trajectories its check parsed, for the workers and the pictures.
     stored = hashlib.sha256(HUMAN).hexdigest()
-    parsed = read_trajectories(world.settings.storage_dir, stored_name(stored), stored)
+    parsed = read_trajectories(world.settings.submission_store, stored_name(stored), stored)
     human = load_submission(HUMAN).seeds
     assert parsed is not None and list(parsed[0]) == list(human[0])
     assert all(parsed[0][token].tobytes() == poses.tobytes() for token, poses in human[0].items())

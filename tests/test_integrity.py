@@ -51,7 +51,7 @@ def _submit(world: World, team_id: int, seed: Seed, method: str) -> int:
             team_row(session, team_id),
             phase_row(session, world.phase),
             upload,
-            world.settings.storage_dir,
+            world.settings.submission_store,
         )
         return submission.id
 

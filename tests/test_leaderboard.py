@@ -162,7 +162,7 @@ def test_baselines_are_marked_and_take_no_rank(world: World) -> None:
         from server.models import Split
 
         split = session.query(Split).filter_by(name="reference").one()
-        baselines = [s.id for s in add_baselines(session, split, world.settings.storage_dir)]
+        baselines = [s.id for s in add_baselines(session, split, world.settings.submission_store)]
     score_run(world.factory, baselines[0], [uniform(0.3)])
     score_run(world.factory, baselines[1], [uniform(0.9)])
     rows = _board(world)["rows"]
@@ -341,7 +341,7 @@ def _scored_with_undefined_ec(world: World, undefined: set[str]) -> int:
             team_row(session, world.team_id),
             phase_row(session, "test"),
             upload,
-            world.settings.storage_dir,
+            world.settings.submission_store,
         )
         run = claim_submission(session, submission.id, "w")
         assert run is not None

@@ -49,7 +49,7 @@ def test_leaderboard_equals_the_devkit_mean_for_a_reference_family(world: World,
             team_row(session, world.team_id),
             phase_row(session, "test"),
             upload_of(b"lane change", method=FAMILY),
-            world.settings.storage_dir,
+            world.settings.submission_store,
         )
         submission_id = submission.id
     with transaction(world.factory) as session:

@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.db import transaction
 from server.migrate import upgrade
 from server.models import FailureKind, Submission, utc_now
+from server.object_store import LocalStore, ObjectStore
 from server.runs import cancel, claim_submission, mark_failed
 from server.services.errors import Conflict, Forbidden, QuotaExceeded
 from server.services.quota import next_utc_midnight, quota_usage
@@ -31,7 +32,7 @@ def _submit(
             team_row(session, world.team_id),
             phase_row(session, phase),
             upload_of(payload),
-            world.settings.storage_dir,
+            world.settings.submission_store,
             key,
             now,
         )
@@ -120,7 +121,7 @@ def test_same_file_is_not_scored_twice_unless_its_run_failed(world: World) -> No
             team_row(session, other_team),
             phase_row(session, "test"),
             upload_of(b"same"),
-            world.settings.storage_dir,
+            world.settings.submission_store,
         )
 
 
@@ -145,7 +146,7 @@ def test_closed_phase_refuses(world: World) -> None:
 
 
 def _race_for_last_slot(
-    factory: sessionmaker[Session], storage: Path, team_id: int, racers: int
+    factory: sessionmaker[Session], storage: ObjectStore, team_id: int, racers: int
 ) -> list[object]:
     """Start `racers` uploads at once in separate sessions; return each one's submission id or exception."""
     barrier = threading.Barrier(racers)
@@ -174,7 +175,7 @@ def _race_for_last_slot(
     return outcomes
 
 
-def _check_race(factory: sessionmaker[Session], storage: Path, team_id: int) -> None:
+def _check_race(factory: sessionmaker[Session], storage: ObjectStore, team_id: int) -> None:
     with transaction(factory) as session:
         create_submission(
             session, team_row(session, team_id), phase_row(session, "race"), upload_of(b"first"), storage
@@ -190,7 +191,7 @@ def _check_race(factory: sessionmaker[Session], storage: Path, team_id: int) -> 
 
 def test_two_uploads_race_for_the_last_slot_on_sqlite(world: World) -> None:
     add_phase(world.factory, "race", total=2)
-    _check_race(world.factory, world.settings.storage_dir, world.team_id)
+    _check_race(world.factory, world.settings.submission_store, world.team_id)
 
 
 @pytest.mark.services
@@ -200,7 +201,7 @@ def test_two_uploads_race_for_the_last_slot_on_postgresql(postgres_url: str, tmp
     team_id, _ = add_team(factory, "alpha")
     add_phase(factory, "race", total=2)
     for _ in range(5):  # several rounds: each must have exactly one winner
-        _check_race(factory, tmp_path, team_id)
+        _check_race(factory, LocalStore(tmp_path), team_id)
         with transaction(factory) as session:
             session.query(Submission).delete()
     factory.kw["bind"].dispose()

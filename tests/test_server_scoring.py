@@ -31,6 +31,7 @@ from scorer.versions import LOG_REPLAY_VERSIONS
 from server.db import transaction
 from server.migrate import upgrade
 from server.models import ChunkState, Result, ScoringChunk, Status, Submission, TokenResultRow, utc_now
+from server.object_store import LocalStore, ObjectStore
 from server.runs import (
     cancel,
     claim_submission,
@@ -51,7 +52,7 @@ from server.storage import read_file
 TOKENS = reference_tokens()
 
 
-def _new(factory: sessionmaker[Session], team_id: int, storage: Path, payload: bytes = b"x") -> int:
+def _new(factory: sessionmaker[Session], team_id: int, storage: ObjectStore, payload: bytes = b"x") -> int:
     with transaction(factory) as session:
         submission, _ = create_submission(
             session, team_row(session, team_id), phase_row(session, "test"), upload_of(payload), storage
@@ -72,10 +73,10 @@ def _get(factory: sessionmaker[Session], submission_id: int) -> Submission:
 
 
 def test_job_names_the_stored_file_and_the_split(world: World) -> None:
-    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir, b"file bytes")
+    submission_id = _new(world.factory, world.team_id, world.settings.submission_store, b"file bytes")
     with world.session() as session:
         job = load_job(session, submission_id)
-    assert read_file(world.settings.storage_dir, job.stored_name) == b"file bytes"
+    assert read_file(world.settings.submission_store, job.stored_name) == b"file bytes"
     assert (job.run, job.split_dir, job.seed_count) == (1, REFERENCE_DIR, 1)
     assert job.versions == ("v1.0", "v1.1", "v2.2")
 
@@ -118,14 +119,14 @@ def new_submission(
     and on a fresh, migrated PostgreSQL database (dialect-specific writes)."""
     if request.param == "sqlite":
         world: World = request.getfixturevalue("world")
-        yield world.factory, _new(world.factory, world.team_id, world.settings.storage_dir)
+        yield world.factory, _new(world.factory, world.team_id, world.settings.submission_store)
         return
     with fresh_postgres_database() as url:
         upgrade(url)
         factory = factory_for(url)
         team_id, _ = add_team(factory, "alpha")
         add_phase(factory, "test")
-        yield factory, _new(factory, team_id, tmp_path)
+        yield factory, _new(factory, team_id, LocalStore(tmp_path))
         factory.kw["bind"].dispose()
 
 
@@ -212,7 +213,7 @@ def test_the_last_chunk_finishes_the_run_and_finished_chunks_give_the_progress(
 
 
 def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:
-    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    submission_id = _new(world.factory, world.team_id, world.settings.submission_store)
     with transaction(world.factory) as session:
         run = claim_submission(session, submission_id, "w1")
         write_chunk_results(session, submission_id, run, "v1.1", token_results(uniform(0.5)), "w1", 1.0)
@@ -225,7 +226,7 @@ def test_incomplete_runs_cannot_be_marked_scored(world: World) -> None:
 
 
 def test_cancelled_or_rerun_submissions_drop_late_writes(world: World) -> None:
-    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    submission_id = _new(world.factory, world.team_id, world.settings.submission_store)
     with transaction(world.factory) as session:
         run = claim_submission(session, submission_id, "w1")
         cancel(session, session.get(Submission, submission_id))
@@ -245,7 +246,7 @@ def test_cancelled_or_rerun_submissions_drop_late_writes(world: World) -> None:
 
 
 def test_a_rerun_keeps_the_old_results_until_it_is_scored(world: World) -> None:
-    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    submission_id = _new(world.factory, world.team_id, world.settings.submission_store)
     score_run(world.factory, submission_id, [uniform(0.4)])
     with transaction(world.factory) as session:
         reset_for_rerun(session, session.get(Submission, submission_id))
@@ -267,7 +268,7 @@ def test_a_rerun_keeps_the_old_results_until_it_is_scored(world: World) -> None:
 
 
 def test_a_claimed_run_without_live_chunks_is_stalled_and_requeued(world: World) -> None:
-    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    submission_id = _new(world.factory, world.team_id, world.settings.submission_store)
     with transaction(world.factory) as session:
         claim_submission(session, submission_id, "w1")
     with world.session() as session:
@@ -288,7 +289,7 @@ def test_a_claimed_run_without_live_chunks_is_stalled_and_requeued(world: World)
 
 
 def test_submissions_queued_too_long_are_found(world: World) -> None:
-    submission_id = _new(world.factory, world.team_id, world.settings.storage_dir)
+    submission_id = _new(world.factory, world.team_id, world.settings.submission_store)
     with world.session() as session:
         assert stale_queued(session, utc_now() - timedelta(minutes=5)) == []
         assert stale_queued(session, utc_now() + timedelta(seconds=1)) == [submission_id]

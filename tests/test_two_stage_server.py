@@ -124,7 +124,7 @@ def test_a_two_stage_upload_is_accepted_with_every_seed_in_the_official_row_orde
         submission = session.get(Submission, response.json()["id"])
         assert submission is not None
         assert (submission.seed_count, submission.token_count) == (2, 36)
-        stored = read_trajectories(world.settings.storage_dir, submission.stored_name, submission.sha256)
+        stored = read_trajectories(world.settings.submission_store, submission.stored_name, submission.sha256)
     assert stored is not None and len(stored) == 2
     assert list(stored[1]) == [*STAGES.stage_one_tokens, *STAGES.stage_two_tokens]
     token = STAGES.stage_two_tokens[4]
@@ -208,7 +208,7 @@ def _run_in_process(world: World, submission_id: int, chunk_size: int, dies: int
         with world.session() as session:
             inputs = chunk_inputs(session, submission_id, run, start)
         assert inputs is not None
-        chunk = score_chunk(inputs, settings.storage_dir, settings.cache_dir)
+        chunk = score_chunk(inputs, settings.submission_store, settings.cache_dir)
         with transaction(world.factory) as session:
             write_chunk(session, inputs, chunk, "w", "test-engine", 200)
         scored.append([*start.tokens, "|", *start.context])

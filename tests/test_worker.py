@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import math
 import os
 import re
@@ -38,6 +39,7 @@ from scorer.submission import dump_submission_json, load_submission
 from scorer.versions import LOG_REPLAY_VERSIONS as VERSIONS
 from server.db import transaction
 from server.models import FailureKind, Result, Status, Submission, utc_now
+from server.object_store import LocalStore
 from server.queue import SCORE_TASK, celery_client, enqueue_submission
 from server.runs import Rejected, ScoringJob, claim_submission
 from server.runs._job import trajectories
@@ -298,12 +300,13 @@ def test_a_process_reads_the_file_of_a_run_once_and_of_a_new_run_again(
     data = dump_submission_json(
         predictions(synthetic_split.directory, seeds=2, noise=0.3, method="read once")
     )
+    store = LocalStore(tmp_path)
     sha256 = hashlib.sha256(data).hexdigest()
     job = ScoringJob(
         submission_id=1,
         run=1,
         filename="entry.json",
-        stored_name=store_file(tmp_path, sha256, data),
+        stored_name=store_file(store, sha256, io.BytesIO(data)),
         sha256=sha256,
         split_name="synthetic",
         split_dir=synthetic_split.directory,
@@ -311,17 +314,17 @@ def test_a_process_reads_the_file_of_a_run_once_and_of_a_new_run_again(
         seed_count=2,
         versions=VERSIONS,
     )
-    parsed = trajectories(job, tmp_path)
+    parsed = trajectories(job, store)
     assert len(parsed) == 2
     (tmp_path / job.stored_name).unlink()
-    assert trajectories(job, tmp_path) is parsed  # the run's next chunk
+    assert trajectories(job, store) is parsed  # the run's next chunk
     with pytest.raises(Rejected, match="missing"):
-        trajectories(dataclasses.replace(job, run=2), tmp_path)
+        trajectories(dataclasses.replace(job, run=2), store)
     # With the trajectories its upload's check parsed, a run reads those instead of parsing the file (which
     # must still be there, intact).
-    store_file(tmp_path, sha256, data)
-    store_trajectories(tmp_path, job.stored_name, sha256, parsed[:1])  # one seed: told apart from the file
-    copied = trajectories(dataclasses.replace(job, run=3), tmp_path)
+    store_file(store, sha256, io.BytesIO(data))
+    store_trajectories(store, job.stored_name, sha256, parsed[:1])  # one seed: told apart from the file
+    copied = trajectories(dataclasses.replace(job, run=3), store)
     assert len(copied) == 1 and list(copied[0]) == list(parsed[0])  # the copy's one seed, not the file's two
     assert all(np.array_equal(copied[0][t], parsed[0][t]) for t in parsed[0])
 

@@ -158,7 +158,9 @@ class Service:
             team = session.scalar(select(Team).where(Team.name == "alpha"))
             assert phase_row is not None and team is not None
             upload = validate_upload(data, "entry.json", split_tokens(phase_row.split))
-            submission, _ = create_submission(session, team, phase_row, upload, self.settings.storage_dir)
+            submission, _ = create_submission(
+                session, team, phase_row, upload, self.settings.submission_store
+            )
             if lost_claims:
                 submission.status, submission.attempts, submission.worker = (
                     Status.running,

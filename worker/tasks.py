@@ -20,7 +20,7 @@ from collections.abc import Callable
 from datetime import timedelta
 from functools import lru_cache
 from time import monotonic, sleep
-from typing import Any
+from typing import Any, TypeVar
 
 import kombu.exceptions
 import sqlalchemy.exc
@@ -34,6 +34,7 @@ from scorer.blas import engine_provenance, kernel_warning
 from server import runs
 from server.db import make_engine, make_session_factory, transaction
 from server.models import FailureKind, utc_now
+from server.object_store import StoreUnavailable
 from server.queue import SCORE_TASK, prune_embedded_broker, waiting_tasks
 from server.services.errors import NotFound
 from server.settings import get_settings
@@ -41,10 +42,11 @@ from worker.app import CHUNK_TASK, app, chunk_soft_time_limit
 from worker.heartbeat import beating
 
 log = get_task_logger(__name__)
+T = TypeVar("T")
 
-# Only these are worth retrying: the next attempt may find the database or the broker back.
+# Only these are worth retrying: the next attempt may find the database, the broker or the object store back.
 DATABASE_OUTAGES = (sqlalchemy.exc.OperationalError, sqlalchemy.exc.InterfaceError)
-INFRASTRUCTURE_ERRORS = (*DATABASE_OUTAGES, kombu.exceptions.OperationalError)
+INFRASTRUCTURE_ERRORS = (*DATABASE_OUTAGES, kombu.exceptions.OperationalError, StoreUnavailable)
 # Before a task holds anything: 2 + 4 + ... + 60 s, about six minutes of outage, without jitter.
 RETRY: dict[str, Any] = {
     "autoretry_for": INFRASTRUCTURE_ERRORS,
@@ -53,9 +55,10 @@ RETRY: dict[str, Any] = {
     "retry_jitter": False,
     "max_retries": 10,
 }
-# A chunk's scored rows are in memory: their write waits out a database outage this long, in the task.
-DATABASE_OUTAGE_S = 360.0
-DATABASE_RETRY_MAX_S = 15.0
+# A chunk's scored rows are in memory: their write waits out a database outage this long, in the task; a held
+# chunk's reads wait out an object store's outage as long, beating (retrying the task would leave it held).
+OUTAGE_S = 360.0
+OUTAGE_RETRY_MAX_S = 15.0
 ENGINE_FAILURE = "the scoring engine failed on this submission (not a problem of the file)"
 
 
@@ -76,21 +79,21 @@ def _worker_name(task: Task) -> str:
     return f"{task.request.hostname or 'worker'}/{os.getpid()}"
 
 
-def _through_database_outages(write: Callable[[], str]) -> str:
-    """Run a database write, retrying while the database is unreachable (a chunk keeps its scored rows).
+def _through_outages(work: Callable[[], T], outages: tuple[type[Exception], ...], what: str) -> T:
+    """Run `work` of a held chunk, again while what it reaches (the database, the object store) is unreachable.
 
     Retrying the whole task instead would score again, and its chunk, held by this task, would not start.
     """
-    deadline, delay = monotonic() + DATABASE_OUTAGE_S, 1.0
+    deadline, delay = monotonic() + OUTAGE_S, 1.0
     while True:
         try:
-            return write()
-        except DATABASE_OUTAGES as error:
+            return work()
+        except outages as error:
             if monotonic() > deadline:
                 raise
-            log.warning("database unreachable, writing again in %.0f s: %s", delay, error)
+            log.warning("%s unreachable, trying again in %.0f s: %s", what, delay, error)
             sleep(delay)
-            delay = min(2 * delay, DATABASE_RETRY_MAX_S)
+            delay = min(2 * delay, OUTAGE_RETRY_MAX_S)
 
 
 def _guarded(submission_id: int, run: int, work: Callable[[], str]) -> str:
@@ -173,7 +176,11 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
         if inputs is None:
             return "dropped"
         with beating(sessions, chunk_id, worker):
-            scored = runs.score_chunk(inputs, settings.storage_dir, settings.cache_dir)
+            scored = _through_outages(
+                lambda: runs.score_chunk(inputs, settings.submission_store, settings.cache_dir),
+                (StoreUnavailable,),
+                "object store",
+            )
 
         def write() -> str:
             with transaction(sessions) as session:
@@ -181,7 +188,7 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
                     session, inputs, scored, worker, engine_provenance(), settings.bootstrap_samples
                 )
 
-        return _through_database_outages(write)
+        return _through_outages(write, DATABASE_OUTAGES, "database")
 
     return f"submission {submission_id} run {run}: {_guarded(submission_id, run, score)}"
 

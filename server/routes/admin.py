@@ -142,7 +142,7 @@ def quotas(session: SessionDep, admin: AdminDep, team_id: RowId, quota_in: Quota
 @router.post("/splits", status_code=201)
 def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: SplitIn) -> SplitAdded:
     """Register a split directory (on the server's disk) and queue its two baselines."""
-    storage_dir = request.app.state.settings.storage_dir
+    store = request.app.state.settings.submission_store
     split, baselines = actions.add_split(
         session,
         admin,
@@ -150,7 +150,7 @@ def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: 
         Path(split_in.directory),
         split_in.public_tokens,
         split_in.scenes_public,
-        storage_dir if split_in.baselines else None,
+        store if split_in.baselines else None,
     )
     session.commit()
     _enqueue(request, [submission.id for submission in baselines])

@@ -103,7 +103,7 @@ def submit(
     phase_row, upload = _checked_upload(request, session, file, phase, {k: v for k, v in form.items() if v})
     settings = request.app.state.settings
     submission, replayed = create_submission(
-        session, team, phase_row, upload, settings.storage_dir, idempotency_key
+        session, team, phase_row, upload, settings.submission_store, idempotency_key
     )
     session.commit()
     if not replayed:

@@ -20,6 +20,7 @@ from sqlalchemy.orm import Session
 from scorer.geometry import FloatArray
 from scorer.scene import scene_paths
 from server.models import FailureKind, SplitKind, Submission
+from server.object_store import ObjectStore
 from server.runs._chunks import ChunkStart, StartAction
 from server.runs._run import completed_tokens, run_versions
 from server.services.errors import NotFound
@@ -103,25 +104,30 @@ def chunk_inputs(session: Session, submission_id: int, run: int, start: ChunkSta
     )
 
 
-def _stored_file(job: ScoringJob, storage_dir: Path) -> bytes:
-    """Return the stored bytes of the run's file, or raise Rejected when they are missing or damaged."""
+def _stored_file(job: ScoringJob, store: ObjectStore) -> bytes:
+    """Return the stored bytes of the run's file, or raise Rejected when they are missing or damaged (an
+    unreachable store raises StoreUnavailable: the chunk waits for it)."""
+    where = f"{job.stored_name} in {store.url}"
     try:
-        data = read_file(storage_dir, job.stored_name)
-    except FileNotFoundError as error:
+        data = read_file(store, job.stored_name)
+    except FileNotFoundError:
         raise Rejected(
-            FailureKind.infrastructure, "the stored copy of this file is missing", str(error)
+            FailureKind.infrastructure,
+            "the stored copy of this file is missing",
+            f"submission {job.submission_id}: no {where}; restore it, or ask the team to upload it again",
         ) from None
     if hashlib.sha256(data).hexdigest() != job.sha256:
         raise Rejected(
             FailureKind.infrastructure,
             "the stored copy of this file is damaged (its sha256 differs from the upload)",
-            f"stored bytes of submission {job.submission_id} do not hash to {job.sha256}",
+            f"submission {job.submission_id}: {where} does not hash to {job.sha256}; restore it, or ask the "
+            "team to upload it again",
         )
     return data
 
 
 @lru_cache(maxsize=PARSED_FILES_KEPT)
-def trajectories(job: ScoringJob, storage_dir: Path) -> tuple[dict[str, FloatArray], ...]:
+def trajectories(job: ScoringJob, store: ObjectStore) -> tuple[dict[str, FloatArray], ...]:
     """Return each seed's trajectories of the run, or raise Rejected when its stored file is missing, damaged or
     no longer fits the split. A run's file is checked and read once per process; an error is raised again each
     time.
@@ -135,12 +141,12 @@ def trajectories(job: ScoringJob, storage_dir: Path) -> tuple[dict[str, FloatArr
     from server.services.errors import Invalid
     from server.services.validation import read_upload
 
-    data = _stored_file(job, storage_dir)
+    data = _stored_file(job, store)
     stages = load_two_stage_split(job.split_dir) if job.split_kind == SplitKind.two_stage else None
     tokens = (
         [*stages.stage_one_tokens, *stages.stage_two_tokens] if stages else list(scene_paths(job.split_dir))
     )
-    seeds = read_trajectories(storage_dir, job.stored_name, job.sha256)
+    seeds = read_trajectories(store, job.stored_name, job.sha256)
     if seeds is None:
         try:
             seeds = read_upload(data, job.filename, tokens, stages)[1]

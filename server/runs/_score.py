@@ -10,6 +10,7 @@ from time import perf_counter
 from typing import TYPE_CHECKING, Any
 
 from server.models import SplitKind
+from server.object_store import ObjectStore
 from server.runs._job import ChunkInputs, ScoringJob, trajectories
 from server.runs._two_stage import stage_rows
 
@@ -31,7 +32,7 @@ class ScoredChunk:
     admin_note: str | None = None  # what admins read of the run's problems (the team sees per-token errors)
 
 
-def score_chunk(inputs: ChunkInputs, storage_dir: Path, cache_dir: Path) -> ScoredChunk:
+def score_chunk(inputs: ChunkInputs, store: ObjectStore, cache_dir: Path) -> ScoredChunk:
     """Score the chunk's tokens without rows (raises Rejected when the run's file cannot be used)."""
     # The engine is heavy: the API imports this package without it.
     from scorer.evaluate import TokenResult, score_seeds
@@ -47,7 +48,7 @@ def score_chunk(inputs: ChunkInputs, storage_dir: Path, cache_dir: Path) -> Scor
         return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
-    seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, storage_dir)))
+    seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
     started = perf_counter()
     if job.split_kind == SplitKind.two_stage:
         rows = {version: _two_stage_rows(job, cache_dir, seeds, version, inputs) for version in job.versions}

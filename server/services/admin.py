@@ -30,6 +30,7 @@ from server.models import (
     Team,
     TeamQuota,
 )
+from server.object_store import ObjectStore
 from server.runs import cancel, reset_for_rerun
 from server.services.errors import Conflict, NotFound
 from server.services.leaderboard import (
@@ -158,9 +159,9 @@ def add_split(
     directory: Path,
     public_tokens: list[str] | None,
     scenes_public: bool,
-    baselines_to: Path | None,
+    baselines_to: ObjectStore | None,
 ) -> tuple[Split, list[Submission]]:
-    """Register a split; with `baselines_to` (the storage directory), create its two baseline submissions too.
+    """Register a split; with `baselines_to` (the submissions' store), create its two baseline submissions too.
     The caller enqueues the baselines after the commit."""
     split = register_split(session, name, directory, public_tokens, scenes_public)
     baselines = add_baselines(session, split, baselines_to) if baselines_to is not None else []

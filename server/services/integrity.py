@@ -134,7 +134,7 @@ def _findings(
     for submission in submissions:
         try:
             seeds = submission_trajectories(
-                settings.storage_dir, submission.stored_name, submission.sha256, submission.filename
+                settings.submission_store, submission.stored_name, submission.sha256, submission.filename
             )
         except (OSError, SubmissionError) as error:
             skipped.append({"submission": submission.id, "reason": type(error).__name__})

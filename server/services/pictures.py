@@ -75,7 +75,7 @@ def scene_picture(
     if path.exists():
         return path.read_bytes()
     seeds = submission_trajectories(
-        settings.storage_dir, submission.stored_name, submission.sha256, submission.filename
+        settings.submission_store, submission.stored_name, submission.sha256, submission.filename
     )
     if token not in seeds[seed]:
         raise NotFound(f"submission {submission.id} has no prediction for token {token} (seed {seed})")

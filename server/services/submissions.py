@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
@@ -11,6 +12,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from server.models import Phase, Split, Status, Submission, Team, utc_now
+from server.object_store import ObjectStore
 from server.services.errors import Conflict, Forbidden, NotFound
 from server.services.quota import check_quota, lock_team
 from server.services.splits import has_closed, is_open
@@ -24,11 +26,12 @@ BASELINES = (("constant-velocity", "Constant Velocity"), ("human", "Human"))
 EDITABLE_FIELDS = ("method", "authors", "institution", "country", "tech_report_url", "code_url", "hidden")
 
 
-def _store(storage_dir: Path, upload: ValidUpload) -> str:
-    """Store the uploaded file and the trajectories its check parsed; return the file's stored name."""
-    name = store_file(storage_dir, upload.sha256, upload.data)
+def _store(store: ObjectStore, upload: ValidUpload) -> str:
+    """Store the uploaded file and the trajectories its check parsed; return the file's stored name. Both are
+    stored before the row that names them is added (StoreUnavailable leaves no row)."""
+    name = store_file(store, upload.sha256, io.BytesIO(upload.data))
     if upload.trajectories:
-        store_trajectories(storage_dir, name, upload.sha256, upload.trajectories)
+        store_trajectories(store, name, upload.sha256, upload.trajectories)
     return name
 
 
@@ -54,7 +57,7 @@ def create_submission(
     team: Team,
     phase: Phase,
     upload: ValidUpload,
-    storage_dir: Path,
+    store: ObjectStore,
     idempotency_key: str | None = None,
     now: datetime | None = None,
 ) -> tuple[Submission, bool]:
@@ -98,7 +101,7 @@ def create_submission(
             submission_id=duplicate.id,
         )
     check_quota(session, team.id, phase, now)
-    submission = _new_submission(team, phase.split, phase, upload, _store(storage_dir, upload))
+    submission = _new_submission(team, phase.split, phase, upload, _store(store, upload))
     submission.idempotency_key = idempotency_key or None
     submission.created_at = submission.queued_at = now
     session.add(submission)
@@ -106,7 +109,7 @@ def create_submission(
     return submission, False
 
 
-def add_baselines(session: Session, split: Split, storage_dir: Path) -> list[Submission]:
+def add_baselines(session: Session, split: Split, store: ObjectStore) -> list[Submission]:
     """Create the queued constant-velocity and human baseline submissions of a split (the caller enqueues them),
     in the split's form (one-stage or two-stage)."""
     from scorer.baselines import baseline_submission, two_stage_baseline_submission
@@ -125,7 +128,7 @@ def add_baselines(session: Session, split: Split, storage_dir: Path) -> list[Sub
             baseline = two_stage_baseline_submission(Path(split.directory), kind, method)
             data = dump_two_stage_submission_json(baseline)
         upload = validate_upload(data, f"{kind}.json", tokens, {"method": method}, stages)
-        submission = _new_submission(team, split, None, upload, _store(storage_dir, upload))
+        submission = _new_submission(team, split, None, upload, _store(store, upload))
         submission.is_baseline = True
         submission.charged = False
         session.add(submission)
