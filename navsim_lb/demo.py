@@ -1,7 +1,9 @@
 """`navsim-lb demo` (`make demo`): the whole service on one machine, with nothing to install but the venv.
 
 Migrates the configured database (an SQLite file under .navsim-lb by default), synthesises a demo split
-if there is none, registers it with its two baselines, starts one worker (a consumer per core and the reaper of
+if there is none, registers it with its two baselines, and beside it a small two-stage split (the 36 public
+scenes of the repository's two-stage excerpt, tests/fixtures/epdms-two-stage-reactive: 3 groups of NAVSIM's
+navhard-style mapping) with its phase and baselines, starts one worker (a consumer per core and the reaper of
 lost work: worker.supervisor) on the configured broker (the embedded SQLite one by default), started again if a
 signal kills it, and the API, creates a demo team and an
 admin with their tokens in `.navsim-lb/demo-tokens.json`, submits a demo entry through the API, prints
@@ -15,7 +17,7 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -36,6 +38,8 @@ if TYPE_CHECKING:
 
 SPLIT = "demo"
 PHASE = "demo"
+TWO_STAGE = "demo-two-stage"  # split and phase
+TWO_STAGE_SOURCE = Path(__file__).resolve().parent.parent / "tests" / "fixtures" / "epdms-two-stage-reactive"
 TEAM = "demo-team"
 SPLIT_SEED = 0
 NOISE_SEED = 7
@@ -55,23 +59,40 @@ def _split_dir(data_dir: Path, scenes: int) -> Path:
     return directory
 
 
-def _warm_cache(split_dir: Path, cache_dir: Path, scenes: int) -> None:
-    """Build the split's metric caches (v1.0, v1.1, v2.2) on every core, as an operator would beforehand."""
-    from scorer.evaluate import build_split_cache
-    from scorer.versions import LOG_REPLAY_VERSIONS
+def _two_stage_split_dir(data_dir: Path) -> Path | None:
+    """Return the two-stage demo split directory, copied from the repository's excerpt on first use; None
+    where the excerpt is not there (an installed package without the repository's tests)."""
+    import shutil
 
-    with progress_bar("building the metric cache", scenes) as advance:
+    directory = data_dir / "splits" / TWO_STAGE
+    if not (directory / "scenes").is_dir():
+        if not TWO_STAGE_SOURCE.is_dir():
+            return None
+        directory.mkdir(parents=True, exist_ok=True)
+        shutil.copytree(TWO_STAGE_SOURCE / "scenes", directory / "scenes")
+        shutil.copy(TWO_STAGE_SOURCE / "two_stage.json", directory / "two_stage.json")
+    return directory
+
+
+def _warm_cache(split_dir: Path, cache_dir: Path, scenes: int, versions: Sequence[str]) -> None:
+    """Build the split's metric caches under `versions` on every core, as an operator would beforehand."""
+    from scorer.evaluate import build_split_cache
+
+    with progress_bar(f"building the metric cache of {split_dir.name}", scenes) as advance:
         failures = build_split_cache(
-            split_dir, cache_dir, list(LOG_REPLAY_VERSIONS), workers=os.cpu_count() or 1, progress=advance
+            split_dir, cache_dir, list(versions), workers=os.cpu_count() or 1, progress=advance
         )
     if failures:
         raise fail(f"{len(failures)} demo scenes cannot be cached, e.g. {next(iter(failures.items()))}")
 
 
 def _set_up(
-    factory: sessionmaker[Session], split_dir: Path, store: ObjectStore
+    factory: sessionmaker[Session], split_dir: Path, two_stage_dir: Path | None, store: ObjectStore
 ) -> tuple[list[int], dict[str, str]]:
-    """Register split, baselines, phase and team if missing; return the baselines to queue and new tokens."""
+    """Register the splits, their baselines and phases and the team if missing; return the baselines to queue
+    and new tokens. The two-stage phase opens just before the one-stage one, which stays the default."""
+    from datetime import timedelta
+
     from sqlalchemy import select
 
     from server.db import transaction
@@ -82,14 +103,19 @@ def _set_up(
     from server.services.tokens import create_token
 
     with transaction(factory) as session:
-        split = session.scalar(select(Split).where(Split.name == SPLIT))
         queued = []
-        if split is None:
-            # Synthetic scenes: teams may see them in the drill-down pictures.
-            split, baselines = add_split(session, None, SPLIT, split_dir, None, True, store)
-            queued = [submission.id for submission in baselines]
-        if session.scalar(select(Phase.id).where(Phase.name == PHASE)) is None:
-            create_phase(session, PHASE, split)
+        for name, directory in ((SPLIT, split_dir), (TWO_STAGE, two_stage_dir)):
+            if directory is None:
+                continue
+            split = session.scalar(select(Split).where(Split.name == name))
+            if split is None:
+                # Synthetic or public scenes: teams may see them in the drill-down pictures.
+                split, baselines = add_split(session, None, name, directory, None, True, store)
+                queued += [submission.id for submission in baselines]
+            if session.scalar(select(Phase.id).where(Phase.name == name)) is None:
+                default = session.scalar(select(Phase).where(Phase.name == PHASE))
+                opens_at = default.opens_at - timedelta(minutes=1) if default is not None else None
+                create_phase(session, name, split, opens_at=opens_at)
         team = session.scalar(select(Team).where(Team.name == TEAM)) or create_team(
             session, TEAM, ["Demo Member"], "Demo Lab", Approval.approved
         )
@@ -99,25 +125,36 @@ def _set_up(
     return queued, {"team": team_token, "admin": admin_token}
 
 
-def _demo_entry(split_dir: Path, out: Path) -> Path:
-    """Write the demo entry: the human trajectories with seeded noise (a plausible, imperfect method)."""
+def _demo_entry(split_dir: Path, out: Path, two_stage: bool = False) -> Path:
+    """Write the demo entry of a split (in its form, one-stage or two-stage): the human trajectories with
+    seeded noise (a plausible, imperfect method)."""
     from dataclasses import replace
 
     import numpy as np
 
-    from scorer.baselines import baseline_submission
+    from scorer.baselines import baseline_submission, two_stage_baseline_submission
     from scorer.geometry import FloatArray
     from scorer.submission import Submission as Predictions
-    from scorer.submission import dump_submission_json
+    from scorer.submission import TwoStageSubmission, dump_submission_json, dump_two_stage_submission_json
 
-    human = baseline_submission(split_dir, "human", "Noisy human (demo)")
     rng = np.random.default_rng(NOISE_SEED)
     scale = np.array([NOISE_XY_M, NOISE_XY_M, NOISE_HEADING_RAD])
-    noisy: dict[str, FloatArray] = {
-        token: poses + rng.normal(0.0, scale, poses.shape) for token, poses in human.seeds[0].items()
-    }
+
+    def noisy(seed: dict[str, FloatArray]) -> dict[str, FloatArray]:
+        return {token: poses + rng.normal(0.0, scale, poses.shape) for token, poses in seed.items()}
+
+    method = "Noisy human (demo)"
+    if two_stage:
+        stages = two_stage_baseline_submission(split_dir, "human", method)
+        metadata = replace(stages.metadata, team_name=TEAM, authors="Demo Member", institution="Demo Lab")
+        entry = TwoStageSubmission(
+            metadata, (noisy(stages.first_stage[0]),), (noisy(stages.second_stage[0]),)
+        )
+        out.write_bytes(dump_two_stage_submission_json(entry))
+        return out
+    human = baseline_submission(split_dir, "human", method)
     metadata = replace(human.metadata, team_name=TEAM, authors="Demo Member", institution="Demo Lab")
-    out.write_bytes(dump_submission_json(Predictions(metadata, (noisy,))))
+    out.write_bytes(dump_submission_json(Predictions(metadata, (noisy(human.seeds[0]),))))
     return out
 
 
@@ -142,24 +179,35 @@ def _wait_for_api(url: str, children: dict[str, subprocess.Popen[bytes]], logs: 
     raise fail(f"the API did not answer on {url} within {STARTUP_TIMEOUT_S:.0f} s; see {logs / 'api.log'}")
 
 
-def _states(factory: sessionmaker[Session]) -> dict[int, tuple[str, str, float | None]]:
-    """Return submission id -> (method, status, PDMS of the default version on all tokens) of every submission."""
+def _states(factory: sessionmaker[Session]) -> dict[int, tuple[str, str, str | None]]:
+    """Return submission id -> (method, status, its score on all tokens under the default version, or the
+    two-stage version on a two-stage split) of every submission."""
     from sqlalchemy import select
 
+    from scorer.versions import TWO_STAGE_VERSIONS, get_version
     from server.models import Submission, Summary
 
     with factory() as session:
         rows = session.execute(
-            select(Submission.id, Submission.method, Submission.status, Summary.score)
+            select(Submission.id, Submission.method, Submission.status, Summary.metric_version, Summary.score)
             .outerjoin(
                 Summary,
                 (Summary.submission_id == Submission.id)
-                & (Summary.metric_version == DEFAULT_VERSION)
+                & Summary.metric_version.in_((DEFAULT_VERSION, *TWO_STAGE_VERSIONS))
                 & (Summary.subset == "all"),
             )
             .order_by(Submission.id)
         ).all()
-    return {row.id: (row.method, row.status, row.score) for row in rows}
+    return {
+        row.id: (
+            row.method,
+            row.status,
+            None
+            if row.score is None
+            else f"{get_version(row.metric_version).score_label} ({row.metric_version}) {row.score:.4f}",
+        )
+        for row in rows
+    }
 
 
 def _watch(
@@ -179,7 +227,7 @@ def _watch(
         states = _states(factory)
         for submission_id, (method, status, score) in states.items():
             if reported.get(submission_id) != status and status not in ACTIVE_STATUSES:
-                result = f"PDMS ({DEFAULT_VERSION}) {score:.4f}" if score is not None else status
+                result = score if score is not None else status
                 console.print(escape(f"submission {submission_id} ({method}): {result}"))
             reported[submission_id] = status
         if until_scored and all(status not in ACTIVE_STATUSES for _, status, _ in states.values()):
@@ -204,9 +252,10 @@ def demo(
 
     from navsim_lb.client import upload
     from navsim_lb.processes import api_command, child_process
+    from scorer.versions import LOG_REPLAY_VERSIONS, TWO_STAGE_VERSIONS
     from server.db import make_engine, make_session_factory
     from server.migrate import upgrade
-    from server.models import Status, Submission, Team
+    from server.models import Phase, Status, Submission, Team
     from server.queue import enqueue_submission
     from server.settings import get_settings
     from worker.cli import worker_command
@@ -218,10 +267,16 @@ def demo(
     upgrade(settings.database_url)
     split_dir = _split_dir(data_dir, scenes)
     scene_count = len(list((split_dir / "scenes").iterdir()))
-    _warm_cache(split_dir, settings.cache_dir, scene_count)
+    _warm_cache(split_dir, settings.cache_dir, scene_count, LOG_REPLAY_VERSIONS)
+    two_stage_dir = _two_stage_split_dir(data_dir)
+    if two_stage_dir is None:
+        console.print(f"no two-stage demo split: {TWO_STAGE_SOURCE} is not there")
+    else:
+        scene_count = len(list((two_stage_dir / "scenes").iterdir()))
+        _warm_cache(two_stage_dir, settings.cache_dir, scene_count, TWO_STAGE_VERSIONS)
     engine = make_engine(settings.database_url)
     factory = make_session_factory(engine)
-    queued, tokens = _set_up(factory, split_dir, settings.submission_store)
+    queued, tokens = _set_up(factory, split_dir, two_stage_dir, settings.submission_store)
     tokens_file = data_dir / "demo-tokens.json"
     tokens_file.write_text(json.dumps(tokens, indent=1) + "\n")
     tokens_file.chmod(0o600)
@@ -250,19 +305,25 @@ def demo(
                     children["worker"] = stack.enter_context(child_process(worker, env, logs / "worker.log"))
 
             _wait_for_api(url, children, logs)
-            with factory() as session:
-                entered = session.scalar(
-                    select(Submission.id)
-                    .join(Team)
-                    .where(Team.name == TEAM, Submission.status != Status.failed)
-                )
-            if entered is None:
-                entry = _demo_entry(split_dir, data_dir / "demo-submission.json")
+            phases = [(PHASE, split_dir, False)] + (
+                [(TWO_STAGE, two_stage_dir, True)] if two_stage_dir else []
+            )
+            for phase, directory, two_stage in phases:
+                with factory() as session:
+                    entered = session.scalar(
+                        select(Submission.id)
+                        .join(Team)
+                        .join(Phase)
+                        .where(Team.name == TEAM, Phase.name == phase, Submission.status != Status.failed)
+                    )
+                if entered is not None:
+                    continue
+                entry = _demo_entry(directory, data_dir / f"{phase}-submission.json", two_stage)
                 with httpx.Client(
                     base_url=url, headers={"Authorization": f"Bearer {tokens['team']}"}
                 ) as client:
-                    accepted = upload(client, entry, {"method": "Noisy human (demo)"})
-                console.print(f"demo entry submitted as submission {accepted['id']}")
+                    accepted = upload(client, entry, {"method": "Noisy human (demo)", "phase": phase})
+                console.print(f"demo entry of phase {phase} submitted as submission {accepted['id']}")
             console.print(
                 f"\n[bold]leaderboard: {url}/[/bold]   API docs: {url}/docs   admin: {url}/admin\n"
                 f"tokens (team, admin): {tokens_file}   logs: {logs}\n"

@@ -63,11 +63,15 @@ def test_demo_runs_end_to_end_and_stops_what_it_started(tmp_path: Path) -> None:
     engine = make_engine(f"sqlite:///{data_dir / 'navsim-lb.sqlite'}")
     with make_session_factory(engine)() as session:
         submissions = session.scalars(select(Submission).order_by(Submission.id)).all()
-        states = [(s.is_baseline, s.status, s.method) for s in submissions]
+        states = [(s.split.name, s.is_baseline, s.status, s.method) for s in submissions]
     engine.dispose()
+    # Beside the one-stage demo split, the two-stage one: baselines and an entry on each.
     assert states == [
-        (True, Status.scored, "Constant Velocity"),
-        (True, Status.scored, "Human"),
-        (False, Status.scored, "Noisy human (demo)"),
+        ("demo", True, Status.scored, "Constant Velocity"),
+        ("demo", True, Status.scored, "Human"),
+        ("demo-two-stage", True, Status.scored, "Constant Velocity"),
+        ("demo-two-stage", True, Status.scored, "Human"),
+        ("demo", False, Status.scored, "Noisy human (demo)"),
+        ("demo-two-stage", False, Status.scored, "Noisy human (demo)"),
     ]
     assert _processes_started_under(data_dir) == []
