@@ -629,3 +629,16 @@ def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_e
     assert "100 %" in ticks.all_text_contents()
     heights = [ticks.nth(i).bounding_box()["height"] for i in range(ticks.count())]  # type: ignore[index]
     assert min(heights) >= 11, heights
+
+
+def test_a_board_row_with_a_page_opens_it_when_clicked_anywhere(demo: Demo, browser: Browser) -> None:
+    """The server marks the rows of published entries with their page (tests/test_api_drilldown.py); the
+    demo's phase is open, so this row is marked here as the server marks it once the phase has closed."""
+    page = _page(browser, DESKTOP)
+    page.goto(demo.url)
+    row = page.locator("table.board tbody tr").first
+    target = f"/submissions/{_latest_id(demo)}"
+    row.evaluate("(row, target) => { row.dataset.href = target; }", target)
+    assert row.evaluate("(row) => getComputedStyle(row).cursor") == "pointer"
+    row.locator("td.num").last.click()
+    page.wait_for_url(f"**{target}")
