@@ -17,7 +17,6 @@ from navsim_lb.terminal import console, fail, output, progress_bar, warn, warn_a
 from scorer.versions import DEFAULT_VERSION, LOG_REPLAY_VERSIONS, VERSIONS, VersionName, cached_together
 
 if TYPE_CHECKING:
-    from scorer.geometry import FloatArray
     from scorer.submission import Submission, TwoStageSubmission
     from scorer.versions import MetricVersion
 
@@ -231,16 +230,6 @@ def _score_two_stage(
     output.print(two_stage_summary_table(results, version, title))
 
 
-def _predictions_per_seed(path: Path, version: VersionName) -> list[dict[str, FloatArray]]:
-    """Return each seed's token -> poses of a submission file: both stages' under a two-stage version."""
-    if not VERSIONS[version].two_stage:
-        return list(_read_submission(path).seeds)
-    from scorer.two_stage.score import submitted_rows
-
-    loaded = _read_two_stage_submission(path)
-    return [submitted_rows(loaded, seed) for seed in range(len(loaded.first_stage))]
-
-
 def plot(
     split: Annotated[Path, typer.Argument(help="split directory")],
     submission: Annotated[Path, typer.Argument(help="submission file (JSON or NAVSIM pickle)")],
@@ -266,7 +255,9 @@ def plot(
     image_format = out.suffix.lower().removeprefix(".")
     if image_format not in ("png", "svg"):
         raise fail(f"{out}: the picture must end in .png or .svg")
-    seeds = _predictions_per_seed(submission, version)
+    from scorer.two_stage.score import predictions_per_seed
+
+    seeds = _read(submission, lambda content, name: predictions_per_seed(content, name, version))
     if not 0 <= seed < len(seeds):
         raise fail(f"{submission} has {len(seeds)} seed(s); --seed {seed} does not exist")
     if token not in seeds[seed]:

@@ -747,3 +747,16 @@ def test_the_submission_page_spells_out_its_metrics_and_why_ec_is_undefined(
     assert "no token has the frame of its log 0.5 s earlier" in (
         ec.locator(".meter").first.get_attribute("title") or ""
     )
+
+
+def test_a_board_row_with_a_page_opens_it_when_clicked_anywhere(demo: Demo, browser: Browser) -> None:
+    """The server marks the rows of published entries with their page (tests/test_api_drilldown.py); the
+    demo's phase is open, so this row is marked here as the server marks it once the phase has closed."""
+    page = _page(browser, DESKTOP)
+    page.goto(demo.url)
+    row = page.locator("table.board tbody tr").first
+    target = f"/submissions/{_latest_id(demo)}"
+    row.evaluate("(row, target) => { row.dataset.href = target; }", target)
+    assert row.evaluate("(row) => getComputedStyle(row).cursor") == "pointer"
+    row.locator("td.num").last.click()
+    page.wait_for_url(f"**{target}")

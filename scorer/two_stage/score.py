@@ -28,7 +28,7 @@ from scorer.evaluate import (
 )
 from scorer.geometry import FloatArray
 from scorer.scene import SceneFormatError, load_scene, scene_paths
-from scorer.submission import TwoStageSubmission
+from scorer.submission import TwoStageSubmission, load_submission, load_two_stage_submission
 from scorer.trajectory import initial_state
 from scorer.two_stage.aggregate import TwoStageResult, TwoStageToken, aggregate_two_stage
 from scorer.two_stage.split import TwoStageSplit, load_two_stage_split
@@ -51,6 +51,16 @@ def submitted_rows(submission: TwoStageSubmission, seed: int) -> Predictions:
     rows = dict(submission.first_stage[seed])
     rows |= {token: poses for token, poses in submission.second_stage[seed].items() if token not in rows}
     return rows
+
+
+def predictions_per_seed(content: bytes, filename: str, version: str) -> list[Predictions]:
+    """Return each seed's token -> poses that `version` scores in a submission file: under a two-stage version
+    both stages' (`submitted_rows`), else the one-stage file's. Raises SubmissionError for a file that is not
+    a submission of the version's kind."""
+    if not get_version(version).two_stage:
+        return list(load_submission(content, filename).seeds)
+    loaded = load_two_stage_submission(content, filename)
+    return [submitted_rows(loaded, seed) for seed in range(len(loaded.first_stage))]
 
 
 def _score_part(task: tuple[Path, Path, dict[int | None, Predictions], str, list[str]]) -> ScoredRows:

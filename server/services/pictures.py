@@ -10,15 +10,17 @@ synthetic starts with their weights (the engine reads them from the split's stag
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Literal
 
 from scorer.files import write_atomically
+from scorer.geometry import FloatArray
 from server.models import Status, Submission
 from server.services.errors import Conflict, Forbidden, NotFound
 from server.services.splits import ALL_SUBSET, visible_subsets
 from server.settings import Settings
-from server.storage import submission_trajectories
+from server.storage import read_file, read_trajectories
 
 
 def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path:
@@ -65,6 +67,8 @@ def scene_picture(
     from scorer.explain import explain_split_token
     from scorer.picture import render
     from scorer.scene import scene_file_hash
+    from scorer.submission import SubmissionError
+    from scorer.two_stage.score import predictions_per_seed
 
     scene = _checked(submission, token, seed, admin)
     path = (
@@ -74,10 +78,16 @@ def scene_picture(
     )
     if path.exists():
         return path.read_bytes()
-    seeds = submission_trajectories(
-        settings.submission_store, submission.stored_name, submission.sha256, submission.filename
+    seeds: Sequence[Mapping[str, FloatArray]] | None = read_trajectories(
+        settings.submission_store, submission.stored_name, submission.sha256
     )
-    if token not in seeds[seed]:
+    if seeds is None:  # an upload stored before the parsed copies, or a copy lost
+        content = read_file(settings.submission_store, submission.stored_name)
+        try:
+            seeds = predictions_per_seed(content, submission.filename, version)
+        except SubmissionError:
+            raise Conflict(f"submission {submission.id} is not a submission {version} scores") from None
+    if not 0 <= seed < len(seeds) or token not in seeds[seed]:
         raise NotFound(f"submission {submission.id} has no prediction for token {token} (seed {seed})")
     try:
         explanation = explain_split_token(
