@@ -11,7 +11,7 @@ As NAVSIM: frame annotations go to the global frame with the frame's own ego (`f
 iteration k beyond the last frame takes extended entry k - 1 - (frames after the current one), its time the
 last frame's + k x 0.5 s, its ego the last frame's (never read for a 17-character token); lights are RED or
 not. The scene format keeps 10 future frames; v2.2 observes 8 (`versions.py`, `observation_frames`), so a
-pickle with 8 to 9 future frames is padded by holding the last one, with a warning (only v1.x would read it).
+pickle with 8 or 9 future frames holds its last one to the 10th, with a warning (`frames.padded_future`).
 """
 
 from __future__ import annotations
@@ -28,17 +28,18 @@ from scorer.openscene.excerpt import build_excerpt, excerpt_to_json
 from scorer.openscene.frames import (
     CURRENT_INDEX,
     FRAME_INTERVAL_S,
+    OBSERVED_FUTURE_FRAMES,
     EgoPose,
     driving_command,
     global_objects,
+    held_frame,
+    padded_future,
     vehicle_centres,
 )
 from scorer.openscene.gpkg import MapTables, map_location
 from scorer.openscene.scene_pickle import EnumValue, Record
-from scorer.scene import AGENT_CATEGORIES, CATEGORIES, FUTURE_FRAMES, SCENE_FORMAT, SCENE_VERSION
+from scorer.scene import AGENT_CATEGORIES, CATEGORIES, SCENE_FORMAT, SCENE_VERSION
 
-OBSERVED_FUTURE_FRAMES = 8  # what v2.2 observes (4 s); fewer and NAVSIM itself cannot build the metric cache
-FRAME_INTERVAL_US = 500_000  # NavSimScenario: last frame + k x TimeDuration.from_s(0.5)
 RED = 2  # nuPlan TrafficLightStatusType.RED
 # nuPlan TrackedObjectType values (EGO = 7 is no annotation).
 OBJECT_TYPES = dict(enumerate(CATEGORIES[:3] + ("traffic_cone", "barrier", "czone_sign", "generic_object")))
@@ -134,13 +135,7 @@ def synthetic_scenes(path: Path, content: Any, tables: Callable[[str], MapTables
                 f"{len(future)} future frame(s) (frames after it and extended_detections_tracks); "
                 f"the observation needs {OBSERVED_FUTURE_FRAMES}",
             )
-        warnings = []
-        if len(future) < FUTURE_FRAMES:
-            warnings.append(
-                f"{len(future)} future frames; frames +{len(future) + 1}..+{FUTURE_FRAMES} hold the last one "
-                f"(v2 observes {OBSERVED_FUTURE_FRAMES}; only v1.x versions would read them)"
-            )
-            future += [_held(future[-1], step) for step in range(1, FUTURE_FRAMES - len(future) + 1)]
+        future, warnings = padded_future(future)
         ego = frames[current]["ego"]
         pose = EgoPose(ego["x"], ego["y"], ego["heading"])
         excerpt = build_excerpt(
@@ -251,8 +246,7 @@ def _extended_frames(
     frames = []
     for index, tracks in enumerate(detections):
         where = f"extended_detections_tracks[{index}]"
-        frame = _held(last, index + 1)
-        frame["token"] = f"{last['token']}+{index + 1}"
+        frame = held_frame(last, index + 1)
         frame["objects"] = _tracked_objects(at, tracks, where)
         frame["traffic_lights"] = (
             _status_lights(at, statuses[index], f"extended_traffic_light_data[{index}]")
@@ -261,15 +255,6 @@ def _extended_frames(
         )
         frames.append(frame)
     return frames
-
-
-def _held(frame: dict[str, Any], steps: int) -> dict[str, Any]:
-    """Return `frame` held `steps` frame intervals later: same ego, objects and lights."""
-    return {
-        **frame,
-        "token": f"{frame['token']}+{steps}",
-        "timestamp_us": frame["timestamp_us"] + steps * FRAME_INTERVAL_US,
-    }
 
 
 def _tracked_objects(at: _Where, raw: Any, where: str) -> list[dict[str, Any]]:
