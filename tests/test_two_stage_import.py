@@ -378,3 +378,16 @@ def test_nuplan_objects_pickled_by_nuplan_itself_are_read(tmp_path: Path) -> Non
     # prev2's first future frame is now2's current frame; its extended future starts one frame later.
     assert prev2.scene["frames"][4] == now2.scene["frames"][3]
     assert prev2.scene["frames"][5]["objects"] == frame["objects"]
+
+
+def test_the_import_resumes_without_redoing_scenes(imported) -> None:
+    splits, _ = imported
+    group = splits[0].parent
+    before = {path.name: path.stat().st_mtime_ns for path in (splits[0] / "scenes").iterdir()}
+    lost = MAPPING[0][2][2][1]
+    (splits[0] / "scenes" / f"{lost}.json.gz").unlink()
+    settings = ImportSettings(group / "maps", splits[0])
+    report = import_two_stage(group / "logs", group / "synthetic", group / "navhard_two_stage.yaml", settings)
+    assert report["this_run"] == {"written": 1, "present": 11, "skipped": 0}
+    after = {path.name: path.stat().st_mtime_ns for path in (splits[0] / "scenes").iterdir()}
+    assert {name for name in before if after[name] != before[name]} == {f"{lost}.json.gz"}

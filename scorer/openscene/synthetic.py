@@ -53,10 +53,10 @@ class SyntheticSceneError(ValueError):
 
 @dataclass(frozen=True)
 class SyntheticScene:
-    """One scene of a pickle, ready to write, and what the conversion had to say about it."""
+    """One scene of a pickle, ready to write (None where not asked for), and what the conversion had to say."""
 
     token: str
-    scene: dict[str, Any]
+    scene: dict[str, Any] | None
     warnings: tuple[str, ...]
 
 
@@ -96,8 +96,14 @@ class _Where:
         return float(self.numbers(value, where, ()))
 
 
-def synthetic_scenes(path: Path, content: Any, tables: Callable[[str], MapTables]) -> list[SyntheticScene]:
-    """Return the scenes of a loaded synthetic scene pickle; `tables(location)` gives a map's tables."""
+def synthetic_scenes(
+    path: Path,
+    content: Any,
+    tables: Callable[[str], MapTables],
+    build: Callable[[str], bool] = lambda token: True,
+) -> list[SyntheticScene]:
+    """Return the scenes of a loaded synthetic scene pickle, every one checked, those `build` wants (by token)
+    made, with their map excerpts (`tables(location)` gives a map's tables)."""
     at = _Where(path)
     if isinstance(content, list):
         raise at.fail(
@@ -136,6 +142,9 @@ def synthetic_scenes(path: Path, content: Any, tables: Callable[[str], MapTables
                 f"the observation needs {OBSERVED_FUTURE_FRAMES}",
             )
         future, warnings = padded_future(future)
+        if not build(token):
+            scenes.append(SyntheticScene(token, None, warnings))
+            continue
         ego = frames[current]["ego"]
         pose = EgoPose(ego["x"], ego["y"], ego["heading"])
         excerpt = build_excerpt(
