@@ -8,9 +8,8 @@ makes two scenes, frames[:-1] (prev2) and frames[1:] (now2); a pickle here makes
 the 4th on, each with the 3 frames before it as history.
 
 As NAVSIM: frame annotations go to the global frame with the frame's own ego (`frames.boxes_to_global`);
-iteration k beyond the last frame takes extended entry k - 1 - (frames after the current one), its time the
-last frame's + k x 0.5 s, its ego the last frame's (never read for a 17-character token); lights are RED or
-not. The scene format keeps 10 future frames; v2.2 observes 8 (`versions.py`, `observation_frames`), so a
+the k-th frame after the last pickled one is extended entry k - 1, its time the last frame's + k x 0.5 s,
+its ego the last frame's (never read for a 17-character token); lights are RED or not. The scene format keeps 10 future frames; v2.2 observes 8 (`versions.py`, `observation_frames`), so a
 pickle with 8 or 9 future frames holds its last one to the 10th, with a warning (`frames.padded_future`).
 """
 
@@ -41,8 +40,8 @@ from scorer.openscene.scene_pickle import EnumValue, Record
 from scorer.scene import AGENT_CATEGORIES, CATEGORIES, SCENE_FORMAT, SCENE_VERSION
 
 RED = 2  # nuPlan TrafficLightStatusType.RED
-# nuPlan TrackedObjectType values (EGO = 7 is no annotation).
-OBJECT_TYPES = dict(enumerate(CATEGORIES[:3] + ("traffic_cone", "barrier", "czone_sign", "generic_object")))
+# nuPlan TrackedObjectType values 0-6 are the categories in the scene format's order (EGO = 7 is no object).
+OBJECT_TYPES = dict(enumerate(CATEGORIES))
 # NAVSIM's Annotations dataclass, as `asdict` writes it into a frame.
 PICKLE_ANNOTATION_KEYS = ("boxes", "names", "velocity_3d", "instance_tokens", "track_tokens")
 
@@ -178,14 +177,14 @@ def _frame(at: _Where, raw: Any, where: str) -> dict[str, Any]:
     if isinstance(timestamp, bool) or not isinstance(timestamp, (int, np.integer)):
         raise at.fail(f"{where}.timestamp", f"expected an integer (us), got {timestamp!r}")
     status = at.get(raw, "ego_status", where)
-    x, y, heading = at.numbers(at.get(status, "ego_pose", f"{where}.ego_status"), f"{where}.ego_pose", (3,))
-    dynamics = [
-        *at.numbers(at.get(status, "ego_velocity", f"{where}.ego_status"), f"{where}.ego_velocity", (2,)),
-        *at.numbers(
-            at.get(status, "ego_acceleration", f"{where}.ego_status"), f"{where}.ego_acceleration", (2,)
-        ),
-    ]
-    command = driving_command({"driving_command": at.get(status, "driving_command", f"{where}.ego_status")})
+    ego_where = f"{where}.ego_status"
+
+    def ego_values(key: str, size: int) -> np.ndarray:
+        return at.numbers(at.get(status, key, ego_where), f"{ego_where}.{key}", (size,))
+
+    x, y, heading = ego_values("ego_pose", 3)
+    dynamics = [*ego_values("ego_velocity", 2), *ego_values("ego_acceleration", 2)]
+    command = driving_command({"driving_command": at.get(status, "driving_command", ego_where)})
     if command is None:
         raise at.fail(
             f"{where}.ego_status.driving_command", "expected a one-hot [left, straight, right, unknown]"
