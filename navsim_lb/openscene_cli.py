@@ -38,6 +38,15 @@ def import_openscene(
     check_commands: Annotated[
         bool, typer.Option(help="recompute stored driving commands and report mismatches")
     ] = True,
+    future_frames: Annotated[
+        int,
+        typer.Option(
+            help="future frames a logged scene needs (NAVSIM's num_future_frames: navtest 10, navhard 8); "
+            "a window the log ends before 10 holds its last frame",
+            min=8,
+            max=10,
+        ),
+    ] = 10,
     stage_mapping: Annotated[
         Path | None,
         typer.Option(
@@ -67,7 +76,7 @@ def import_openscene(
         wanted = None if tokens is None else read_scene_filter(tokens)
     except (OSError, ValueError) as error:
         raise fail(str(error)) from None
-    settings = ImportSettings(maps, out, frame_interval, require_route, check_commands)
+    settings = ImportSettings(maps, out, frame_interval, require_route, check_commands, future_frames)
     total = sum(1 for path in logs.iterdir() if path.suffix == ".pkl")
     with progress_bar("importing logs", total) as advance:
         if stage_mapping is None or synthetic is None:

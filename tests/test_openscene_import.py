@@ -313,3 +313,29 @@ def test_cli_imports_and_reports(data, tmp_path: Path) -> None:
         ],
     )
     assert result.exit_code == 2 and "not a directory" in " ".join(result.output.split())
+
+
+def test_navhard_windows_need_8_future_frames_and_hold_the_last(data, tmp_path: Path) -> None:
+    # navhard's scene filter asks for 8 future frames; the format keeps 10, so the last is held.
+    tokens = (frame_token(1, 30), frame_token(1, 31), frame_token(1, 32))
+    settings = ImportSettings(data["maps"], tmp_path / "split", future_frames=8)
+    report = import_logs(data["logs"], settings, SceneFilter(tokens=tokens))
+    assert list(scene_paths(tmp_path / "split")) == list(tokens[:2])
+    assert [(entry["token"], entry["reason"]) for entry in report["skipped"]] == [
+        (tokens[2], "only 7 frame(s) after it in the log; a scene needs 8")
+    ]
+    raw = json.loads(gzip.decompress(scene_path(tmp_path / "split", tokens[1]).read_bytes()))
+    log = load_log(data["log"])
+    assert raw["frames"][:12] == [convert_frame(frame) for frame in log[28:40]]
+    last = raw["frames"][11]
+    for step, frame in enumerate(raw["frames"][12:], start=1):
+        assert frame == {
+            **last,
+            "token": f"{last['token']}+{step}",
+            "timestamp_us": last["timestamp_us"] + step * 500_000,
+        }
+    held = {w["token"]: w["message"] for w in report["warnings"] if "future" in w["message"]}
+    assert held == {
+        token: f"{count} future frames, the last held to +10 (v2 observes 8; only v1.x versions would read the held ones)"
+        for token, count in zip(tokens, (9, 8), strict=False)
+    }

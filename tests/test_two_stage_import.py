@@ -51,9 +51,13 @@ runner = CliRunner()
 UTM = 32611  # the fixture maps are stored in their projected system
 
 
+def _read(token: str, scenes: Path) -> dict[str, Any]:
+    return json.loads(gzip.decompress((scenes / f"{token}.json.gz").read_bytes()))
+
+
 @cache
 def _raw(token: str) -> dict[str, Any]:
-    return json.loads(gzip.decompress((FIXTURES / "scenes" / f"{token}.json.gz").read_bytes()))
+    return _read(token, FIXTURES / "scenes")
 
 
 @cache
@@ -63,25 +67,33 @@ def _predictions(family: str) -> dict[str, list[list[float]]]:
     return predictions[family]
 
 
-def write_group(root: Path, entry: list[Any], stats: EgoFrameStats) -> Path:
-    """Write one mapping entry in NAVSIM's forms under `root`; return the split YAML."""
+def write_group(
+    root: Path, entry: list[Any], stats: EgoFrameStats, scenes: Path = FIXTURES / "scenes"
+) -> Path:
+    """Write one mapping entry (its scene files in `scenes`) in NAVSIM's forms under `root`; return the split
+    YAML."""
     original, previous, pairs = entry
-    raw = _raw(original)
+
+    @cache
+    def raw_scene(token: str) -> dict[str, Any]:
+        return _read(token, scenes)
+
+    raw = raw_scene(original)
     write_gpkg(
         root / "maps" / raw["map_name"] / "1.0" / "map.gpkg",
         map_tables(raw["map"]),
         storage_epsg=UTM,
         projected=f"epsg:{UTM}",
     )
-    write_log(root / "logs" / f"{raw['log_name']}.pkl", stage_one_log(raw, _raw(previous), stats))
+    write_log(root / "logs" / f"{raw['log_name']}.pkl", stage_one_log(raw, raw_scene(previous), stats))
     for index, (now2, prev2) in enumerate(pairs):
         if index == 0:  # the private-test form of a roll-out
-            content = synthetic_pickle([_raw(prev2), _raw(now2)], previous, stats)
+            content = synthetic_pickle([raw_scene(prev2), raw_scene(now2)], previous, stats)
             write_pickle(root / "synthetic" / f"{prev2}.pkl", content)
             continue
         for token, first_stage in ((now2, original), (prev2, previous)):
             write_pickle(
-                root / "synthetic" / f"{token}.pkl", synthetic_pickle([_raw(token)], first_stage, stats)
+                root / "synthetic" / f"{token}.pkl", synthetic_pickle([raw_scene(token)], first_stage, stats)
             )
     config = root / "navhard_two_stage.yaml"
     config.write_text(
@@ -265,7 +277,7 @@ def _broken(content: dict[str, Any], change: str) -> dict[str, Any]:
     [
         ("annotations", "frames[4] (token {now2}).annotations.track_tokens: missing"),
         ("class", "frames[4] (token {now2}).annotations.names: unknown class(es) ['animal']"),
-        ("pose", "frames[2] (token {frame2}).ego_pose: non-finite value"),
+        ("pose", "frames[2] (token {frame2}).ego_status.ego_pose: non-finite value"),
         (
             "future",
             "frames[3] (token {prev2}): 4 future frame(s) (frames after it and extended_detections_tracks); the observation needs 8",
@@ -378,3 +390,64 @@ def test_nuplan_objects_pickled_by_nuplan_itself_are_read(tmp_path: Path) -> Non
     # prev2's first future frame is now2's current frame; its extended future starts one frame later.
     assert prev2.scene["frames"][4] == now2.scene["frames"][3]
     assert prev2.scene["frames"][5]["objects"] == frame["objects"]
+
+
+def test_the_import_resumes_without_redoing_scenes(imported) -> None:
+    splits, _ = imported
+    group = splits[0].parent
+    before = {path.name: path.stat().st_mtime_ns for path in (splits[0] / "scenes").iterdir()}
+    lost = MAPPING[0][2][2][1]
+    (splits[0] / "scenes" / f"{lost}.json.gz").unlink()
+    settings = ImportSettings(group / "maps", splits[0])
+    report = import_two_stage(group / "logs", group / "synthetic", group / "navhard_two_stage.yaml", settings)
+    assert report["this_run"] == {"written": 1, "present": 11, "skipped": 0}
+    after = {path.name: path.stat().st_mtime_ns for path in (splits[0] / "scenes").iterdir()}
+    assert {name for name in before if after[name] != before[name]} == {f"{lost}.json.gz"}
+
+
+# The whole reference (40 groups, 480 tokens), where it sits beside the repository -----------------------------
+
+REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "epdms-two-stage"
+FULL_FAMILIES = sorted(path.stem for path in (REFERENCE / "submissions").glob("*.pkl"))
+
+
+@pytest.fixture(scope="module")
+def whole_reference(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """Return the 40 groups imported from NAVSIM's forms (each from its own map) joined in one split, and its
+    cache directory."""
+    from scorer.two_stage.split import read_two_stage_split
+
+    root = tmp_path_factory.mktemp("whole")
+    split = root / "split"
+    (split / "scenes").mkdir(parents=True)
+    for index, group in enumerate(read_two_stage_split(REFERENCE / MAPPING_FILE).groups or ()):
+        entry = [group.original, group.previous, [list(pair) for pair in group.pairs]]
+        group_root = root / f"group{index:02d}"
+        config = write_group(group_root, entry, EgoFrameStats(), REFERENCE / "scenes")
+        settings = ImportSettings(group_root / "maps", group_root / "split", future_frames=8)
+        report = import_two_stage(group_root / "logs", group_root / "synthetic", config, settings)
+        assert report["skipped"] == [] and report["two_stage"]["written"], (entry[0], report["skipped"])
+        for path in (group_root / "split" / "scenes").iterdir():
+            (split / "scenes" / path.name).symlink_to(path)
+    (split / MAPPING_FILE).write_bytes((REFERENCE / MAPPING_FILE).read_bytes())
+    cache_dir = root / "cache"
+    assert build_split_cache(split, cache_dir, [VERSION], workers=2) == {}
+    return split, cache_dir
+
+
+@pytest.mark.full_reference
+@pytest.mark.skipif(not REFERENCE.is_dir(), reason="the two-stage reference is not beside the repository")
+@pytest.mark.parametrize("family", FULL_FAMILIES)
+def test_the_whole_reference_imported_scores_as_the_official_script(whole_reference, family: str) -> None:
+    from scorer.submission import load_two_stage_submission
+
+    split, cache_dir = whole_reference
+    submission = load_two_stage_submission((REFERENCE / "submissions" / f"{family}.pkl").read_bytes())
+    [result] = score_two_stage(split, cache_dir, submission, VERSION, workers=2)
+    with gzip.open(REFERENCE / "expected" / f"{family}.two_stage.jsonl.gz", "rt") as handle:
+        lines = {line["token"]: line for line in map(json.loads, handle)}
+    summary = json.loads((REFERENCE / "expected" / f"{family}.summary.json").read_text())
+    assert len(result.rows) == len(lines) == 480 and len(result.groups) == 40
+    assert token_mismatches(result, lines) == []
+    assert group_mismatches(result, summary["groups"]) == []
+    assert result.combined["score"] == summary["summary_rows_exact"]["combined"]["score"]

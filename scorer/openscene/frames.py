@@ -25,6 +25,8 @@ NUM_FUTURE_FRAMES = 10
 CURRENT_INDEX = NUM_HISTORY_FRAMES - 1
 NUM_FRAMES = NUM_HISTORY_FRAMES + NUM_FUTURE_FRAMES
 FRAME_INTERVAL_S = 0.5
+FRAME_INTERVAL_US = 500_000  # NavSimScenario's time beyond the frames: last + k x TimeDuration.from_s(0.5)
+OBSERVED_FUTURE_FRAMES = 8  # what v2 observes (4 s, `observation_frames` in versions.py)
 UNIT_QUATERNION_TOLERANCE = 1e-14  # pyquaternion's `is_unit` tolerance on the sum of squares
 ANNOTATION_KEYS = ("gt_boxes", "gt_names", "gt_velocity_3d", "instance_tokens", "track_tokens")
 
@@ -143,24 +145,52 @@ def route_roadblocks(frame: Mapping[str, Any]) -> list[str]:
     return [str(roadblock) for roadblock in _get(frame, "roadblock_ids")]
 
 
-def scene_windows(frames: Sequence[Mapping[str, Any]], frame_interval: int) -> Iterator[tuple[str, int]]:
-    """Yield (token, start) of every full 14-frame window, cut as NAVSIM's `filter_scenes` does."""
+def scene_windows(
+    frames: Sequence[Mapping[str, Any]], frame_interval: int, future_frames: int = NUM_FUTURE_FRAMES
+) -> Iterator[tuple[str, int]]:
+    """Yield (token, start) of every full window of 4 + `future_frames` frames, cut as NAVSIM's
+    `filter_scenes` does (its SceneFilter's `num_future_frames`: 10 for navtest, 8 for navhard)."""
     for start in range(0, len(frames), frame_interval):
-        if start + NUM_FRAMES <= len(frames):
+        if start + NUM_HISTORY_FRAMES + future_frames <= len(frames):
             yield _token(frames[start + CURRENT_INDEX]), start
 
 
-def window_problem(frames: Sequence[Mapping[str, Any]], index: int, frame_interval: int) -> str | None:
+def window_problem(
+    frames: Sequence[Mapping[str, Any]],
+    index: int,
+    frame_interval: int,
+    future_frames: int = NUM_FUTURE_FRAMES,
+) -> str | None:
     """Return why the frame at `index` is no scene token under `frame_interval`, or None if it is one."""
     if index < CURRENT_INDEX:
         return f"only {index} frame(s) before it in the log; a scene needs {CURRENT_INDEX}"
-    if index + NUM_FUTURE_FRAMES >= len(frames):
-        return (
-            f"only {len(frames) - index - 1} frame(s) after it in the log; a scene needs {NUM_FUTURE_FRAMES}"
-        )
+    if index + future_frames >= len(frames):
+        return f"only {len(frames) - index - 1} frame(s) after it in the log; a scene needs {future_frames}"
     if (index - CURRENT_INDEX) % frame_interval:
         return f"not at a window position for frame interval {frame_interval}"
     return None
+
+
+def held_frame(frame: Mapping[str, Any], steps: int) -> dict[str, Any]:
+    """Return a scene-file frame held `steps` frame intervals later (same ego, objects and lights): how a scene
+    whose source ends after the 8 future frames v2 observes fills the format's 10."""
+    return {
+        **frame,
+        "token": f"{frame['token']}+{steps}",
+        "timestamp_us": frame["timestamp_us"] + steps * FRAME_INTERVAL_US,
+    }
+
+
+def padded_future(future: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], tuple[str, ...]]:
+    """Return future frames held to the format's 10 and, if any was added, the warning saying so."""
+    if len(future) >= NUM_FUTURE_FRAMES:
+        return future, ()
+    warning = (
+        f"{len(future)} future frames, the last held to +{NUM_FUTURE_FRAMES} "
+        f"(v2 observes {OBSERVED_FUTURE_FRAMES}; only v1.x versions would read the held ones)"
+    )
+    held = [held_frame(future[-1], step) for step in range(1, NUM_FUTURE_FRAMES - len(future) + 1)]
+    return future + held, (warning,)
 
 
 def _objects(frame: Mapping[str, Any], token: str, pose: EgoPose) -> list[dict[str, Any]]:

@@ -24,9 +24,11 @@ from scorer.openscene.frames import (
     CURRENT_INDEX,
     FRAME_INTERVAL_S,
     NUM_FRAMES,
+    NUM_FUTURE_FRAMES,
     FrameError,
     convert_frame,
     ego_pose,
+    padded_future,
     route_roadblocks,
     scene_windows,
     vehicle_centres,
@@ -54,6 +56,9 @@ class ImportSettings:
     frame_interval: int = 1  # navtest/navtrain slide by one frame
     require_route: bool = True  # SceneFilter.has_route; a scene without route cannot be cached by the devkit
     check_commands: bool = True  # recompute the current frame's stored command and report mismatches
+    # SceneFilter.num_future_frames: 10 for navtest, 8 for navhard (v2 observes 8). A window is cut with up to
+    # 10; one the log ends after 8 or 9 holds its last frame to the format's 10 (a warning says so).
+    future_frames: int = NUM_FUTURE_FRAMES
 
 
 @dataclass(frozen=True)
@@ -183,7 +188,9 @@ class _LogScenes:
     def candidates(self, wanted: frozenset[str] | None) -> Iterator[tuple[str, int, str | None]]:
         """Yield (token, window start, problem) for the windows to import."""
         if wanted is None:
-            for token, start in scene_windows(self.frames, self.settings.frame_interval):
+            for token, start in scene_windows(
+                self.frames, self.settings.frame_interval, self.settings.future_frames
+            ):
                 yield token, start, None
             return
         for index, token in enumerate(self.tokens):
@@ -191,7 +198,9 @@ class _LogScenes:
                 yield (
                     token,
                     index - CURRENT_INDEX,
-                    window_problem(self.frames, index, self.settings.frame_interval),
+                    window_problem(
+                        self.frames, index, self.settings.frame_interval, self.settings.future_frames
+                    ),
                 )
 
     def import_token(self, token: str, start: int, problem: str | None) -> TokenOutcome:
@@ -215,7 +224,8 @@ class _LogScenes:
             )
         location = map_location(str(current.get("map_location")))
         pose = ego_pose(current)
-        frames = [dict(self._convert(index)) for index in range(start, start + NUM_FRAMES)]
+        end = min(start + NUM_FRAMES, len(self.frames))
+        frames = [dict(self._convert(index)) for index in range(start, end)]
         vehicles = vehicle_centres(frames[CURRENT_INDEX]["objects"])
         excerpt = build_excerpt(map_tables(self.settings.maps_dir, location), pose, route, vehicles)
         stored_command = frames[CURRENT_INDEX]["driving_command"]
@@ -228,6 +238,8 @@ class _LogScenes:
                     start + offset, excerpt if offset == CURRENT_INDEX else None
                 )
                 computed_frames += 1
+        future, padding = padded_future(frames[CURRENT_INDEX + 1 :])
+        frames = frames[: CURRENT_INDEX + 1] + future
         scene = {
             "format": SCENE_FORMAT,
             "version": SCENE_VERSION,
@@ -244,7 +256,7 @@ class _LogScenes:
             token,
             self.name,
             "written",
-            warnings=excerpt.warnings,
+            warnings=(*excerpt.warnings, *padding),
             stored_command=stored_command,
             computed_command=computed_command,
             computed_frames=computed_frames,

@@ -8,10 +8,9 @@ makes two scenes, frames[:-1] (prev2) and frames[1:] (now2); a pickle here makes
 the 4th on, each with the 3 frames before it as history.
 
 As NAVSIM: frame annotations go to the global frame with the frame's own ego (`frames.boxes_to_global`);
-iteration k beyond the last frame takes extended entry k - 1 - (frames after the current one), its time the
-last frame's + k x 0.5 s, its ego the last frame's (never read for a 17-character token); lights are RED or
-not. The scene format keeps 10 future frames; v2.2 observes 8 (`versions.py`, `observation_frames`), so a
-pickle with 8 to 9 future frames is padded by holding the last one, with a warning (only v1.x would read it).
+the k-th frame after the last pickled one is extended entry k - 1, its time the last frame's + k x 0.5 s,
+its ego the last frame's (never read for a 17-character token); lights are RED or not. The scene format keeps 10 future frames; v2.2 observes 8 (`versions.py`, `observation_frames`), so a
+pickle with 8 or 9 future frames holds its last one to the 10th, with a warning (`frames.padded_future`).
 """
 
 from __future__ import annotations
@@ -28,20 +27,21 @@ from scorer.openscene.excerpt import build_excerpt, excerpt_to_json
 from scorer.openscene.frames import (
     CURRENT_INDEX,
     FRAME_INTERVAL_S,
+    OBSERVED_FUTURE_FRAMES,
     EgoPose,
     driving_command,
     global_objects,
+    held_frame,
+    padded_future,
     vehicle_centres,
 )
 from scorer.openscene.gpkg import MapTables, map_location
 from scorer.openscene.scene_pickle import EnumValue, Record
-from scorer.scene import AGENT_CATEGORIES, CATEGORIES, FUTURE_FRAMES, SCENE_FORMAT, SCENE_VERSION
+from scorer.scene import AGENT_CATEGORIES, CATEGORIES, SCENE_FORMAT, SCENE_VERSION
 
-OBSERVED_FUTURE_FRAMES = 8  # what v2.2 observes (4 s); fewer and NAVSIM itself cannot build the metric cache
-FRAME_INTERVAL_US = 500_000  # NavSimScenario: last frame + k x TimeDuration.from_s(0.5)
 RED = 2  # nuPlan TrafficLightStatusType.RED
-# nuPlan TrackedObjectType values (EGO = 7 is no annotation).
-OBJECT_TYPES = dict(enumerate(CATEGORIES[:3] + ("traffic_cone", "barrier", "czone_sign", "generic_object")))
+# nuPlan TrackedObjectType values 0-6 are the categories in the scene format's order (EGO = 7 is no object).
+OBJECT_TYPES = dict(enumerate(CATEGORIES))
 # NAVSIM's Annotations dataclass, as `asdict` writes it into a frame.
 PICKLE_ANNOTATION_KEYS = ("boxes", "names", "velocity_3d", "instance_tokens", "track_tokens")
 
@@ -52,10 +52,10 @@ class SyntheticSceneError(ValueError):
 
 @dataclass(frozen=True)
 class SyntheticScene:
-    """One scene of a pickle, ready to write, and what the conversion had to say about it."""
+    """One scene of a pickle, ready to write (None where not asked for), and what the conversion had to say."""
 
     token: str
-    scene: dict[str, Any]
+    scene: dict[str, Any] | None
     warnings: tuple[str, ...]
 
 
@@ -95,8 +95,14 @@ class _Where:
         return float(self.numbers(value, where, ()))
 
 
-def synthetic_scenes(path: Path, content: Any, tables: Callable[[str], MapTables]) -> list[SyntheticScene]:
-    """Return the scenes of a loaded synthetic scene pickle; `tables(location)` gives a map's tables."""
+def synthetic_scenes(
+    path: Path,
+    content: Any,
+    tables: Callable[[str], MapTables],
+    build: Callable[[str], bool] = lambda token: True,
+) -> list[SyntheticScene]:
+    """Return the scenes of a loaded synthetic scene pickle, every one checked, those `build` wants (by token)
+    made, with their map excerpts (`tables(location)` gives a map's tables)."""
     at = _Where(path)
     if isinstance(content, list):
         raise at.fail(
@@ -134,13 +140,10 @@ def synthetic_scenes(path: Path, content: Any, tables: Callable[[str], MapTables
                 f"{len(future)} future frame(s) (frames after it and extended_detections_tracks); "
                 f"the observation needs {OBSERVED_FUTURE_FRAMES}",
             )
-        warnings = []
-        if len(future) < FUTURE_FRAMES:
-            warnings.append(
-                f"{len(future)} future frames; frames +{len(future) + 1}..+{FUTURE_FRAMES} hold the last one "
-                f"(v2 observes {OBSERVED_FUTURE_FRAMES}; only v1.x versions would read them)"
-            )
-            future += [_held(future[-1], step) for step in range(1, FUTURE_FRAMES - len(future) + 1)]
+        future, warnings = padded_future(future)
+        if not build(token):
+            scenes.append(SyntheticScene(token, None, warnings))
+            continue
         ego = frames[current]["ego"]
         pose = EgoPose(ego["x"], ego["y"], ego["heading"])
         excerpt = build_excerpt(
@@ -174,14 +177,14 @@ def _frame(at: _Where, raw: Any, where: str) -> dict[str, Any]:
     if isinstance(timestamp, bool) or not isinstance(timestamp, (int, np.integer)):
         raise at.fail(f"{where}.timestamp", f"expected an integer (us), got {timestamp!r}")
     status = at.get(raw, "ego_status", where)
-    x, y, heading = at.numbers(at.get(status, "ego_pose", f"{where}.ego_status"), f"{where}.ego_pose", (3,))
-    dynamics = [
-        *at.numbers(at.get(status, "ego_velocity", f"{where}.ego_status"), f"{where}.ego_velocity", (2,)),
-        *at.numbers(
-            at.get(status, "ego_acceleration", f"{where}.ego_status"), f"{where}.ego_acceleration", (2,)
-        ),
-    ]
-    command = driving_command({"driving_command": at.get(status, "driving_command", f"{where}.ego_status")})
+    ego_where = f"{where}.ego_status"
+
+    def ego_values(key: str, size: int) -> np.ndarray:
+        return at.numbers(at.get(status, key, ego_where), f"{ego_where}.{key}", (size,))
+
+    x, y, heading = ego_values("ego_pose", 3)
+    dynamics = [*ego_values("ego_velocity", 2), *ego_values("ego_acceleration", 2)]
+    command = driving_command({"driving_command": at.get(status, "driving_command", ego_where)})
     if command is None:
         raise at.fail(
             f"{where}.ego_status.driving_command", "expected a one-hot [left, straight, right, unknown]"
@@ -251,8 +254,7 @@ def _extended_frames(
     frames = []
     for index, tracks in enumerate(detections):
         where = f"extended_detections_tracks[{index}]"
-        frame = _held(last, index + 1)
-        frame["token"] = f"{last['token']}+{index + 1}"
+        frame = held_frame(last, index + 1)
         frame["objects"] = _tracked_objects(at, tracks, where)
         frame["traffic_lights"] = (
             _status_lights(at, statuses[index], f"extended_traffic_light_data[{index}]")
@@ -261,15 +263,6 @@ def _extended_frames(
         )
         frames.append(frame)
     return frames
-
-
-def _held(frame: dict[str, Any], steps: int) -> dict[str, Any]:
-    """Return `frame` held `steps` frame intervals later: same ego, objects and lights."""
-    return {
-        **frame,
-        "token": f"{frame['token']}+{steps}",
-        "timestamp_us": frame["timestamp_us"] + steps * FRAME_INTERVAL_US,
-    }
 
 
 def _tracked_objects(at: _Where, raw: Any, where: str) -> list[dict[str, Any]]:

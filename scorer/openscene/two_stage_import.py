@@ -70,27 +70,34 @@ def import_synthetic(
     failed: list[dict[str, str]] = []
     seen: set[str] = set()
     for path in sorted(pickles_dir.glob("*.pkl")):
+
+        def chosen(token: str) -> bool:
+            return wanted is None or token in wanted
+
+        def pending(token: str) -> bool:  # chosen and not written by an earlier run
+            return chosen(token) and not scene_path(settings.out_dir, token).exists()
+
         try:
             scenes = synthetic_scenes(
-                path, load_scene_pickle(path), lambda location: map_tables(settings.maps_dir, location)
+                path,
+                load_scene_pickle(path),
+                lambda location: map_tables(settings.maps_dir, location),
+                pending,
             )
-            chosen = [scene for scene in scenes if wanted is None or scene.token in wanted]
-            pending = [s for s in chosen if not scene_path(settings.out_dir, s.token).exists()]
-            for scene in pending:  # every scene valid before the first is written
-                parse_scene(scene.scene, f"{path} -> {scene.token}")
+            built = [(s.token, s.scene) for s in scenes if s.scene is not None]
+            for token, scene in built:  # every scene valid before the first is written
+                parse_scene(scene, f"{path} -> {token}")
         except (ScenePickleError, SyntheticSceneError, MapFormatError, SceneFormatError, OSError) as error:
             failed.append({"log": path.name, "reason": str(error)})
             continue
-        for scene in pending:
-            write_scene(scene.scene, scene_path(settings.out_dir, scene.token))
-        written = {scene.token for scene in pending}
+        for token, scene in built:
+            write_scene(scene, scene_path(settings.out_dir, token))
         outcomes += [
-            TokenOutcome(
-                s.token, path.name, "written" if s.token in written else "present", warnings=s.warnings
-            )
-            for s in chosen
+            TokenOutcome(s.token, path.name, "present" if s.scene is None else "written", warnings=s.warnings)
+            for s in scenes
+            if chosen(s.token)
         ]
-        seen.update(s.token for s in chosen)
+        seen.update(s.token for s in scenes if chosen(s.token))
     reason = f"not found in any synthetic scene pickle of {pickles_dir}" + (
         f" ({len(failed)} pickle(s) unusable)" if failed else ""
     )
