@@ -231,9 +231,12 @@ async function refreshLive() {
 }
 
 async function refresh() {
-  [state.teams, state.audit, state.phases] = await Promise.all([
-    api("GET", `${ADMIN}/teams`), api("GET", `${ADMIN}/audit?limit=300`), api("GET", "/phases"),
+  let integrity;
+  [state.teams, state.audit, state.phases, integrity] = await Promise.all([
+    api("GET", `${ADMIN}/teams`), api("GET", `${ADMIN}/audit?limit=300`), api("GET", "/phases"), api("GET", `${ADMIN}/integrity`),
   ]);
+  const flags = integrity.checks.reduce((sum, check) => sum + check.flags.length, 0);
+  $("#integrity-link").textContent = flags ? `Integrity checks: ${counted(flags, "flag")}` : "Integrity checks";
   fillTeams();
   fillAudit();
   await refreshLive();
