@@ -1,12 +1,14 @@
-"""Servers of a test's own, which the test stops and restarts: Redis and PostgreSQL, each on its own port and
-data directory (never the machine's shared servers, which other tests use at the same time)."""
+"""Servers of a test's own, which the test stops, kills, pauses and restarts: Redis and PostgreSQL, each on its
+own port and data directory (never the machine's shared servers, which other tests use at the same time)."""
 
 from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager, suppress
 from pathlib import Path
@@ -28,6 +30,7 @@ class OwnRedis:
         self.port, self.directory = free_port(), directory
         self.url = f"redis://127.0.0.1:{self.port}/0"
         self._process = ExitStack()
+        self.process: subprocess.Popen[bytes] | None = None
 
     def client(self) -> redis.Redis:
         return redis.Redis(port=self.port)
@@ -35,7 +38,8 @@ class OwnRedis:
     def start(self) -> None:
         command = ["redis-server", "--port", str(self.port), "--bind", "127.0.0.1", "--save", ""]
         command += ["--appendonly", "no", "--dir", str(self.directory)]
-        self._process.enter_context(child_process(command, dict(os.environ), self.directory / "redis.log"))
+        log = self.directory / "redis.log"
+        self.process = self._process.enter_context(child_process(command, dict(os.environ), log))
         wait_for(self._pings, f"redis on port {self.port}")
 
     def _pings(self) -> bool:
@@ -50,6 +54,16 @@ class OwnRedis:
     def restart(self) -> None:
         self.stop()
         self.start()
+
+    def kill(self) -> None:
+        """SIGKILL the server (it keeps nothing: no persistence); `start` runs a new, empty one."""
+        assert self.process is not None
+        self.process.kill()
+        self.stop()
+
+    def pids(self) -> list[int]:
+        assert self.process is not None
+        return [self.process.pid]
 
 
 @contextmanager
@@ -114,6 +128,50 @@ class OwnPostgres:
         self._as_postgres(
             _postgres_bin("pg_ctl"), "-D", str(self.directory / "data"), "-m", "fast", "-w", "stop"
         )
+
+    def pids(self) -> list[int]:
+        """Return the cluster's processes: the postmaster first, then its children (Linux /proc)."""
+        postmaster = int((self.directory / "data" / "postmaster.pid").read_text().split()[0])
+        children = []
+        for task in Path(f"/proc/{postmaster}/task").iterdir():
+            children += [int(pid) for pid in (task / "children").read_text().split()]
+        return [postmaster, *children]
+
+    def kill(self) -> None:
+        """SIGKILL every process of the cluster at once, as the kernel's out-of-memory killer of a container
+        would, and wait until they are gone; `start` then recovers it from its write-ahead log."""
+        pids = self.pids()
+        for pid in pids:
+            with suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        while any(_alive(pid) for pid in pids):
+            time.sleep(0.05)
+        # Its lock files name the dead postmaster, which may linger as a zombie that nobody waits for: a new
+        # postmaster would take it for a running server (a restarted container starts without them).
+        (self.directory / "data" / "postmaster.pid").unlink(missing_ok=True)
+        (self.directory / f".s.PGSQL.{self.port}.lock").unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether `pid` runs (a zombie, killed and not yet waited for by its parent, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+@contextmanager
+def paused(pids: list[int]) -> Iterator[None]:
+    """SIGSTOP the processes for the block (a server that hangs: its clients' connections stay open and
+    unanswered), SIGCONT them afterwards, whatever happens."""
+    for pid in pids:
+        os.kill(pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        for pid in pids:
+            with suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
 
 
 @contextmanager

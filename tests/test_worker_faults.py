@@ -1,8 +1,9 @@
 """Faults with real processes: worker processes killed mid-chunk (a consumer, the supervisor), a consumer killed
 idle, while it writes, or with the reaper, a consumer wedged while it holds work, a token that kills its worker
-every time, a chunk past the hard time limit, a graceful shutdown, and a Redis broker
-flushed and restarted under load. Each time the submission ends with exactly one result set, equal to the
-engine's, or fails with the reason and is refunded; nothing is lost and nothing is scored twice.
+every time, a chunk past the hard time limit, a graceful shutdown, a Redis broker flushed and restarted under
+load, and chaos: every kind of process killed at random moments, and Redis and PostgreSQL killed and paused.
+Each time the submission ends with exactly one result set, equal to the engine's, or fails with the reason
+and is refunded; nothing is lost and nothing is scored twice.
 
 The workers run tests/fault_worker.py's app, which injects the faults named in the environment. A test that
 stops a server starts its own instance, on its own port and data directory.
@@ -20,7 +21,7 @@ from datetime import timedelta
 from pathlib import Path
 
 import pytest
-from own_servers import own_postgres, own_redis
+from own_servers import OwnPostgres, OwnRedis, own_postgres, own_redis, paused
 from scratch import scratch_redis_queue
 from server_testing import fresh_postgres_database
 from sqlalchemy import func, select
@@ -270,6 +271,37 @@ def test_a_consumer_wedged_on_its_work_starves_nothing_and_is_replaced(
 CHAOS_SUBMISSIONS = 3
 CHAOS_KILLS = 6
 CHAOS_GAP_S = (1.0, 5.0)
+CHAOS_PROCESSES = ["consumer", "consumer", "reaper", "supervisor"]
+# On PostgreSQL + Redis, each server is also killed once and paused once, at random moments among the kills.
+CHAOS_SERVER_FAULTS = ["redis killed", "redis paused", "postgresql killed", "postgresql paused"]
+CHAOS_OUTAGE_S = (1.0, 5.0)  # how long a killed server stays down, a paused one paused
+
+OwnServers = tuple[OwnPostgres, OwnRedis]
+
+
+@contextmanager
+def _chaos_backend(kind: str, tmp_path: Path) -> Iterator[tuple[dict[str, str], OwnServers | None]]:
+    """Yield the settings of the embedded defaults, or of a PostgreSQL and a Redis of the test's own (which it
+    kills and pauses), with those servers."""
+    if kind == "embedded":
+        yield {}, None
+        return
+    with own_postgres() as database, own_redis(tmp_path / "redis") as broker:
+        yield {"DATABASE_URL": database.url, "BROKER_URL": broker.url}, (database, broker)
+
+
+def _server_fault(fault: str, servers: OwnServers, outage_s: float) -> None:
+    """Kill a server and start it again after `outage_s` (Redis comes back empty: it keeps nothing), or pause
+    it for that long."""
+    database, broker = servers
+    server: OwnPostgres | OwnRedis = database if fault.startswith("postgresql") else broker
+    if fault.endswith("paused"):
+        with paused(server.pids()):
+            time.sleep(outage_s)
+        return
+    server.kill()
+    time.sleep(outage_s)
+    server.start()
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -277,8 +309,9 @@ def test_chaos_random_kills_while_several_submissions_are_scored(
     backend: str, tmp_path: Path, synthetic_split: SplitFixture
 ) -> None:
     """Consumers, the reaper and the supervisor itself SIGKILLed at random moments while three submissions are
-    scored (a killed supervisor is started again, as its own supervisor would): at the end each is scored once,
-    every row exactly once, no chunk left running. CHAOS_SEED replays a run; a failure names its seed."""
+    scored (a killed supervisor is started again, as its own supervisor would), and on PostgreSQL + Redis
+    each server killed and paused: at the end each submission is scored once, every row exactly once, no
+    chunk left running. CHAOS_SEED replays a run; a failure names its seed."""
     seed = int(os.environ.get("CHAOS_SEED", str(random.SystemRandom().randrange(2**32))))
     rng = random.Random(seed)
     replay = f"replay with CHAOS_SEED={seed}"
@@ -289,19 +322,22 @@ def test_chaos_random_kills_while_several_submissions_are_scored(
         for index in range(CHAOS_SUBMISSIONS)
     ]
     with (
-        _backend(backend) as settings,
+        _chaos_backend(backend, tmp_path) as (settings, servers),
         running_service(tmp_path, synthetic_split, settings | faults, faults=True) as service,
         ExitStack() as restarted,
     ):
+        victims = [rng.choice(CHAOS_PROCESSES) for _ in range(CHAOS_KILLS)]
+        victims += CHAOS_SERVER_FAULTS if servers is not None else []
+        rng.shuffle(victims)
         supervisor = service.worker
         ids = [service.upload(entry) for entry in entries]
-        kills = []
-        for index in range(CHAOS_KILLS):
+        for index, victim in enumerate(victims):
             time.sleep(rng.uniform(*CHAOS_GAP_S))
             consumers, reapers = supervised_processes(supervisor.pid)
-            victim = rng.choice(["consumer", "consumer", "reaper", "supervisor"])
-            kills.append(victim)
-            if victim == "supervisor":
+            if victim in CHAOS_SERVER_FAULTS:
+                assert servers is not None
+                _server_fault(victim, servers, rng.uniform(*CHAOS_OUTAGE_S))
+            elif victim == "supervisor":
                 supervisor.kill()
                 supervisor.wait()
                 command = fault_worker_command(2, True, f"chaos{index}")
@@ -311,10 +347,13 @@ def test_chaos_random_kills_while_several_submissions_are_scored(
                 candidates = consumers if victim == "consumer" else reapers
                 if candidates:  # none while the supervisor starts them again
                     os.kill(rng.choice(candidates), signal.SIGKILL)
-        last_kill = time.monotonic()
+        last_fault = time.monotonic()
         for submission_id in ids:
-            service.final(submission_id, timeout=RECOVERY_S)
-        _record(f"chaos ({backend}, {', '.join(kills)}): last kill to all scored", last_kill)
+            try:
+                service.final(submission_id, timeout=RECOVERY_S)
+            except pytest.fail.Exception as error:
+                raise AssertionError(f"{replay}: submission {submission_id}: {error}") from error
+        _record(f"chaos ({backend}, {', '.join(victims)}): last fault to all scored", last_fault)
         for submission_id, entry in zip(ids, entries, strict=True):
             try:
                 _assert_scored_once(service, synthetic_split, submission_id, entry)

@@ -48,9 +48,7 @@ TICK_S = 0.5
 YOUNG_S = 10.0  # a child that dies younger than this may die of its start: it is started again after a wait
 BACKOFF_MAX_S = 30.0
 LOG_FORMAT = "[%(asctime)s: %(levelname)s/supervisor] %(message)s"
-ONE_BLAS_THREAD = {
-    variable: "1" for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-}
+ONE_BLAS_THREAD = dict.fromkeys(("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"), "1")
 
 
 @dataclass
@@ -85,10 +83,15 @@ class Child:
         read, write = os.pipe()
         env = {**os.environ, **self.environment, STATUS_FD: str(write)}
         # Same process group: a supervisor's own supervisor (the demo, a test) stops the lot with one signal.
-        # Niceness is per thread on Linux: set before exec, every thread of the child has it (the supervisor
-        # runs no thread of its own, so a function before exec is safe).
+        # Niceness is per thread on Linux: set before exec, every thread of the child has it. (The supervisor
+        # runs no thread that could hold a lock in the forked child.)
         lower = partial(os.nice, self.niceness) if self.niceness else None
-        self.process = subprocess.Popen(self.command, env=env, pass_fds=(write,), preexec_fn=lower)
+        self.process = subprocess.Popen(
+            self.command,
+            env=env,
+            pass_fds=(write,),
+            preexec_fn=lower,  # noqa: PLW1509
+        )
         os.close(write)
         os.set_blocking(read, False)
         self.status, self.pending, self.holding, self.killed = read, b"", None, False
