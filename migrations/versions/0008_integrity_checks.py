@@ -1,8 +1,8 @@
 """Integrity checks for organisers: each run of the checks over a split, and the flags it raised with their
 evidence (a leaked log, near-identical entries of different teams, a team probing the hidden set).
 
-Revision ID: 0007_integrity_checks
-Revises: 0006_token_results_by_token
+Revision ID: 0008_integrity_checks
+Revises: 0007_two_stage_splits
 Create Date: 2026-11-28 03:20:00
 """
 
@@ -13,8 +13,8 @@ from alembic import op
 
 import server.models
 
-revision = "0007_integrity_checks"
-down_revision = "0006_token_results_by_token"
+revision = "0008_integrity_checks"
+down_revision = "0007_two_stage_splits"
 branch_labels = None
 depends_on = None
 
