@@ -41,6 +41,7 @@ PHASE = "demo"
 TWO_STAGE = "demo-two-stage"  # split and phase
 TWO_STAGE_SOURCE = Path(__file__).resolve().parent.parent / "tests" / "fixtures" / "epdms-two-stage-reactive"
 TEAM = "demo-team"
+DEMO_METHODS = {False: "Noisy human (demo)", True: "Noisy human, two stages (demo)"}  # by split kind
 SPLIT_SEED = 0
 NOISE_SEED = 7
 NOISE_XY_M = 0.3  # standard deviation of the demo entry's noise on the human trajectory
@@ -143,7 +144,7 @@ def _demo_entry(split_dir: Path, out: Path, two_stage: bool = False) -> Path:
     def noisy(seed: dict[str, FloatArray]) -> dict[str, FloatArray]:
         return {token: poses + rng.normal(0.0, scale, poses.shape) for token, poses in seed.items()}
 
-    method = "Noisy human (demo)"
+    method = DEMO_METHODS[two_stage]
     if two_stage:
         stages = two_stage_baseline_submission(split_dir, "human", method)
         metadata = replace(stages.metadata, team_name=TEAM, authors="Demo Member", institution="Demo Lab")
@@ -322,7 +323,7 @@ def demo(
                 with httpx.Client(
                     base_url=url, headers={"Authorization": f"Bearer {tokens['team']}"}
                 ) as client:
-                    accepted = upload(client, entry, {"method": "Noisy human (demo)", "phase": phase})
+                    accepted = upload(client, entry, {"method": DEMO_METHODS[two_stage], "phase": phase})
                 console.print(f"demo entry of phase {phase} submitted as submission {accepted['id']}")
             console.print(
                 f"\n[bold]leaderboard: {url}/[/bold]   API docs: {url}/docs   admin: {url}/admin\n"

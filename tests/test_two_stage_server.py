@@ -423,3 +423,58 @@ def test_a_two_stage_rescore_reports_the_rank_changes_of_the_combined_score(worl
     assert exported["version"] == "v2.2-two-stage"
     assert {row["submission_id"] for row in exported["rows"]} >= {alpha_id, beta_id}
     assert all("stage_two_score" in row for row in exported["rows"])
+
+
+def test_a_token_that_killed_its_workers_is_written_failed_in_its_place_of_the_submission(
+    world: World,
+) -> None:
+    """A group's chunk died twice: split one token per chunk, each token poisoned; its failed row keeps its
+    stage and its row in the submission (what the aggregation orders rows by), its points unknown."""
+    from server.runs import (
+        POISON_DEATHS,
+        StartAction,
+        chunk_inputs,
+        claim_submission,
+        plan_run,
+        score_chunk,
+        start_chunk,
+        write_chunk,
+    )
+
+    add_two_stage_phase(world)
+    response = post(world, dump_two_stage_submission_json(family_submission("human")), "two.json")
+    submission_id = response.json()["id"]
+    with transaction(world.factory) as session:
+        run = claim_submission(session, submission_id, "w")
+        assert run is not None
+        first = plan_run(session, submission_id, run, 12, "test-engine", 200).chunks[0]
+        session.get(ScoringChunk, first).deaths = POISON_DEATHS  # type: ignore[union-attr]
+    with transaction(world.factory) as session:
+        split_up = start_chunk(session, first, run, "w")
+    assert split_up.action == StartAction.split_up
+    assert split_up.tokens == STAGES.groups[0].tokens  # type: ignore[index]
+    child = split_up.children[2]  # the group's first now2
+    with transaction(world.factory) as session:
+        start = start_chunk(session, child, run, "w")
+    assert start.action == StartAction.poisoned
+    with world.session() as session:
+        inputs = chunk_inputs(session, submission_id, run, start)
+    assert inputs is not None and inputs.poisoned
+    chunk = score_chunk(inputs, world.settings.storage_dir, world.settings.cache_dir)
+    with transaction(world.factory) as session:
+        write_chunk(session, inputs, chunk, "w", "test-engine", 200)
+    with world.session() as session:
+        [row] = session.scalars(
+            select(TokenResultRow).where(TokenResultRow.submission_id == submission_id)
+        ).all()
+    token = STAGES.groups[0].pairs[0][0]  # type: ignore[index]
+    assert (row.token, row.valid) == (token, False) and "stopped the worker process twice" in (
+        row.error or ""
+    )
+    submitted = [*STAGES.stage_one_tokens, *STAGES.stage_two_tokens]
+    assert row.detail["two_stage"] == {
+        "stage": 2,
+        "row": submitted.index(token),
+        "start_point": None,
+        "endpoint": None,
+    }

@@ -37,6 +37,7 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 STARTUP_TIMEOUT_S = 240.0
+PHASE, TWO_STAGE_PHASE = "demo", "demo-two-stage"
 SCORING_TIMEOUT_MS = 180_000
 
 
@@ -54,9 +55,10 @@ def _free_port() -> int:
         return int(probe.getsockname()[1])
 
 
-def _scored_entries(url: str) -> int:
+def _scored_entries(url: str, phase: str | None = None) -> int:
     try:
-        rows = httpx.get(f"{url}/api/v1/leaderboard", timeout=5).json()["rows"]
+        params = {"phase": phase} if phase else {}
+        rows = httpx.get(f"{url}/api/v1/leaderboard", params=params, timeout=5).json()["rows"]
     except (httpx.HTTPError, KeyError, ValueError):
         return 0
     return sum(row["score"] is not None for row in rows)
@@ -82,7 +84,8 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
     process = subprocess.Popen(command, env=environment, stdout=log, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
-        while _scored_entries(url) < 3:  # the two baselines and the demo entry
+        # The two baselines and the demo entry, on the one-stage and the two-stage phase.
+        while _scored_entries(url) < 3 or _scored_entries(url, TWO_STAGE_PHASE) < 3:
             assert process.poll() is None, (data_dir / "demo.log").read_text()[-3000:]
             assert time.monotonic() < deadline, "the demo did not score its entries in time"
             time.sleep(1.0)
@@ -268,7 +271,9 @@ def test_a_team_signs_in_sees_every_problem_then_watches_its_upload_scored(
     page.wait_for_selector("#scene:not([hidden])")
     page.wait_for_function("document.querySelector('#scene-image').naturalWidth > 0")
     expect(page.locator("#scene-caption")).to_contain_text("PDMS v1.1")
-    page.select_option("#other", label=f"{_latest_id(demo) - 1}: Noisy human (demo)")
+    demo_entry = page.locator("#other option", has_text="Noisy human (demo)")
+    expect(demo_entry).to_have_count(1)  # the entries of this split alone: not the two-stage demo entry
+    page.select_option("#other", value=demo_entry.get_attribute("value"))
     expect(page.locator("#diff-counts")).to_contain_text("of 12 tokens both scored")
     _screenshot(page, "submission")
     page.get_by_role("link", name="EPDMS v2.2").click()
@@ -399,11 +404,20 @@ def test_a_team_sees_a_disqualification_with_its_reason_and_the_entry_the_board_
         expect(row).to_contain_text("cannot be final")
         assert row.get_by_role("button", name="make final").count() == 0
         # The row the team page says is shown is the one the board ranks.
-        board = httpx.get(f"{demo.url}/api/v1/leaderboard", timeout=10).json()["rows"]
-        counted = [r["submission_id"] for r in board if r["team"] == "demo-team"]
+        # One entry per phase: the one-stage demo phase's and the two-stage one's.
+        counted = [
+            r["submission_id"]
+            for phase in (PHASE, TWO_STAGE_PHASE)
+            for r in httpx.get(f"{demo.url}/api/v1/leaderboard", params={"phase": phase}, timeout=10).json()[
+                "rows"
+            ]
+            if r["team"] == "demo-team"
+        ]
         shown = page.locator("#history tbody tr", has_text="✓ shown")
         expect(shown).to_have_count(len(counted))
-        assert [int(text) for text in shown.locator("td:first-child").all_inner_texts()] == counted
+        assert sorted(int(text) for text in shown.locator("td:first-child").all_inner_texts()) == sorted(
+            counted
+        )
         assert sanctioned not in counted
         _fits(page)
         _screenshot(page, f"team-sanction-{width}")
@@ -762,3 +776,33 @@ def test_a_board_row_with_a_page_opens_it_when_clicked_anywhere(demo: Demo, brow
     assert row.evaluate("(row) => getComputedStyle(row).cursor") == "pointer"
     row.locator("td.num").last.click()
     page.wait_for_url(f"**{target}")
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_the_two_stage_tab_and_a_submissions_groups_are_readable(
+    demo: Demo, browser: Browser, width: int
+) -> None:
+    """The two-stage phase's tab: the combined EPDMS with each stage, the official code it reproduces; the
+    demo entry's page: per group each frame's stage-one score, its weighted stage two and the weights."""
+    page = _page(browser, width)
+    page.goto(demo.url)
+    page.get_by_role("link", name=TWO_STAGE_PHASE).click()
+    expect(page.locator("#leaderboard caption")).to_contain_text(
+        "run_pdm_score_from_submission.py: two-stage"
+    )
+    expect(page.locator("#leaderboard tbody tr")).to_have_count(3)
+    expect(page.locator("#leaderboard thead")).to_contain_text("Stage 1")
+    expect(page.locator("nav[aria-label='Metric version'] a")).to_have_text(["EPDMS v2.2-two-stage"])
+    _fits(page)
+    _screenshot(page, f"two-stage-board-{width}")
+
+    board = httpx.get(f"{demo.url}/api/v1/leaderboard", params={"phase": TWO_STAGE_PHASE}, timeout=10).json()
+    entry = next(row for row in board["rows"] if row["team"] == "demo-team")
+    team = _team_page(browser, demo, width, demo.team_token)
+    team.goto(f"{demo.url}/submissions/{entry['submission_id']}")
+    team.wait_for_selector("#group-table tbody tr")
+    expect(team.locator("#group-table tbody tr")).to_have_count(6)  # 3 groups x their two frames
+    expect(team.locator("#group-table .weight")).to_have_count(30)  # 5 synthetic successors per frame
+    expect(team.locator("#breakdown tbody")).to_contain_text("stage 2")
+    _fits(team)
+    _screenshot(team, f"two-stage-submission-{width}")

@@ -91,7 +91,7 @@ def test_demo_runs_end_to_end_and_stops_what_it_started(tmp_path: Path) -> None:
         ("demo-two-stage", True, Status.scored, "Constant Velocity"),
         ("demo-two-stage", True, Status.scored, "Human"),
         ("demo", False, Status.scored, "Noisy human (demo)"),
-        ("demo-two-stage", False, Status.scored, "Noisy human (demo)"),
+        ("demo-two-stage", False, Status.scored, "Noisy human, two stages (demo)"),
     ]
     assert _processes_started_under(data_dir) == []
 

@@ -3,6 +3,7 @@ trajectory simulated once), or, for a token that killed its workers, failed rows
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +46,8 @@ def score_chunk(inputs: ChunkInputs, store: ObjectStore, cache_dir: Path) -> Sco
             for token in inputs.todo
         ]
         note = f"token {', '.join(inputs.todo)}: written as failed, {POISONED_TOKEN}"
+        if job.split_kind == SplitKind.two_stage:
+            failed = _stage_failed(failed, trajectories(job, storage_dir))
         return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
@@ -65,3 +68,15 @@ def _two_stage_rows(
 
     scored = score_two_stage_part(job.split_dir, cache_dir, seeds, version, inputs.todo, inputs.context)
     return stage_rows(scored, {seed: list(predictions) for seed, predictions in seeds.items()})
+
+
+def _stage_failed(failed: Sequence[TokenResult], seeds: Sequence[Mapping[str, object]]) -> list[TokenResult]:
+    """Return a two-stage chunk's failed rows with their place in the submission (what the aggregation orders
+    rows by); their start point and endpoint are unknown: their successors are weighted alike."""
+    from scorer.two_stage.aggregate import TwoStageToken
+
+    unknown = (math.nan, math.nan)
+    by_seed: dict[int | None, list[TwoStageToken]] = {}
+    for row in failed:
+        by_seed.setdefault(row.seed, []).append(TwoStageToken(row, unknown, unknown))
+    return stage_rows(by_seed, {seed: list(seeds[seed or 0]) for seed in by_seed})

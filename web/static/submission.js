@@ -57,6 +57,7 @@ function sceneLink(token, submissionId = PAGE.submission_id, text = token) {
 const label = (column) => (column === "score" ? PAGE.score_labels[state.version] : LABELS[column] || column);
 const defined = (value) => value !== null && value !== undefined;
 const FILTER_SHOWN = 15;
+const BREAKDOWN_CAPTION = $("#breakdown caption").textContent;
 const columnsOf = (results) => Object.keys(results).filter((key) => key in LABELS && key !== "score");
 
 function tab(text, current, action) {
@@ -190,6 +191,9 @@ async function render() {
   // Breakdown next to the baselines (two stages: the combined score, each stage's score and subscores).
   const reference = await baselines(state.version, state.subset);
   const twoStage = "stage_one" in summary;
+  $("#breakdown caption").textContent = twoStage
+    ? "Each stage's summary row and the combined score (means over groups), in %, next to the baselines of the same phase"
+    : BREAKDOWN_CAPTION;
   const lines = twoStage
     ? [["score", `${label("score")} (combined)`, (entry) => entry.score],
       ...["stage_one", "stage_two"].flatMap((stage, index) => ["score", ...columns].map((column) =>
@@ -284,6 +288,12 @@ async function renderGroups(twoStage) {
       small.className = "role";
       small.textContent = role;
       frame.append(small);
+      if (token === group.original) {
+        const value = cell(row, pct(group.score), "num score");
+        value.rowSpan = 2;
+        const reasons = Object.entries(group.detail).map(([what, tokens]) => `${what.replaceAll("_", " ")}: ${[].concat(tokens).join(", ")}`);
+        if (reasons.length) value.append(Object.assign(document.createElement("small"), { className: "role", textContent: reasons.join("; ") }));
+      }
       cell(row, pct(one), "num");
       cell(row, pct(two), "num");
       const weights = Object.entries(group.weights[token === group.original ? "original" : "previous"]);
@@ -294,13 +304,6 @@ async function renderGroups(twoStage) {
         item.title = `${synthetic}: weight ${defined(weight) ? weight.toFixed(4) : "–"}`;
         item.textContent = defined(weight) ? weight.toFixed(2) : "–";
         list.append(item);
-      }
-      if (token === group.original) {
-        const value = cell(row, pct(group.score), "num score");
-        value.rowSpan = 2;
-        const reasons = Object.entries(group.detail).map(([what, tokens]) => `${what.replaceAll("_", " ")}: ${[].concat(tokens).join(", ")}`);
-        if (reasons.length) value.title = reasons.join("; ");
-        if (reasons.length) value.append(Object.assign(document.createElement("small"), { className: "role", textContent: reasons.join("; ") }));
       }
     }
   }

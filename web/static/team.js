@@ -87,6 +87,7 @@ async function loadPhases() {
   select.replaceChildren();
   const open = phases.filter((p) => p.open);
   for (const phase of open) select.append(new Option(`${phase.name} (split ${phase.split})`, phase.name));
+  if (open.length) select.value = open[open.length - 1].name; // the server's default: the open phase that opened last
   return open.length > 0;
 }
 
