@@ -37,6 +37,7 @@ from scorer.versions import METRIC_LABELS, VERSIONS, get_version
 if TYPE_CHECKING:
     from matplotlib.artist import Artist
     from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 LayoutName = Literal["wide", "narrow"]
 DPI = 100
@@ -142,19 +143,7 @@ def render(explanation: Explanation, image_format: str = "png", layout: LayoutNa
     ):
         figure = Figure(figsize=shape.size_in, dpi=DPI)
         FigureCanvasAgg(figure)  # the layout measures text with its renderer
-        renderer = figure.canvas.get_renderer()  # type: ignore[attr-defined]
-        title = figure.text(
-            *shape.title_at, _title(explanation, shape.title_width), va="top", ha="left", linespacing=1.35
-        )
-        below_title = figure.transFigure.inverted().transform((0, title.get_window_extent(renderer).y0))[1]
-        left, bottom, width, height = shape.map_box
-        if shape.stacked:
-            bottom = below_title - GAP - height
-        axes = figure.add_axes((left, bottom, width, height))
-        # Under a stacked map, room for its ticks and axis label.
-        legend_top = bottom - 0.075 if shape.stacked else below_title - GAP
-        legend_axes = figure.add_axes((shape.legend_x[0], 0.005, shape.legend_x[1], legend_top - 0.005))
-        axes.set_facecolor(OFF_MAP_COLOR)
+        axes, legend_axes = _place(figure, explanation, shape)
         # Metres from the ego's rear axle at the current time: map coordinates (UTM) make unreadable ticks.
         origin = explanation.agent_states[0, :2].copy()
         entries = [
@@ -173,6 +162,24 @@ def render(explanation: Explanation, image_format: str = "png", layout: LayoutNa
             buffer, format=image_format, metadata={"Date": None} if image_format == "svg" else None
         )
     return buffer.getvalue()
+
+
+def _place(figure: Figure, explanation: Explanation, shape: Layout) -> tuple[Axes, Axes]:
+    """Write the title and return the map's axes and the legend's, placed after the title's measured height."""
+    renderer = figure.canvas.get_renderer()  # type: ignore[attr-defined]
+    title = figure.text(
+        *shape.title_at, _title(explanation, shape.title_width), va="top", ha="left", linespacing=1.35
+    )
+    below_title = figure.transFigure.inverted().transform((0, title.get_window_extent(renderer).y0))[1]
+    left, bottom, width, height = shape.map_box
+    if shape.stacked:
+        bottom = below_title - GAP - height
+    axes = figure.add_axes((left, bottom, width, height))
+    axes.set_facecolor(OFF_MAP_COLOR)
+    # Under a stacked map, room for its ticks and axis label.
+    legend_top = bottom - 0.075 if shape.stacked else below_title - GAP
+    legend_axes = figure.add_axes((shape.legend_x[0], 0.005, shape.legend_x[1], legend_top - 0.005))
+    return axes, legend_axes
 
 
 def _box(axes: Axes, corners: FloatArray, **style: Any) -> Artist:

@@ -14,21 +14,14 @@ from typing import Literal
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.models import Status, Submission
+from server.models import Phase, Status, Submission, utc_now
 from server.schemas import ComparableOut, SubmissionOut, TokenRow
 from server.services.errors import NotFound
 from server.services.presenters import submission_views, token_result_views
-from server.services.splits import has_closed
 
 MAX_LISTED = 200  # the newest of each kind; more would not fit a choice list anyway
 
 Kind = Literal["yours", "published", "baseline"]
-
-
-def _published(submission: Submission) -> bool:
-    phase = submission.phase
-    shown = not (submission.hidden or submission.admin_hidden or submission.disqualified)
-    return phase is not None and shown and has_closed(phase) and not submission.is_baseline
 
 
 def _candidates(session: Session, submission: Submission, owner: bool) -> list[tuple[Kind, Submission]]:
@@ -42,14 +35,25 @@ def _candidates(session: Session, submission: Submission, owner: bool) -> list[t
             Submission.id != submission.id,
         )
         .order_by(Submission.id.desc())
+        .limit(MAX_LISTED)
     )
-    entries = session.scalars(scored.where(Submission.is_baseline.is_(False))).all()
-    own = [entry for entry in entries if owner and entry.team_id == submission.team_id][:MAX_LISTED]
-    published = [entry for entry in entries if entry not in own and _published(entry)][:MAX_LISTED]
-    baselines = session.scalars(scored.where(Submission.is_baseline.is_(True)).limit(MAX_LISTED)).all()
+    entries = scored.where(Submission.is_baseline.is_(False))
+    own = session.scalars(entries.where(Submission.team_id == submission.team_id)).all() if owner else []
+    # As `published_submission` decides, in the query: shown on the board, its phase closed.
+    published = entries.join(Phase, Submission.phase_id == Phase.id).where(
+        Submission.hidden.is_(False),
+        Submission.admin_hidden.is_(False),
+        Submission.disqualified.is_(False),
+        Phase.closes_at.is_not(None),
+        Phase.closes_at <= utc_now(),
+    )
+    if owner:
+        published = published.where(Submission.team_id != submission.team_id)
     kinds: list[tuple[Kind, Submission]] = [("yours", entry) for entry in own]
-    kinds += [("published", entry) for entry in published]
-    kinds += [("baseline", entry) for entry in baselines]
+    kinds += [("published", entry) for entry in session.scalars(published).all()]
+    kinds += [
+        ("baseline", entry) for entry in session.scalars(scored.where(Submission.is_baseline.is_(True)))
+    ]
     return kinds
 
 
