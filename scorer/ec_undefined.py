@@ -14,8 +14,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from scorer.evaluate import ADJACENT_GAP_S
 from scorer.human import is_synthetic
+from scorer.metrics.two_frame_comfort import ADJACENT_GAP_S
 
 SYNTHETIC = "a synthetic scene (17-character token) has no logged frame before it to compare its plan with"
 UNPAIRED = (

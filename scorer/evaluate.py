@@ -29,7 +29,12 @@ from scorer.cache import (
 from scorer.geometry import FloatArray
 from scorer.human import filtered, is_synthetic
 from scorer.metrics.aggregation import aggregate, defined_mean
-from scorer.metrics.two_frame_comfort import FEATURES, overlap_steps, two_frame_extended_comfort
+from scorer.metrics.two_frame_comfort import (
+    ADJACENT_GAP_S,
+    FEATURES,
+    overlap_steps,
+    two_frame_extended_comfort,
+)
 from scorer.observation import Observation
 from scorer.pdm_scorer import (
     RESULT_COLUMN_OF_ROW,
@@ -662,9 +667,6 @@ def summarize(results: Sequence[TokenResult], columns: Sequence[str] = METRIC_CO
     summary["tokens"] = float(len(results))
     summary["failed"] = float(sum(not r.valid for r in results))
     return summary
-
-
-ADJACENT_GAP_S = 0.55  # `infer_start_adjacent_mapping`'s time_gap_threshold
 
 
 def _in_log_order(frames: Sequence[tuple[str, str, int]]) -> list[list[int]]:

@@ -740,7 +740,9 @@ def test_an_organiser_reads_an_integrity_flag_with_its_evidence_and_decides(
     _fits(page)
     _screenshot(page, f"integrity-decided-{width}")
     page.get_by_role("link", name="← Admin console").click()
-    expect(page.locator("#integrity-link")).to_contain_text("Integrity checks: ")  # the console counts the flags
+    expect(page.locator("#integrity-link")).to_contain_text(
+        "Integrity checks: "
+    )  # the console counts the flags
     # The team sees the organiser's decision, never the flag.
     seen = _api(demo, "GET", f"/submissions/{submission_id}", team_token).json()
     assert seen["disqualified"] is True and "leaked" not in json.dumps(seen).lower()

@@ -40,6 +40,7 @@ from scorer.trajectory import SCORING_INTERVAL_S
 FEATURES = ("acceleration", "jerk", "yaw_rate", "yaw_accel")
 RMS_THRESHOLDS = np.array([0.7, 0.5, 0.1, 0.1])  # `pdm_comfort_metrics.py` extended comfort thresholds
 MAX_INTERVAL_S = 0.55  # the aggregator asserts 0 < Δt < 0.55
+ADJACENT_GAP_S = 0.55  # `infer_start_adjacent_mapping`'s time_gap_threshold: the frames EC pairs
 
 
 class TwoFrameComfort(NamedTuple):

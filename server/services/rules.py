@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from scorer.ec_undefined import UNPAIRED
-from scorer.pdm_scorer import RESULT_COLUMN_OF_ROW
 from scorer.trajectory import SCORING_POSES
 from scorer.versions import (
     METRIC_LABELS,
@@ -97,6 +96,13 @@ class VersionRules:
         return f"version-{self.name}"
 
 
+def _column(row: str) -> str:
+    """Return the result column of a scorer row (the engine's module, imported when the rules are first read)."""
+    from scorer.pdm_scorer import RESULT_COLUMN_OF_ROW
+
+    return RESULT_COLUMN_OF_ROW[row]
+
+
 def subscore(column: str) -> Subscore:
     """Return the words for a result column."""
     return Subscore(column, METRIC_LABELS[column], METRIC_NAMES[column], METRIC_MEANINGS[column])
@@ -106,7 +112,7 @@ SUBSCORES = tuple(subscore(column) for column in METRIC_LABELS)
 
 
 def _weighted(version: MetricVersion) -> tuple[tuple[Subscore, float], ...]:
-    rows = [(subscore(RESULT_COLUMN_OF_ROW[row]), weight) for row, weight in version.evaluation.weighted_rows]
+    rows = [(subscore(_column(row)), weight) for row, weight in version.evaluation.weighted_rows]
     if version.two_frame_extended_comfort_weight is not None:
         rows.append((subscore("two_frame_extended_comfort"), version.two_frame_extended_comfort_weight))
     return tuple(rows)
@@ -115,7 +121,7 @@ def _weighted(version: MetricVersion) -> tuple[tuple[Subscore, float], ...]:
 def formula(version: MetricVersion) -> str:
     """Return a version's per-token score in symbols: the product of its multipliers times the weighted mean
     of its weighted subscores, written from its rows and weights."""
-    multipliers = [METRIC_LABELS[RESULT_COLUMN_OF_ROW[row]] for row in version.evaluation.multiplier_rows]
+    multipliers = [METRIC_LABELS[_column(row)] for row in version.evaluation.multiplier_rows]
     weighted = _weighted(version)
     total = sum(weight for _, weight in weighted)
     terms = " + ".join(f"{weight:g}·{item.label}" for item, weight in weighted)
@@ -181,7 +187,7 @@ def version_rules(version: MetricVersion) -> VersionRules:
         name=version.name,
         score_label=version.score_label,
         formula=formula(version),
-        multipliers=tuple(subscore(RESULT_COLUMN_OF_ROW[row]) for row in version.evaluation.multiplier_rows),
+        multipliers=tuple(subscore(_column(row)) for row in version.evaluation.multiplier_rows),
         weighted=_weighted(version),
         notes=_notes(version),
         official_code=version.official_code,
