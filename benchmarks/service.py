@@ -49,6 +49,7 @@ import uuid
 from collections.abc import Awaitable, Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
+from functools import cache
 from multiprocessing.synchronize import Barrier
 from pathlib import Path
 
@@ -113,10 +114,16 @@ def prepared_split(tokens: int) -> tuple[Path, Path]:
     return split, cache
 
 
+@cache
+def human_trajectories(split: Path) -> dict[str, FloatArray]:
+    """Return the split's human trajectories (read from every scene: seconds, once per split)."""
+    return baseline_submission(split, "human", "bench").seeds[0]
+
+
 def entry_file(split: Path, out: Path, seed: int = 0, seeds: int = 1) -> Path:
     """Write a submission of `seeds` seeds (the human trajectories with noise) covering every token of the split."""
     rng = np.random.default_rng(seed)
-    human = baseline_submission(split, "human", "bench").seeds[0]
+    human = human_trajectories(split)
     noisy: tuple[dict[str, FloatArray], ...] = tuple(
         {token: poses + rng.normal(0.0, 0.2, poses.shape) for token, poses in human.items()}
         for _ in range(seeds)
