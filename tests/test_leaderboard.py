@@ -29,7 +29,7 @@ from server.db import transaction
 from server.models import Submission, utc_now
 from server.numbers import counted, percent
 from server.routes import web
-from server.runs import BOARD_VERSIONS, claim_submission, mark_scored, write_chunk_results
+from server.runs import claim_submission, mark_scored, write_chunk_results
 from server.runs._aggregate import bootstrap_cis
 from server.services.leaderboard import rank_change_report
 from server.services.submissions import add_baselines, create_submission

@@ -460,7 +460,7 @@ def test_a_token_that_killed_its_workers_is_written_failed_in_its_place_of_the_s
     with world.session() as session:
         inputs = chunk_inputs(session, submission_id, run, start)
     assert inputs is not None and inputs.poisoned
-    chunk = score_chunk(inputs, world.settings.storage_dir, world.settings.cache_dir)
+    chunk = score_chunk(inputs, world.settings.submission_store, world.settings.cache_dir)
     with transaction(world.factory) as session:
         write_chunk(session, inputs, chunk, "w", "test-engine", 200)
     with world.session() as session:

@@ -47,7 +47,7 @@ def score_chunk(inputs: ChunkInputs, store: ObjectStore, cache_dir: Path) -> Sco
         ]
         note = f"token {', '.join(inputs.todo)}: written as failed, {POISONED_TOKEN}"
         if job.split_kind == SplitKind.two_stage:
-            failed = _stage_failed(failed, trajectories(job, storage_dir))
+            failed = _stage_failed(failed, trajectories(job, store))
         return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
