@@ -38,7 +38,7 @@ from scorer.evaluate import score_tokens
 from scorer.submission import dump_submission_json, load_submission
 from scorer.versions import LOG_REPLAY_VERSIONS as VERSIONS
 from server.db import transaction
-from server.models import FailureKind, Result, Status, Submission, utc_now
+from server.models import FailureKind, Result, SplitKind, Status, Submission, utc_now
 from server.object_store import LocalStore
 from server.queue import SCORE_TASK, celery_client, enqueue_submission
 from server.runs import Rejected, ScoringJob, claim_submission
@@ -311,6 +311,7 @@ def test_a_process_reads_the_file_of_a_run_once_and_of_a_new_run_again(
         split_name="synthetic",
         split_dir=synthetic_split.directory,
         split_hash="",
+        split_kind=SplitKind.log_replay,
         seed_count=2,
         versions=VERSIONS,
     )
