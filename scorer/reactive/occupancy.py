@@ -15,13 +15,13 @@ A geometry a search needs is built then and simplified as many times as the devk
 (the rounds since its insertion), stopping early at a fixed point: when `simplify` gives back the same
 coordinates in the same structure (`equals_exact` with tolerance 0), every later round gives them back too.
 So every geometry a lead search reads is the one the devkit reads, bit for bit, and none is simplified more
-than twice.
+than twice. A vehicle standing still gets the same footprint at every step: it is built once.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass, replace
 
 import numpy as np
 import shapely
@@ -135,15 +135,33 @@ def overlaps(first: Envelope, second: Envelope) -> bool:
     return first[0] <= second[2] and second[0] <= first[2] and first[1] <= second[3] and second[1] <= first[3]
 
 
+class _Simplified:
+    """A geometry and its simplifications, round by round, up to a fixed point."""
+
+    def __init__(self, build: Callable[[], shapely.Geometry]) -> None:
+        self._build = build
+        self._rounds: list[shapely.Geometry] = []  # the geometry after 0, 1, ... rounds
+        self._fixed = False  # the last one is a fixed point of the simplification
+
+    def after(self, rounds: int) -> shapely.Geometry:
+        """Return the geometry simplified `rounds` times."""
+        if not self._rounds:
+            self._rounds.append(self._build())
+        while len(self._rounds) <= rounds and not self._fixed:
+            last = self._rounds[-1]
+            simplified = shapely.simplify(last, SIMPLIFY_TOLERANCE, preserve_topology=True)
+            self._fixed = bool(shapely.equals_exact(simplified, last, tolerance=0.0))
+            self._rounds.append(simplified)
+        return self._rounds[min(rounds, len(self._rounds) - 1)]
+
+
 @dataclass
 class _Entry:
+    key: Hashable  # equal keys: the same geometry, built alike
     envelope: Envelope  # holds the geometry
     bound: Callable[[], Capsules]  # the capsules holding the geometry, tighter than the envelope
-    build: Callable[[], shapely.Geometry]
+    simplified: _Simplified
     inserted_round: int
-    geometry: shapely.Geometry | None = None
-    simplified: int = 0  # rounds applied to `geometry`
-    fixed: bool = False  # `geometry` is a fixed point of the simplification
     _capsules: tuple[Capsules, FloatArray] | None = None
 
     def capsules(self) -> tuple[Capsules, FloatArray]:
@@ -160,17 +178,25 @@ class LazyOccupancy:
     def __init__(self) -> None:
         self._entries: dict[str, _Entry] = {}
         self._rounds = 0
+        self._answers: dict[Hashable, list[str]] = {}
 
     def set(
         self,
         name: str,
+        key: Hashable,
         envelope: Envelope,
         bound: Callable[[], Capsules],
         build: Callable[[], shapely.Geometry],
     ) -> None:
         """Insert or replace the geometry of `name`, held within `envelope` and within the capsules `bound`
-        gives (a replaced name keeps its place, as in a dict)."""
-        self._entries[name] = _Entry(envelope, bound, build, self._rounds)
+        gives (a replaced name keeps its place, as in a dict). Where it replaces a geometry of the same
+        `key` (a vehicle standing still), what was built and simplified of that one serves again: the devkit
+        builds the same coordinates anew and simplifies them from the start, and so do its rounds here."""
+        previous = self._entries.get(name)
+        if previous is not None and previous.key == key:
+            self._entries[name] = replace(previous, inserted_round=self._rounds)
+        else:
+            self._entries[name] = _Entry(key, envelope, bound, _Simplified(build), self._rounds)
 
     def remove(self, name: str) -> None:
         """Remove `name` (a vehicle that left the radius)."""
@@ -184,9 +210,11 @@ class LazyOccupancy:
         """Return every name, in the devkit's order."""
         return list(self._entries)
 
-    def near(self, envelope: Envelope, bound: Callable[[], Capsules], excluded: str) -> list[str]:
-        """Return the names but `excluded` whose geometry may meet a shape held within `envelope` and within
-        the capsules `bound` gives, in the devkit's order."""
+    def near(
+        self, shape: Hashable, envelope: Envelope, bound: Callable[[], Capsules], excluded: str
+    ) -> list[str]:
+        """Return the names but `excluded` whose geometry may meet a shape (equal `shape` keys: the same
+        shape) held within `envelope` and within the capsules `bound` gives, in the devkit's order."""
         names = [
             name
             for name, entry in self._entries.items()
@@ -194,7 +222,13 @@ class LazyOccupancy:
         ]
         if not names:
             return []
-        capsules = bound()
+        # What a vehicle standing still asks again of geometries standing still has the same answer.
+        question = (shape, excluded, tuple((name, self._entries[name].key) for name in names))
+        if question not in self._answers:
+            self._answers[question] = self._near(names, bound())
+        return self._answers[question]
+
+    def _near(self, names: list[str], capsules: Capsules) -> list[str]:
         held = [self._entries[name].capsules() for name in names]
         owner = np.repeat(np.arange(len(names)), [len(capsules) for capsules, _ in held])
         piece, index = np.nonzero(
@@ -209,12 +243,4 @@ class LazyOccupancy:
     def geometry(self, name: str) -> shapely.Geometry:
         """Return the geometry of `name` as the devkit holds it now: built, and simplified once per round."""
         entry = self._entries[name]
-        if entry.geometry is None:
-            entry.geometry = entry.build()
-        rounds = self._rounds - entry.inserted_round
-        while entry.simplified < rounds and not entry.fixed:
-            simplified = shapely.simplify(entry.geometry, SIMPLIFY_TOLERANCE, preserve_topology=True)
-            entry.fixed = bool(shapely.equals_exact(simplified, entry.geometry, tolerance=0.0))
-            entry.geometry = simplified
-            entry.simplified += 1
-        return entry.geometry
+        return entry.simplified.after(self._rounds - entry.inserted_round)

@@ -32,7 +32,7 @@ the devkit builds them, over the same geometries in the same order, and their tr
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass
 from functools import partial
 from typing import TypeVar
@@ -103,9 +103,9 @@ class _Agent:
 
     def projected_footprint(
         self, headway_time: float
-    ) -> tuple[Envelope, Callable[[], Capsules], Callable[[], shapely.Geometry]]:
-        """Return what holds the vehicle's projected footprint now (an envelope, capsules) and the function that
-        builds it. The envelope: the box's circumscribed circle, and the path's points between the bounds lie
+    ) -> tuple[Hashable, Envelope, Callable[[], Capsules], Callable[[], shapely.Geometry]]:
+        """Return what defines the vehicle's projected footprint now (its key), what holds it (an envelope,
+        capsules) and the function that builds it. The envelope: the box's circumscribed circle, and the path's points between the bounds lie
         no farther from the box centre (on the path) than their progress."""
         path, length, width = self.start.path, self.start.length, self.start.width
         lower = path.clamp(self.progress - length / 2)
@@ -127,7 +127,7 @@ class _Agent:
             )
             return shapely.union_all([ahead, box_polygon(*pose, length, width)])
 
-        return envelope, bound, build
+        return (lower, upper, pose), envelope, bound, build
 
 
 def _box_envelope(pose: tuple[float, float, float], length: float, width: float) -> Envelope:
@@ -169,7 +169,9 @@ def _lead_of(
     clamped = path.clamp(agent.progress)
     half_width = agent.start.width / 2
     envelope = path.to_go_envelope(clamped, half_width + BOUND_SLACK)
-    near = occupancy.near(envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track)
+    near = occupancy.near(
+        clamped, envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track
+    )
     free_road = None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
     # After its first update a vehicle's footprint holds its box, centred where its path ahead starts: the
     # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test.
@@ -234,6 +236,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
         capsule = box_capsule(*vehicle.pose, vehicle.length, vehicle.width)
         occupancy.set(
             vehicle.track,
+            None,
             envelope_of(capsule),
             partial(_given, capsule),
             partial(box_polygon, *vehicle.pose, vehicle.length, vehicle.width),
@@ -260,7 +263,13 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
     for step in range(1, len(ego_states)):
         ego_state = ego_states[step - 1]
         capsule = ego_capsules[step - 1 : step]
-        occupancy.set(EGO, envelope_of(capsule), partial(_given, capsule), partial(_given, ego[step - 1]))
+        occupancy.set(
+            EGO,
+            tuple(ego_states[step - 1, : StateIndex.HEADING + 1].tolist()),
+            envelope_of(capsule),
+            partial(_given, capsule),
+            partial(_given, ego[step - 1]),
+        )
         _leave_range(agents, occupancy, ego_state, config.radius, step, out_of_range)
         for track, agent in agents.items():
             occupancy.simplify_round()
