@@ -5,11 +5,13 @@ NAVSIM's `NavsimIDMAgentManager` keeps a dict name -> geometry (the simulated ve
 after them) and, before every vehicle's lead search, replaces each geometry by its shapely `simplify(1e-5,
 preserve_topology=True)`; the search asks which geometries the buffered path ahead meets. Most searches meet
 nothing but the vehicle's own geometry, so here an entry holds, besides the function that builds its
-geometry, a bound made of capsules (segments with a radius) computed from the numbers that define it without
-GEOS, and an envelope around those (cheaper to test, looser): a box lies within the capsule of its long axis and half its width, a buffered polyline within the
-capsules of its segments and the buffer's distance, and simplifying moves a boundary by at most the
-tolerance. A geometry whose capsules all stay farther than the radii (plus a margin) from the path ahead's
-cannot meet it, so the search needs it only where they come closer.
+geometry, a bound made of capsules (segments with a radius) computed without GEOS from the numbers that
+define it, and an envelope around those (cheaper to test, looser): a box lies within the capsule of its long
+axis and half its width; a buffered polyline within the capsules of its segments and the buffer's distance,
+widened by what GEOS's simplification of a buffer's input line may add (1% of the distance); simplifying a
+geometry moves its boundary by at most the tolerance. A geometry whose capsules all stay farther than the
+radii (plus a margin) from the path ahead's cannot meet it, so the search needs it only where they come
+closer.
 
 A geometry a search needs is built then and simplified as many times as the devkit has simplified it by then
 (the rounds since its insertion), stopping early at a fixed point: when `simplify` gives back the same
@@ -32,14 +34,18 @@ SIMPLIFY_TOLERANCE = 1e-5
 # Margin (m) on every bound: the bounds hold in real numbers; GEOS's buffers, the simplification and the
 # rounding of the paths' interpolation move a boundary by far less.
 BOUND_SLACK = 1e-3
+# GEOS simplifies a buffer's input line on the buffered side by up to this fraction of the buffer distance
+# (`BufferParameters` simplify factor): the buffer may reach that much farther than the distance; twice it.
+BUFFER_REACH = 1.02
 
 # Capsules (k, 5): a segment's x0, y0, x1, y1 and a radius.
 Capsules = FloatArray
 Envelope = tuple[float, float, float, float]  # min x, min y, max x, max y
 
 
-def polyline_capsules(points: FloatArray, radius: float) -> Capsules:
-    """Return the capsules of the segments of a polyline (n, 2), n >= 2, each of `radius`."""
+def polyline_capsules(points: FloatArray, distance: float) -> Capsules:
+    """Return the capsules holding the buffer at `distance` of a polyline (n, 2), n >= 2: its segments."""
+    radius = distance * BUFFER_REACH
     return np.concatenate([points[:-1], points[1:], np.full((len(points) - 1, 1), radius)], axis=1)
 
 

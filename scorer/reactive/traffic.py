@@ -46,6 +46,7 @@ from scorer.reactive.agents import IdmVehicle, ParkingCandidate, StartingTraffic
 from scorer.reactive.idm import Lead, idm_update
 from scorer.reactive.occupancy import (
     BOUND_SLACK,
+    BUFFER_REACH,
     Capsules,
     Envelope,
     LazyOccupancy,
@@ -105,14 +106,18 @@ class _Agent:
         self, headway_time: float
     ) -> tuple[Hashable, Envelope, Callable[[], Capsules], Callable[[], shapely.Geometry]]:
         """Return what defines the vehicle's projected footprint now (its key), what holds it (an envelope,
-        capsules) and the function that builds it. The envelope: the box's circumscribed circle, and the path's points between the bounds lie
-        no farther from the box centre (on the path) than their progress."""
+        capsules) and the function that builds it. The envelope is a square around the box centre (on the
+        path): the box's circumscribed circle, and the path's points between the bounds lie no farther from
+        the centre than their progress does."""
         path, length, width = self.start.path, self.start.length, self.start.width
         lower = path.clamp(self.progress - length / 2)
         upper = path.clamp(self.progress + length / 2 + self.speed * headway_time)
         pose = self.pose()
         clamped = path.clamp(self.progress)
-        reach = max(max(clamped - lower, upper - clamped) + width / 2, math.hypot(length / 2, width / 2))
+        reach = max(
+            max(clamped - lower, upper - clamped) + width / 2 * BUFFER_REACH,
+            math.hypot(length / 2, width / 2),
+        )
         reach += BOUND_SLACK
         envelope = pose[0] - reach, pose[1] - reach, pose[0] + reach, pose[1] + reach
 
@@ -137,16 +142,9 @@ def _box_envelope(pose: tuple[float, float, float], length: float, width: float)
     return pose[0] - radius, pose[1] - radius, pose[0] + radius, pose[1] + radius
 
 
-def _overlap(first: Envelope, second: Envelope) -> bool:
-    return first[0] <= second[2] and second[0] <= first[2] and first[1] <= second[3] and second[1] <= first[3]
-
-
-def ego_boxes(states: FloatArray) -> list[shapely.Polygon]:
-    """Return the ego's box as the IDM sees it at each state (T, 11): centred on the rear axle."""
-    return list(shapely.polygons(_ego_corners(states)))
-
-
 def _ego_corners(states: FloatArray) -> FloatArray:
+    """Return the corners (T, 4, 2) of the ego's box as the IDM sees it at each state (T, 11): centred on the
+    rear axle."""
     return box_corners(
         states[:, StateIndex.X],
         states[:, StateIndex.Y],
@@ -168,7 +166,7 @@ def _lead_of(
     path = agent.start.path
     clamped = path.clamp(agent.progress)
     half_width = agent.start.width / 2
-    envelope = path.to_go_envelope(clamped, half_width + BOUND_SLACK)
+    envelope = path.to_go_envelope(clamped, half_width * BUFFER_REACH + BOUND_SLACK)
     near = occupancy.near(
         clamped, envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track
     )
