@@ -7,6 +7,9 @@ Prints, under a header that describes the host (benchmarks/host.py):
   costs against the two v1 versions' on the same scenes (target: at most 1.5x);
 - warm-cache scoring per version, with 1 process and with --workers: tokens/s and CPU-ms per token; then
   v2.2's cost per token against v1.1's (target: at most 2x);
+- the reactive version (v2.2-two-stage: every token's IDM traffic simulated against its trajectory) per token
+  against the official two-stage script's about 1 s per token in one process on the issue's machine
+  (target: at least 100x, i.e. about 10 CPU-ms per token);
 - within both, the floor: the CPU time of the SVDs the devkit's bits require (pinv's, two per simulated
   proposal: scorer/simulation.py), which no faster path may skip; the devkit's time divided by it bounds
   the speed-up any bit-identical engine can reach on this host;
@@ -60,6 +63,8 @@ ALL_VERSIONS = tuple(VERSIONS)
 V1_VERSIONS = (VersionName.V1_0, VersionName.V1_1)
 CACHE_TARGET = 1.5  # the board's three versions' cache against the two v1 versions'
 SCORE_TARGET = 2.0  # v2.2's scoring time per token against v1.1's
+OFFICIAL_REACTIVE_SECONDS = 1.0  # the official two-stage script per token, one process (issue 25's figure)
+REACTIVE_TARGET = 100.0  # at least this many times the official script's speed per token
 STARTUP_TARGET = 1.5  # a one-token `navsim-lb score` against bare Python importing numpy and shapely
 SCORE_FLOOR_TARGET = 1.5  # the log-replay versions at once per token and seed against their SVDs' CPU time
 CACHE_FLOOR_TARGET = 2.0  # the log-replay versions' cache per scene against its SVDs' CPU time
@@ -162,6 +167,17 @@ def _ratio(label: str, numerator: Timing, denominator: Timing, target: float) ->
     wall = numerator.seconds / numerator.count / (denominator.seconds / denominator.count)
     verdict = "within" if cpu <= target else "OVER"
     return f"{label}: {cpu:.2f}x CPU, {wall:.2f}x wall ({verdict} the target of at most {target:g}x in CPU)"
+
+
+def _against_official(timing: Timing) -> str:
+    """Say how many times the official script's speed per token `timing` (reactive scoring) reaches."""
+    cpu_ms = 1000 * timing.cpu_seconds / timing.count
+    speed_up = 1000 * OFFICIAL_REACTIVE_SECONDS / cpu_ms
+    verdict = "within" if speed_up >= REACTIVE_TARGET else "SHORT OF"
+    return (
+        f"{timing.label} per token, 1 process: {cpu_ms:.1f} CPU-ms, {speed_up:.0f}x the official script's"
+        f" ~{OFFICIAL_REACTIVE_SECONDS:g} s ({verdict} the target of at least {REACTIVE_TARGET:g}x)"
+    )
 
 
 def _peak_rss_mib(who: int) -> float:
@@ -305,6 +321,7 @@ def main() -> None:
     print(at_once.row(), flush=True)
     v2_2, v1_1 = single[VersionName.V2_2], single[VersionName.V1_1]
     print(_ratio("v2.2 against v1.1 per token, 1 process", v2_2, v1_1, SCORE_TARGET))
+    print(_against_official(single[VersionName.V2_2_TWO_STAGE]))
     print("the floor of scoring, 1 process:")
     for timing in (*single.values(), at_once):
         print(_floor(timing, timing.svd_cpu_seconds or 0.0, "token"))

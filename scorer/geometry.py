@@ -326,6 +326,14 @@ def principal_value(angle: npt.ArrayLike) -> FloatArray:
     return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
+def principal_value_of(angle: float) -> float:
+    """Return `principal_value` of one float, in Python floats: the same operations, rounded alike (Python's
+    float `%` adjusts C's fmod as numpy's remainder does), without numpy's per-call cost."""
+    if not math.isfinite(angle):
+        raise ValueError("non-finite heading in the simulation")
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
 def rear_axle_round_trip(
     x: npt.ArrayLike, y: npt.ArrayLike, heading: npt.ArrayLike
 ) -> tuple[FloatArray, FloatArray]:

@@ -11,17 +11,20 @@ and wraps the heading with `principal_value`. The trims (`trim_path_up_to_progre
 nuPlan's odd ends: with nothing left ahead, the path's last two vertices.
 
 A path is read one progress at a time (the IDM's loop is sequential, `scorer.reactive.traffic`), so the
-interpolation is scalar, in the order of scipy's `_call_linear`.
+interpolation is scalar, in the order of scipy's `_call_linear`. For the lazy occupancy
+(`scorer.reactive.occupancy`) a path also gives the envelope of what lies ahead of a progress without building
+it, from the envelopes of its vertices' suffixes, computed once per path.
 """
 
 from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from scorer.geometry import FloatArray, arctan2_avx512, principal_value
+from scorer.geometry import FloatArray, arctan2_avx512, principal_value_of
 
 
 class PathError(ValueError):
@@ -81,7 +84,7 @@ class LanePath:
         x = (x_high - x_low) / span * offset + x_low
         y = (y_high - y_low) / span * offset + y_low
         heading = (heading_high - heading_low) / span * offset + heading_low
-        return x, y, float(principal_value(heading))
+        return x, y, principal_value_of(heading)
 
     def to_go(self, progress: float) -> FloatArray:
         """Return the points (m, 2) of the path from `progress` (clamped) on (`trim_path_up_to_progress`)."""
@@ -90,6 +93,25 @@ class LanePath:
             return self.points[-2:]
         x, y, _ = self.state_at(progress)
         return np.concatenate([[[x, y]], self.points[ahead:]])
+
+    @cached_property
+    def _envelopes_ahead(self) -> list[tuple[float, float, float, float]]:
+        """Per vertex the envelope (min x, min y, max x, max y) of it and every vertex after it."""
+        backwards = self.points[::-1]
+        lows = np.minimum.accumulate(backwards, axis=0)[::-1]
+        highs = np.maximum.accumulate(backwards, axis=0)[::-1]
+        return [tuple(row) for row in np.concatenate([lows, highs], axis=1).tolist()]
+
+    def to_go_envelope(self, progress: float, margin: float) -> tuple[float, float, float, float]:
+        """Return the envelope of `to_go(progress)`, widened by `margin` on every side."""
+        ahead = bisect.bisect_right(self.progress, progress)
+        if ahead == len(self.progress):
+            low_x, low_y, high_x, high_y = self._envelopes_ahead[-2]
+        else:
+            x, y, _ = self.state_at(progress)
+            low_x, low_y, high_x, high_y = self._envelopes_ahead[ahead]
+            low_x, low_y, high_x, high_y = min(x, low_x), min(y, low_y), max(x, high_x), max(y, high_y)
+        return low_x - margin, low_y - margin, high_x + margin, high_y + margin
 
     def between(self, start: float, end: float) -> FloatArray:
         """Return the points (m, 2) of the path from `start` to `end` (both clamped; nuPlan's `trim_path`)."""

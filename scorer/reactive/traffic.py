@@ -18,15 +18,24 @@ reads the ego state k - 1, whose box, as the IDM sees it, is centred on the simu
 4. the step's vehicles: every simulated vehicle's box at its clamped progress, then each parking candidate
    (`scorer.reactive.agents`) whose recorded box touches none of them.
 
-The loop is scalar because the devkit's is sequential: each update reads geometries the previous ones wrote,
-and ties between equidistant leads are settled by the STRtrees' traversal, so the trees are built as the
-devkit builds them, over the same geometries in the same order.
+The loop is scalar because the devkit's is sequential: each update reads geometries the previous ones wrote.
+The occupancy is lazy (`scorer.reactive.occupancy`): a geometry is built and simplified only when a path ahead
+may meet it, so a lead search that meets nothing but the vehicle's own geometry costs no GEOS call (and the
+devkit's assertion that the path ahead meets that geometry is tested only while it is the box at the start:
+later the footprint holds a box centred where the path ahead starts). Of the geometries the path ahead meets
+(shapely's `intersects`, as the STRtree query's predicate) the one strictly nearest by GEOS's distance (what
+the STRtree's `nearest` minimises) is the devkit's lead; where several are equally near (often at 0: a
+footprint overlapping two others), or a hit's name lies within the vehicle's track, the STRtrees are built as
+the devkit builds them, over the same geometries in the same order, and their traversal settles it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import math
+from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass
+from functools import partial
+from typing import TypeVar
 
 import numpy as np
 import shapely
@@ -35,12 +44,23 @@ import shapely.ops
 from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, FloatArray, box_corners, principal_value
 from scorer.reactive.agents import IdmVehicle, ParkingCandidate, StartingTraffic, box_polygon
 from scorer.reactive.idm import Lead, idm_update
+from scorer.reactive.occupancy import (
+    BOUND_SLACK,
+    BUFFER_REACH,
+    Capsules,
+    Envelope,
+    LazyOccupancy,
+    box_capsule,
+    envelope_of,
+    overlaps,
+    polyline_capsules,
+)
 from scorer.trajectory import StateIndex
 from scorer.versions import IdmTraffic
 
 EGO = "ego"
+T = TypeVar("T")
 STEP_S = 0.1  # the IDM's tspan: the scorer's proposal sampling interval
-SIMPLIFY_TOLERANCE = 1e-5
 
 
 @dataclass(frozen=True)
@@ -72,55 +92,100 @@ class _Agent:
     start: IdmVehicle
     progress: float
     speed: float
+    updated: bool = False  # its occupancy holds its projected footprint, no longer its box at the start
+    _pose_progress: float = math.nan
+    _pose: tuple[float, float, float] = (math.nan, math.nan, math.nan)
 
     def pose(self) -> tuple[float, float, float]:
-        return self.start.path.state_at(self.start.path.clamp(self.progress))
+        clamped = self.start.path.clamp(self.progress)
+        if clamped != self._pose_progress:
+            self._pose_progress, self._pose = clamped, self.start.path.state_at(clamped)
+        return self._pose
 
-    def box(self) -> shapely.Polygon:
-        return box_polygon(*self.pose(), self.start.length, self.start.width)
-
-    def projected_footprint(self, headway_time: float) -> shapely.Geometry:
-        path, half_length = self.start.path, self.start.length / 2
-        lower = path.clamp(self.progress - half_length)
-        upper = path.clamp(self.progress + half_length + self.speed * headway_time)
-        ahead = shapely.buffer(
-            shapely.linestrings(path.between(lower, upper)), self.start.width / 2, cap_style="flat"
+    def projected_footprint(
+        self, headway_time: float
+    ) -> tuple[Hashable, Envelope, Callable[[], Capsules], Callable[[], shapely.Geometry]]:
+        """Return what defines the vehicle's projected footprint now (its key), what holds it (an envelope,
+        capsules) and the function that builds it. The envelope is a square around the box centre (on the
+        path): the box's circumscribed circle, and the path's points between the bounds lie no farther from
+        the centre than their progress does."""
+        path, length, width = self.start.path, self.start.length, self.start.width
+        lower = path.clamp(self.progress - length / 2)
+        upper = path.clamp(self.progress + length / 2 + self.speed * headway_time)
+        pose = self.pose()
+        clamped = path.clamp(self.progress)
+        reach = max(
+            max(clamped - lower, upper - clamped) + width / 2 * BUFFER_REACH,
+            math.hypot(length / 2, width / 2),
         )
-        return shapely.union_all([ahead, self.box()])
+        reach += BOUND_SLACK
+        envelope = pose[0] - reach, pose[1] - reach, pose[0] + reach, pose[1] + reach
+
+        def bound() -> Capsules:
+            return np.concatenate(
+                [polyline_capsules(path.between(lower, upper), width / 2), box_capsule(*pose, length, width)]
+            )
+
+        def build() -> shapely.Geometry:
+            ahead = shapely.buffer(
+                shapely.linestrings(path.between(lower, upper)), width / 2, cap_style="flat"
+            )
+            return shapely.union_all([ahead, box_polygon(*pose, length, width)])
+
+        return (lower, upper, pose), envelope, bound, build
 
 
-def ego_boxes(states: FloatArray) -> list[shapely.Polygon]:
-    """Return the ego's box as the IDM sees it at each state (T, 11): centred on the rear axle."""
-    corners = box_corners(
+def _box_envelope(pose: tuple[float, float, float], length: float, width: float) -> Envelope:
+    """Return an envelope of the box of `length` x `width` centred at the pose: the square around its
+    circumscribed circle."""
+    radius = math.hypot(length / 2, width / 2) + BOUND_SLACK
+    return pose[0] - radius, pose[1] - radius, pose[0] + radius, pose[1] + radius
+
+
+def _ego_corners(states: FloatArray) -> FloatArray:
+    """Return the corners (T, 4, 2) of the ego's box as the IDM sees it at each state (T, 11): centred on the
+    rear axle."""
+    return box_corners(
         states[:, StateIndex.X],
         states[:, StateIndex.Y],
         states[:, StateIndex.HEADING],
         EGO_HALF_LENGTH,
         EGO_HALF_WIDTH,
     )
-    return list(shapely.polygons(corners))
+
+
+class _TreeOrderNeeded(Exception):
+    """Equally near leads (or an odd name): only the devkit's STRtrees can say which one it follows."""
 
 
 def _lead_of(
-    agent: _Agent, agents: dict[str, _Agent], occupancy: dict[str, shapely.Geometry], ego_state: FloatArray
+    agent: _Agent, agents: dict[str, _Agent], occupancy: LazyOccupancy, ego_state: FloatArray
 ) -> tuple[str | None, Lead]:
     """Return what `agent` follows (`NavsimIDMAgentManager.propagate_agents`)."""
     track = agent.start.track
     path = agent.start.path
-    ahead = shapely.buffer(
-        shapely.linestrings(path.to_go(path.clamp(agent.progress))), agent.start.width / 2, cap_style="flat"
+    clamped = path.clamp(agent.progress)
+    half_width = agent.start.width / 2
+    envelope = path.to_go_envelope(clamped, half_width * BUFFER_REACH + BOUND_SLACK)
+    near = occupancy.near(
+        clamped, envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track
     )
-    names = list(occupancy)
-    geometries = list(occupancy.values())
-    hits = [names[index] for index in shapely.STRtree(geometries).query(ahead, predicate="intersects")]
-    if track not in hits:
+    free_road = None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
+    # After its first update a vehicle's footprint holds its box, centred where its path ahead starts: the
+    # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test.
+    if not near and agent.updated:
+        return free_road
+    ahead = shapely.buffer(shapely.linestrings(path.to_go(clamped)), half_width, cap_style="flat")
+    own = occupancy.geometry(track)
+    if not agent.updated and not shapely.intersects(own, ahead):
         raise ValueError(f"vehicle {track}: its path does not meet its own footprint (the devkit asserts)")
-    if len(hits) == 1:
-        return None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
-    others = [name for name in hits if name not in track]
-    own = occupancy[track]
-    nearest = others[int(shapely.STRtree([occupancy[name] for name in others]).nearest(own))]
-    near_own, near_other = shapely.ops.nearest_points(own, occupancy[nearest])
+    try:
+        nearest = _nearest_hit(track, own, ahead, near, occupancy)
+    except _TreeOrderNeeded:
+        nearest = _nearest_hit_in_tree_order(track, own, ahead, occupancy)
+    if nearest is None:
+        return free_road
+    near_own, near_other = shapely.ops.nearest_points(own, occupancy.geometry(nearest))
     distance = float(near_own.distance(near_other))
     heading = agent.pose()[2]
     if EGO in nearest:
@@ -132,35 +197,86 @@ def _lead_of(
     return nearest, Lead(distance, speed * float(np.cos(principal_value(relative_heading))), 0.0)
 
 
+def _nearest_hit(
+    track: str, own: shapely.Geometry, ahead: shapely.Geometry, near: list[str], occupancy: LazyOccupancy
+) -> str | None:
+    """Return the geometry the path `ahead` meets nearest to the vehicle's `own` (None: only its own), the
+    devkit's choice wherever one is strictly nearest (GEOS's distance, as its STRtree's `nearest` measures)."""
+    hits = [name for name in near if shapely.intersects(occupancy.geometry(name), ahead)]
+    if any(name in track for name in hits):
+        raise _TreeOrderNeeded
+    if len(hits) <= 1:
+        return hits[0] if hits else None
+    distances = shapely.distance([occupancy.geometry(name) for name in hits], own)
+    nearest = np.flatnonzero(distances == distances.min())
+    if len(nearest) > 1:
+        raise _TreeOrderNeeded
+    return hits[int(nearest[0])]
+
+
+def _nearest_hit_in_tree_order(
+    track: str, own: shapely.Geometry, ahead: shapely.Geometry, occupancy: LazyOccupancy
+) -> str:
+    """Return the devkit's lead, its STRtrees built over the same geometries in the same order: the query's
+    hits over every geometry, then `nearest` over the hits not named within the vehicle's track."""
+    names = occupancy.names()
+    geometries = [occupancy.geometry(name) for name in names]
+    hits = [names[index] for index in shapely.STRtree(geometries).query(ahead, predicate="intersects")]
+    others = [name for name in hits if name not in track]
+    return others[int(shapely.STRtree([occupancy.geometry(name) for name in others]).nearest(own))]
+
+
 def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: IdmTraffic) -> VehicleSteps:
     """Return the vehicles of steps 1..len(ego_states) - 1 reacting to the ego's simulated states (T, 11)."""
     agents = {vehicle.track: _Agent(vehicle, vehicle.progress, vehicle.speed) for vehicle in start.agents}
-    occupancy: dict[str, shapely.Geometry] = {
-        vehicle.track: box_polygon(*vehicle.pose, vehicle.length, vehicle.width) for vehicle in start.agents
-    }
+    occupancy = LazyOccupancy()
+    for vehicle in start.agents:
+        capsule = box_capsule(*vehicle.pose, vehicle.length, vehicle.width)
+        occupancy.set(
+            vehicle.track,
+            None,
+            envelope_of(capsule),
+            partial(_given, capsule),
+            partial(box_polygon, *vehicle.pose, vehicle.length, vehicle.width),
+        )
     target_velocity = {vehicle.track: vehicle.target_velocity for vehicle in start.agents}
-    parked = {candidate: box_polygon(*candidate.box) for candidate in start.parking}
-    ego = ego_boxes(ego_states)
+    parked = [
+        (candidate, box_polygon(*candidate.box), _box_envelope(candidate.box[:3], *candidate.box[3:]))
+        for candidate in start.parking
+    ]
+    ego_corners = _ego_corners(ego_states)
+    ego = shapely.polygons(ego_corners)
+    # The ego box's long axis, from its rear edge's middle to its front edge's (corners FL, RL, RR, FR).
+    ego_capsules = np.concatenate(
+        [
+            (ego_corners[:, 1] + ego_corners[:, 2]) / 2,
+            (ego_corners[:, 0] + ego_corners[:, 3]) / 2,
+            np.full((len(ego_corners), 1), EGO_HALF_WIDTH),
+        ],
+        axis=1,
+    )
     steps = []
     updates: list[IdmUpdate] = []
     out_of_range: dict[str, int] = {}
     for step in range(1, len(ego_states)):
         ego_state = ego_states[step - 1]
-        occupancy[EGO] = ego[step - 1]
+        capsule = ego_capsules[step - 1 : step]
+        occupancy.set(
+            EGO,
+            tuple(ego_states[step - 1, : StateIndex.HEADING + 1].tolist()),
+            envelope_of(capsule),
+            partial(_given, capsule),
+            partial(_given, ego[step - 1]),
+        )
         _leave_range(agents, occupancy, ego_state, config.radius, step, out_of_range)
         for track, agent in agents.items():
-            occupancy = dict(
-                zip(
-                    occupancy,
-                    shapely.simplify(list(occupancy.values()), SIMPLIFY_TOLERANCE, preserve_topology=True),
-                    strict=True,
-                )
-            )
+            occupancy.simplify_round()
             lead_track, lead = _lead_of(agent, agents, occupancy, ego_state)
             before = (agent.progress, agent.speed)
             agent.progress, agent.speed = idm_update(
                 agent.progress, agent.speed, lead, target_velocity[track], config, STEP_S
             )
+            agent.updated = True
             updates.append(
                 IdmUpdate(
                     step,
@@ -172,14 +288,18 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
                     target_velocity[track],
                 )
             )
-            occupancy[track] = agent.projected_footprint(config.headway_time)
+            occupancy.set(track, *agent.projected_footprint(config.headway_time))
         steps.append(_vehicles_of_step(agents.values(), parked, config))
     return VehicleSteps(steps=tuple(steps), updates=tuple(updates), out_of_range=out_of_range)
 
 
+def _given(value: T) -> T:
+    return value
+
+
 def _leave_range(
     agents: dict[str, _Agent],
-    occupancy: dict[str, shapely.Geometry],
+    occupancy: LazyOccupancy,
     ego_state: FloatArray,
     radius: float,
     step: int,
@@ -194,20 +314,30 @@ def _leave_range(
     centres = np.array([agent.pose()[:2] for agent in agents.values()])
     distances = cdist(ego_state[None, : StateIndex.HEADING], centres)[0]
     for track in np.array(list(agents))[distances > radius].tolist():
-        del agents[track], occupancy[track]
+        del agents[track]
+        occupancy.remove(track)
         out_of_range[track] = step
 
 
 def _vehicles_of_step(
     agents: Iterable[_Agent],
-    parked: dict[ParkingCandidate, shapely.Polygon],
+    parked: list[tuple[ParkingCandidate, shapely.Polygon, Envelope]],
     config: IdmTraffic,
 ) -> tuple[tuple[str, float, float, float, float, float], ...]:
-    """Return the vehicles the scorer sees at a step: the simulated ones, then the parked ones they leave free."""
-    vehicles = [(agent.start.track, *agent.pose(), agent.start.length, agent.start.width) for agent in agents]
+    """Return the vehicles the scorer sees at a step: the simulated ones, then the parked ones they leave free
+    (a simulated box is built only where its envelope meets a parked one's)."""
+    simulated = [
+        (agent.start.track, *agent.pose(), agent.start.length, agent.start.width) for agent in agents
+    ]
+    vehicles = list(simulated)
     if config.add_open_loop_parked_vehicles and parked:
-        boxes = [box_polygon(*vehicle[1:]) for vehicle in vehicles]
-        for candidate, polygon in parked.items():
-            if not boxes or not shapely.intersects(boxes, polygon).any():
+        envelopes = [_box_envelope(vehicle[1:4], *vehicle[4:]) for vehicle in simulated]
+        boxes: dict[int, shapely.Polygon] = {}
+        for candidate, polygon, envelope in parked:
+            near = [index for index, around in enumerate(envelopes) if overlaps(around, envelope)]
+            for index in near:
+                if index not in boxes:
+                    boxes[index] = box_polygon(*simulated[index][1:])
+            if not any(shapely.intersects(boxes[index], polygon) for index in near):
                 vehicles.append((candidate.track, *candidate.box))
     return tuple(vehicles)

@@ -1,0 +1,252 @@
+"""The IDM's occupancy map, built lazily: each geometry is made and simplified only when a lead search needs it
+(docs/engine.md, "Reactive traffic: speed").
+
+NAVSIM's `NavsimIDMAgentManager` keeps a dict name -> geometry (the simulated vehicles in building order, "ego"
+after them) and, before every vehicle's lead search, replaces each geometry by its shapely `simplify(1e-5,
+preserve_topology=True)`; the search asks which geometries the buffered path ahead meets. Most searches meet
+nothing but the vehicle's own geometry, so here an entry holds, besides the function that builds its
+geometry, a bound made of capsules (segments with a radius) computed without GEOS from the numbers that
+define it, and an envelope around those (cheaper to test, looser): a box lies within the capsule of its long
+axis and half its width; a buffered polyline within the capsules of its segments and the buffer's distance,
+widened by what GEOS's simplification of a buffer's input line may add (1% of the distance); simplifying a
+geometry moves its boundary by at most the tolerance. A geometry whose capsules all stay farther than the
+radii (plus a margin) from the path ahead's cannot meet it, so the search needs it only where they come
+closer.
+
+A geometry a search needs is built then and simplified as many times as the devkit has simplified it by then
+(the rounds since its insertion), stopping early at a fixed point: when `simplify` gives back the same
+coordinates in the same structure (`equals_exact` with tolerance 0), every later round gives them back too.
+So every geometry a lead search reads is the one the devkit reads, bit for bit, and none is simplified more
+than twice. A vehicle standing still gets the same footprint at every step: it is built once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass, replace
+
+import numpy as np
+import shapely
+
+from scorer.geometry import BoolArray, FloatArray
+
+SIMPLIFY_TOLERANCE = 1e-5
+# Margin (m) on every bound: the bounds hold in real numbers; GEOS's buffers, the simplification and the
+# rounding of the paths' interpolation move a boundary by far less.
+BOUND_SLACK = 1e-3
+# GEOS simplifies a buffer's input line on the buffered side by up to this fraction of the buffer distance
+# (`BufferParameters` simplify factor): the buffer may reach that much farther than the distance; twice it.
+BUFFER_REACH = 1.02
+
+# Capsules (k, 5): a segment's x0, y0, x1, y1 and a radius.
+Capsules = FloatArray
+Envelope = tuple[float, float, float, float]  # min x, min y, max x, max y
+
+
+def polyline_capsules(points: FloatArray, distance: float) -> Capsules:
+    """Return the capsules holding the buffer at `distance` of a polyline (n, 2), n >= 2: its segments."""
+    radius = distance * BUFFER_REACH
+    return np.concatenate([points[:-1], points[1:], np.full((len(points) - 1, 1), radius)], axis=1)
+
+
+def box_capsule(x: float, y: float, heading: float, length: float, width: float) -> Capsules:
+    """Return the capsule (1, 5) holding a box: its long axis and half its width."""
+    half_x, half_y = length / 2 * np.cos(heading), length / 2 * np.sin(heading)
+    return np.array([[x - half_x, y - half_y, x + half_x, y + half_y, width / 2]])
+
+
+def _envelopes(capsules: Capsules) -> FloatArray:
+    """Return the envelopes (k, 4) (min x, min y, max x, max y) of capsules, widened by the slack."""
+    reach = capsules[:, 4:] + BOUND_SLACK
+    return np.concatenate(
+        [
+            np.minimum(capsules[:, 0:2], capsules[:, 2:4]) - reach,
+            np.maximum(capsules[:, 0:2], capsules[:, 2:4]) + reach,
+        ],
+        axis=1,
+    )
+
+
+def _meet(first: FloatArray, second: FloatArray) -> BoolArray:
+    """Return per envelope of `first` (m, 4) and of `second` (k, 4) whether they meet, (m, k)."""
+    first, second = first[:, None], second[None]
+    return (
+        (first[..., 0] <= second[..., 2])
+        & (second[..., 0] <= first[..., 2])
+        & (first[..., 1] <= second[..., 3])
+        & (second[..., 1] <= first[..., 3])
+    )
+
+
+def _point_segment_distance(
+    x: FloatArray, y: FloatArray, x0: FloatArray, y0: FloatArray, x1: FloatArray, y1: FloatArray
+) -> FloatArray:
+    dx, dy = x1 - x0, y1 - y0
+    squared = dx * dx + dy * dy
+    along = (x - x0) * dx + (y - y0) * dy
+    fraction = np.clip(along / np.where(squared > 0, squared, 1.0), 0.0, 1.0)
+    return np.hypot(x - x0 - fraction * dx, y - y0 - fraction * dy)
+
+
+def _side(
+    x0: FloatArray, y0: FloatArray, x1: FloatArray, y1: FloatArray, x: FloatArray, y: FloatArray
+) -> FloatArray:
+    return (x1 - x0) * (y - y0) - (y1 - y0) * (x - x0)
+
+
+def pairs_meet(first: Capsules, second: Capsules) -> BoolArray:
+    """Return per pair of capsules (P, 5) whether they come within the slack of each other: the segments
+    cross (strictly; touching and overlapping ones have an end on the other) or an end lies within the two
+    radii of the other segment. Measured from a local origin, so that the crossing test's products stay
+    well within float precision."""
+    origin_x, origin_y = first[0, 0], first[0, 1]
+    ax0, ay0, ax1, ay1 = (
+        first[:, 0] - origin_x,
+        first[:, 1] - origin_y,
+        first[:, 2] - origin_x,
+        first[:, 3] - origin_y,
+    )
+    bx0, by0, bx1, by1 = (
+        second[:, 0] - origin_x,
+        second[:, 1] - origin_y,
+        second[:, 2] - origin_x,
+        second[:, 3] - origin_y,
+    )
+    distance = np.minimum(
+        np.minimum(
+            _point_segment_distance(ax0, ay0, bx0, by0, bx1, by1),
+            _point_segment_distance(ax1, ay1, bx0, by0, bx1, by1),
+        ),
+        np.minimum(
+            _point_segment_distance(bx0, by0, ax0, ay0, ax1, ay1),
+            _point_segment_distance(bx1, by1, ax0, ay0, ax1, ay1),
+        ),
+    )
+    crossing = (_side(ax0, ay0, ax1, ay1, bx0, by0) * _side(ax0, ay0, ax1, ay1, bx1, by1) < 0) & (
+        _side(bx0, by0, bx1, by1, ax0, ay0) * _side(bx0, by0, bx1, by1, ax1, ay1) < 0
+    )
+    return crossing | (distance <= first[:, 4] + second[:, 4] + BOUND_SLACK)
+
+
+def envelope_of(capsules: Capsules) -> Envelope:
+    """Return the envelope of the union of capsules, widened by the slack."""
+    envelopes = _envelopes(capsules)
+    low_x, low_y = envelopes[:, :2].min(axis=0).tolist()
+    high_x, high_y = envelopes[:, 2:].max(axis=0).tolist()
+    return low_x, low_y, high_x, high_y
+
+
+def overlaps(first: Envelope, second: Envelope) -> bool:
+    """Return whether two envelopes meet (touching counts)."""
+    return first[0] <= second[2] and second[0] <= first[2] and first[1] <= second[3] and second[1] <= first[3]
+
+
+class _Simplified:
+    """A geometry and its simplifications, round by round, up to a fixed point."""
+
+    def __init__(self, build: Callable[[], shapely.Geometry]) -> None:
+        self._build = build
+        self._rounds: list[shapely.Geometry] = []  # the geometry after 0, 1, ... rounds
+        self._fixed = False  # the last one is a fixed point of the simplification
+
+    def after(self, rounds: int) -> shapely.Geometry:
+        """Return the geometry simplified `rounds` times."""
+        if not self._rounds:
+            self._rounds.append(self._build())
+        while len(self._rounds) <= rounds and not self._fixed:
+            last = self._rounds[-1]
+            simplified = shapely.simplify(last, SIMPLIFY_TOLERANCE, preserve_topology=True)
+            self._fixed = bool(shapely.equals_exact(simplified, last, tolerance=0.0))
+            self._rounds.append(simplified)
+        return self._rounds[min(rounds, len(self._rounds) - 1)]
+
+
+@dataclass
+class _Entry:
+    key: Hashable  # equal keys: the same geometry, built alike
+    envelope: Envelope  # holds the geometry
+    bound: Callable[[], Capsules]  # the capsules holding the geometry, tighter than the envelope
+    simplified: _Simplified
+    inserted_round: int
+    _capsules: tuple[Capsules, FloatArray] | None = None
+
+    def capsules(self) -> tuple[Capsules, FloatArray]:
+        """Return the capsules holding the geometry and their envelopes."""
+        if self._capsules is None:
+            capsules = self.bound()
+            self._capsules = capsules, _envelopes(capsules)
+        return self._capsules
+
+
+class LazyOccupancy:
+    """The occupancy map of one simulation, in the devkit's dict order."""
+
+    def __init__(self) -> None:
+        self._entries: dict[str, _Entry] = {}
+        self._rounds = 0
+        self._answers: dict[Hashable, list[str]] = {}
+
+    def set(
+        self,
+        name: str,
+        key: Hashable,
+        envelope: Envelope,
+        bound: Callable[[], Capsules],
+        build: Callable[[], shapely.Geometry],
+    ) -> None:
+        """Insert or replace the geometry of `name`, held within `envelope` and within the capsules `bound`
+        gives (a replaced name keeps its place, as in a dict). Where it replaces a geometry of the same
+        `key` (a vehicle standing still), what was built and simplified of that one serves again: the devkit
+        builds the same coordinates anew and simplifies them from the start, and so do its rounds here."""
+        previous = self._entries.get(name)
+        if previous is not None and previous.key == key:
+            self._entries[name] = replace(previous, inserted_round=self._rounds)
+        else:
+            self._entries[name] = _Entry(key, envelope, bound, _Simplified(build), self._rounds)
+
+    def remove(self, name: str) -> None:
+        """Remove `name` (a vehicle that left the radius)."""
+        del self._entries[name]
+
+    def simplify_round(self) -> None:
+        """Count one devkit round of simplifying every geometry (before each lead search)."""
+        self._rounds += 1
+
+    def names(self) -> list[str]:
+        """Return every name, in the devkit's order."""
+        return list(self._entries)
+
+    def near(
+        self, shape: Hashable, envelope: Envelope, bound: Callable[[], Capsules], excluded: str
+    ) -> list[str]:
+        """Return the names but `excluded` whose geometry may meet a shape (equal `shape` keys: the same
+        shape) held within `envelope` and within the capsules `bound` gives, in the devkit's order."""
+        names = [
+            name
+            for name, entry in self._entries.items()
+            if name != excluded and overlaps(entry.envelope, envelope)
+        ]
+        if not names:
+            return []
+        # What a vehicle standing still asks again of geometries standing still has the same answer.
+        question = (shape, excluded, tuple((name, self._entries[name].key) for name in names))
+        if question not in self._answers:
+            self._answers[question] = self._near(names, bound())
+        return self._answers[question]
+
+    def _near(self, names: list[str], capsules: Capsules) -> list[str]:
+        held = [self._entries[name].capsules() for name in names]
+        owner = np.repeat(np.arange(len(names)), [len(capsules) for capsules, _ in held])
+        piece, index = np.nonzero(
+            _meet(_envelopes(capsules), np.concatenate([envelopes for _, envelopes in held]))
+        )
+        if not len(piece):
+            return []
+        owned = np.concatenate([capsules for capsules, _ in held])
+        meeting = set(owner[index[pairs_meet(capsules[piece], owned[index])]].tolist())
+        return [name for position, name in enumerate(names) if position in meeting]
+
+    def geometry(self, name: str) -> shapely.Geometry:
+        """Return the geometry of `name` as the devkit holds it now: built, and simplified once per round."""
+        entry = self._entries[name]
+        return entry.simplified.after(self._rounds - entry.inserted_round)
