@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich import box
@@ -10,9 +11,11 @@ from rich.markup import escape
 from rich.table import Table
 
 from scorer.evaluate import TokenResult, summarize
-from scorer.two_stage.aggregate import TwoStageResult
 from scorer.versions import METRIC_LABELS, MetricVersion
 from server.numbers import percent
+
+if TYPE_CHECKING:  # the two-stage engine loads only where a two-stage version is scored (start-up)
+    from scorer.two_stage.aggregate import TwoStageResult
 
 OVER_SEEDS = (("mean", np.mean), ("std", np.std), ("max", np.max))
 

@@ -30,9 +30,6 @@ from scorer.human import FILTERED_COLUMNS, human_future_poses, is_synthetic
 from scorer.metrics.history_comfort import past_states
 from scorer.observation import Observation, drop_tracks_on_ego, observe_scene
 from scorer.pdm_scorer import MeasureSettings, ProposalMeasures, measure_alike, score_batch
-from scorer.reactive.agents import IdmVehicle, ParkingCandidate, Rejection, StartingTraffic, build_agents
-from scorer.reactive.observation import base_observation, reacting_observation
-from scorer.reactive.paths import LanePath
 from scorer.red_lights import RedLights, observe_red_lights
 from scorer.scene import EgoStatus, Scene
 from scorer.simulation import simulate
@@ -41,6 +38,10 @@ from scorer.versions import VERSIONS, MetricVersion, cache_source
 
 if TYPE_CHECKING:
     from scorer.pdm_closed import PlannerOutput
+    from scorer.reactive.agents import StartingTraffic
+
+# Reactive traffic (`scorer.reactive`) is imported where a reactive version needs it: scoring a log-replay
+# version from its cache never loads it (start-up of `navsim-lb score`).
 
 _MEASURES_PREFIX = "reference_"
 _PREFIX = 16  # a cache file's first bytes: its index's length and its own, 8 bytes each
@@ -142,6 +143,8 @@ def build_cache_batch(
             pasts = [past_states(scene) for scene in scenes]
         traffic: list[StartingTraffic | None] = [None] * len(scenes)
         if version.reactive_traffic is not None:
+            from scorer.reactive.agents import build_agents
+
             traffic = [
                 build_agents(
                     scene.current_frame, scene.map, _initial_ego_box(scene), version.reactive_traffic
@@ -190,6 +193,8 @@ def _human_observations(
     """Return what the logged human of each scene is scored against: under reactive traffic, a second
     simulation whose vehicles react to the human's simulated states (H, 41, 11), else the observation (also
     where the traffic could not be built: the scene's tokens are unscorable)."""
+    from scorer.reactive.observation import reacting_observation
+
     seen = list(observations)
     for row, index in enumerate(humans):
         scene_traffic = traffic[index]
@@ -274,6 +279,8 @@ def evaluation_observation(
     if reads_lights:
         observation = replace(observation, red_lights=observe_red_lights(scene, future_frames))
     if reactive:
+        from scorer.reactive.observation import base_observation
+
         return base_observation(scene.current_frame, observation), ()
     if not drops_tracks_on_ego:
         return observation, ()
@@ -429,6 +436,8 @@ def _cache_section(cache: MetricCache) -> tuple[dict[str, Any], dict[str, np.nda
 
 def _traffic_meta(traffic: StartingTraffic) -> dict[str, Any]:
     """Return the vehicles at the start as JSON (floats round-trip exactly through their shortest repr)."""
+    from scorer.reactive.agents import IdmVehicle
+
     return {
         "agents": [
             {
@@ -449,6 +458,9 @@ def _traffic_meta(traffic: StartingTraffic) -> dict[str, Any]:
 
 def _traffic_of(meta: dict[str, Any]) -> StartingTraffic:
     """Invert `_traffic_meta`."""
+    from scorer.reactive.agents import IdmVehicle, ParkingCandidate, Rejection, StartingTraffic
+    from scorer.reactive.paths import LanePath
+
     agents = []
     for agent in meta["agents"]:
         path = agent["path"]

@@ -45,7 +45,6 @@ from scorer.pdm_scorer import (
     measure_alike,
     score_measures,
 )
-from scorer.reactive.observation import reacting_observation
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state
@@ -383,6 +382,8 @@ def _score_reacting(
     """Return the scores (B, 2) of [PDM-Closed, agent] per token under reactive traffic: the vehicles react to
     the agent's simulated states, and both proposals are measured against them (`pdm_score` passes the one
     traffic simulation to the scorer for both)."""
+    from scorer.reactive.observation import reacting_observation  # only reactive versions need it (start-up)
+
     config = version.reactive_traffic
     if config is None:
         raise ValueError(f"{version.name} has no reactive traffic")

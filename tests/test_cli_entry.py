@@ -106,3 +106,33 @@ def test_scoring_from_a_warm_cache_does_not_import_the_cache_builders(
     builders = "['scorer.pdm_closed', 'scorer.planner_observation', 'scorer.route']"
     assert cold.stdout.splitlines()[-1] == f"cache builders imported: {builders}"  # it built the cache
     assert warm.stdout.splitlines()[-1] == "cache builders imported: []"
+
+
+LOG_REPLAY_PROBE = """
+import sys
+from navsim_lb.cli import main
+sys.argv = ["navsim-lb", "score", *sys.argv[1:]]
+try:
+    main()
+finally:
+    engines = ("scorer.reactive", "scorer.two_stage")
+    print("engines imported:", sorted({name for name in sys.modules for e in engines if name.startswith(e)}))
+"""
+
+
+def test_scoring_a_log_replay_version_does_not_import_reactive_or_two_stage_engines(
+    tmp_path: Path, one_token_split: tuple[Path, Path]
+) -> None:
+    """Reactive traffic and the two-stage aggregation serve other versions: the default version's
+    `navsim-lb score ... --out` from its cache never loads them (start-up)."""
+    arguments = [*(str(path) for path in one_token_split), "--cache-dir", str(tmp_path / "cache")]
+    arguments += ["--out", str(tmp_path / "results.csv")]
+    cold, warm = (
+        subprocess.run(
+            [sys.executable, "-c", LOG_REPLAY_PROBE, *arguments], check=False, capture_output=True, text=True
+        )
+        for _ in range(2)
+    )
+    assert cold.returncode == warm.returncode == 0, cold.stderr + warm.stderr
+    assert warm.stdout.splitlines()[-1] == "engines imported: []"
+    assert (tmp_path / "results.csv").read_text().count("\n") >= 2
