@@ -13,17 +13,16 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 
 from sqlalchemy.orm import Session
 
 from scorer.geometry import FloatArray
-from scorer.scene import scene_paths
 from server.models import FailureKind, Submission
 from server.object_store import ObjectStore
 from server.runs._chunks import ChunkStart, StartAction
 from server.runs._run import BOARD_VERSIONS, completed_tokens
 from server.services.errors import NotFound
+from server.split_store import split_tokens
 from server.storage import read_file, read_trajectories
 
 MAX_LISTED_PROBLEMS = 5
@@ -50,7 +49,7 @@ class ScoringJob:
     stored_name: str
     sha256: str  # of the upload: the stored bytes must still match it
     split_name: str
-    split_dir: Path
+    split_source: str  # a directory, or an object store's prefix (server.split_store)
     split_hash: str
     seed_count: int
     versions: tuple[str, ...]
@@ -80,7 +79,7 @@ def load_job(session: Session, submission_id: int) -> ScoringJob:
         stored_name=submission.stored_name,
         sha256=submission.sha256,
         split_name=split.name,
-        split_dir=Path(split.directory),
+        split_source=split.directory,
         split_hash=split.content_hash,
         seed_count=submission.seed_count,
         versions=BOARD_VERSIONS,
@@ -144,7 +143,9 @@ def trajectories(job: ScoringJob, store: ObjectStore) -> tuple[dict[str, FloatAr
         except SubmissionError as error:
             listed = "; ".join(str(problem) for problem in error.problems[:MAX_LISTED_PROBLEMS])
             raise Rejected(FailureKind.submission, f"the file cannot be read: {listed}") from None
-    problems = coverage_problems([list(seed) for seed in seeds], scene_paths(job.split_dir))
+    problems = coverage_problems(
+        [list(seed) for seed in seeds], split_tokens(job.split_source, job.split_hash)
+    )
     if problems:
         # The file was checked against the split at upload: the split's tokens changed since.
         raise Rejected(

@@ -9,12 +9,15 @@ from pathlib import Path
 from time import perf_counter
 from typing import TYPE_CHECKING
 
+from server.models import FailureKind
 from server.object_store import ObjectStore
-from server.runs._job import ChunkInputs, trajectories
+from server.runs._job import ChunkInputs, Rejected, trajectories
+from server.split_store import SplitStoreError, local_scenes
 
 if TYPE_CHECKING:
     from scorer.evaluate import TokenResult
 
+SPLIT_UNREADABLE = "the split's scenes cannot be read from the server's store; the organisers are told"
 POISONED_TOKEN = (
     "scoring this token stopped the worker process twice (a crash or running out of memory); "
     "it was not scored and counts as a failed token"
@@ -30,10 +33,16 @@ class ScoredChunk:
     admin_note: str | None = None  # what admins read of the run's problems (the team sees per-token errors)
 
 
-def score_chunk(inputs: ChunkInputs, store: ObjectStore, cache_dir: Path) -> ScoredChunk:
-    """Score the chunk's tokens without rows (raises Rejected when the run's file cannot be used)."""
+def score_chunk(
+    inputs: ChunkInputs, store: ObjectStore, cache_dir: Path, cache_store: ObjectStore | None = None
+) -> ScoredChunk:
+    """Score the chunk's tokens without rows (raises Rejected when the run's file or the split's scenes cannot
+    be used; StoreUnavailable while the object store does not answer). With `cache_store`, the metric caches
+    of the chunk's scenes come from there when another worker built them, and go there when built here."""
     # The engine is heavy: the API imports this package without it.
     from scorer.evaluate import TokenResult, score_seeds
+    from scorer.scene import scene_paths
+    from server.shared_caches import fetch_caches, publish_caches
 
     job = inputs.job
     if inputs.poisoned:
@@ -47,6 +56,15 @@ def score_chunk(inputs: ChunkInputs, store: ObjectStore, cache_dir: Path) -> Sco
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
     seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
+    try:
+        scored = {*inputs.todo, *inputs.context}
+        split_dir = local_scenes(job.split_source, job.split_hash, scored)
+    except SplitStoreError as error:
+        raise Rejected(FailureKind.infrastructure, SPLIT_UNREADABLE, str(error)) from None
+    scenes = {token: path for token, path in scene_paths(split_dir).items() if token in scored}
+    unbuilt = fetch_caches(cache_store, cache_dir, scenes) if cache_store is not None else []
     started = perf_counter()
-    rows = score_seeds(job.split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
+    rows = score_seeds(split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
+    if cache_store is not None:
+        publish_caches(cache_store, cache_dir, {token: scenes[token] for token in unbuilt})
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))

@@ -11,7 +11,9 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from scorer.scene import SceneFormatError, scene_paths
+from server import split_store
 from server.models import Phase, Split, SplitSubset, utc_now
+from server.object_store import StoreUnavailable
 from server.services.errors import Conflict, Invalid, NotFound
 
 ALL_SUBSET = "all"
@@ -20,8 +22,8 @@ PRIVATE_SUBSET = "private"
 
 
 def split_tokens(split: Split) -> tuple[str, ...]:
-    """Return the tokens of a split's directory in token order."""
-    return tuple(scene_paths(split.directory))
+    """Return the tokens of a split in token order (of a stored split, from its manifest)."""
+    return split_store.split_tokens(split.directory, split.content_hash)
 
 
 def scene_starts(session: Session, split: Split) -> dict[str, tuple[str, int]]:
@@ -34,7 +36,8 @@ def scene_starts(session: Session, split: Split) -> dict[str, tuple[str, int]]:
         from scorer.scene import scene_start  # the engine is heavy: imported only when the index is built
 
         starts: dict[str, list[Any]] = {}
-        for token, path in scene_paths(split.directory).items():
+        directory = split_store.local_scenes(split.directory, split.content_hash, split_tokens(split))
+        for token, path in scene_paths(directory).items():
             try:
                 starts[token] = list(scene_start(path))
             except (SceneFormatError, OSError):
@@ -47,31 +50,40 @@ def scene_starts(session: Session, split: Split) -> dict[str, tuple[str, int]]:
 def register_split(
     session: Session,
     name: str,
-    directory: Path,
+    directory: Path | str,
     public_tokens: list[str] | None = None,
     scenes_public: bool = False,
 ) -> Split:
-    """Register a split directory under `name`; with `public_tokens`, the rest of the split is the private subset.
-    `scenes_public` lets teams see its scenes in drill-down pictures (never for a hidden test split)."""
+    """Register a split directory, or an object store's prefix (s3://bucket/prefix, holding scenes/), under
+    `name`; with `public_tokens`, the rest of the split is the private subset. `scenes_public` lets teams see
+    its scenes in drill-down pictures (never for a hidden test split)."""
     from scorer.evaluate import split_content_hash  # the engine is heavy: imported only when a split is added
 
     if session.scalar(select(Split.id).where(Split.name == name)) is not None:
         raise Conflict(f"split {name!r} is already registered")
+    source, stored = str(directory), split_store.is_stored_split(str(directory))
+    local = Path(directory)
     try:
-        directory = Path(directory).resolve()
-        tokens = list(scene_paths(directory))
+        if stored:
+            local = split_store.fetch_whole_split(source)  # read once, to hash; its manifest published
+        else:
+            local = local.resolve()
+            source = str(local)
+        tokens = list(scene_paths(local))
     except SceneFormatError as error:
+        raise Conflict(f"split {name!r}: {error}") from None
+    except StoreUnavailable as error:
         raise Conflict(f"split {name!r}: {error}") from None
     except OSError as error:  # e.g. a name too long for the file system
         raise Conflict(
-            f"split {name!r}: directory {str(directory)[:200]!r} cannot be read ({error.strerror})"
+            f"split {name!r}: directory {source[:200]!r} cannot be read ({error.strerror})"
         ) from None
     if not tokens:
-        raise Conflict(f"split {name!r}: no scene in {directory / 'scenes'}")
+        raise Conflict(f"split {name!r}: no scene in {source}/scenes")
     split = Split(
         name=name,
-        directory=str(directory),
-        content_hash=split_content_hash(directory),
+        directory=source,
+        content_hash=split_content_hash(local),
         token_count=len(tokens),
         scenes_public=scenes_public,
     )
@@ -89,6 +101,8 @@ def register_split(
         ]
     session.add(split)
     session.flush()
+    if stored:
+        scene_starts(session, split)  # from the copy read now: the machines that plan runs need no scene
     return split
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 from collections.abc import Sequence
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select, update
@@ -115,12 +114,14 @@ def add_baselines(session: Session, split: Split, store: ObjectStore) -> list[Su
     from scorer.submission import dump_submission_json
     from server.services.splits import split_tokens
     from server.services.validation import validate_upload
+    from server.split_store import local_scenes
 
     team = baseline_team(session)
     tokens = split_tokens(split)
     created = []
     for kind, method in BASELINES:
-        data = dump_submission_json(baseline_submission(Path(split.directory), kind, method))
+        directory = local_scenes(split.directory, split.content_hash, tokens)
+        data = dump_submission_json(baseline_submission(directory, kind, method))
         upload = validate_upload(data, f"{kind}.json", tokens, {"method": method})
         submission = _new_submission(team, split, None, upload, _store(store, upload))
         submission.is_baseline = True
