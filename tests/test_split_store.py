@@ -5,6 +5,9 @@ built by one worker are published once and read by the others."""
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import io
 import os
 import shutil
 import time
@@ -22,10 +25,13 @@ from scorer.evaluate import split_content_hash
 from scorer.scene import scene_paths
 from server.db import transaction
 from server.object_store import S3Store
+from server.runs import ChunkInputs, Rejected, ScoringJob, score_chunk
+from server.runs._score import SPLIT_UNREADABLE
 from server.services.splits import register_split, scene_starts, split_tokens
 from server.settings import get_settings
 from server.shared_caches import fetch_caches, publish_caches
 from server.split_store import SplitStoreError, evict, local_scenes, mirror_dir
+from server.storage import store_file
 
 
 def _upload_split(directory: Path) -> S3Store:
@@ -119,3 +125,38 @@ def test_a_metric_cache_built_once_is_read_by_the_other_workers(
     key = next(iter(caches.keys("")))
     caches.put_bytes(key, b"not a cache file")
     assert len(fetch_caches(caches, damaged, scenes)) == 1  # rebuilt, not read
+
+
+def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: World, machine: Path) -> None:
+    store = _upload_split(REFERENCE_DIR)
+    with transaction(world.factory) as session:
+        content_hash = register_split(session, "stored", store.url).content_hash
+    shutil.rmtree(mirror_dir(content_hash))
+    uploads = fresh_s3_store()
+    data = (REFERENCE_DIR / "submissions" / "human.json").read_bytes()
+    sha256 = hashlib.sha256(data).hexdigest()
+    tokens = tuple(scene_paths(REFERENCE_DIR))
+    job = ScoringJob(
+        1,
+        1,
+        "human.json",
+        store_file(uploads, sha256, io.BytesIO(data)),
+        sha256,
+        "stored",
+        store.url,
+        content_hash,
+        1,
+        ("v1.1",),
+    )
+    chunk = ChunkInputs(1, job, tokens[:2], (), poisoned=False)
+    store.put_bytes(f"scenes/{scene_paths(REFERENCE_DIR)[tokens[1]].name}", b"changed")
+    with pytest.raises(Rejected) as rejected:
+        score_chunk(chunk, uploads, machine / "cache")
+    assert rejected.value.message == SPLIT_UNREADABLE and "s3://" not in rejected.value.message  # the team's
+    assert f"{store.url}/scenes/{tokens[1]}" in str(rejected.value.detail)  # the organisers'
+    uploads.put_bytes(job.stored_name, b"")  # the upload's bytes lost in the store
+    with pytest.raises(Rejected) as rejected:
+        score_chunk(
+            dataclasses.replace(chunk, job=dataclasses.replace(job, run=2)), uploads, machine / "cache"
+        )
+    assert "damaged" in rejected.value.message and uploads.url in str(rejected.value.detail)
