@@ -20,7 +20,7 @@ from scorer.blas import engine_provenance
 from scorer.cache import cache_file_key, cache_path
 from scorer.files import write_atomically
 from scorer.scene import scene_file_hash
-from server.object_store import MissingObject, ObjectStore, StoreUnavailable
+from server.object_store import ObjectStore, StoreUnavailable, get_many
 
 log = logging.getLogger(__name__)
 
@@ -48,14 +48,17 @@ def _local(cache_dir: Path, token: str) -> bytes:
 def fetch_caches(store: ObjectStore, cache_dir: Path, scenes: Mapping[str, Path]) -> list[str]:
     """Bring the store's caches of the scenes (token -> scene file) that lack a valid local one into
     `cache_dir`; return the tokens the store had none for (the engine builds them: `publish_caches`)."""
+    hashes = {token: scene_file_hash(scene) for token, scene in scenes.items()}
+    wanted = {
+        token: scene_hash
+        for token, scene_hash in hashes.items()
+        if not _holds(_local(cache_dir, token), scene_hash)
+    }
+    fetched = get_many(store, (_key(scene_hash) for scene_hash in wanted.values()))
     unbuilt = []
-    for token, scene in scenes.items():
-        scene_hash = scene_file_hash(scene)
-        if _holds(_local(cache_dir, token), scene_hash):
-            continue
-        try:
-            data = store.get(_key(scene_hash))
-        except MissingObject:
+    for token, scene_hash in wanted.items():
+        data = fetched[_key(scene_hash)]
+        if data is None:
             unbuilt.append(token)
             continue
         if not _holds(data, scene_hash):

@@ -23,7 +23,7 @@ from functools import lru_cache
 from pathlib import Path
 
 from scorer.files import write_atomically
-from server.object_store import MissingObject, child, is_store_url, open_store
+from server.object_store import MissingObject, child, get_many, is_store_url, open_store
 from server.settings import get_settings
 
 SCENES = "scenes"
@@ -132,18 +132,21 @@ def local_scenes(location: str, content_hash: str, tokens: Iterable[str]) -> Pat
     directory = mirror_dir(content_hash)
     scenes_store = child(open_store(location), SCENES)
     now = time.time()
+    missing = []
     for token in tokens:
         if token not in manifest.scenes:
             continue  # the engine reports it as not part of the split
-        name, sha256 = manifest.scenes[token]
-        path = directory / SCENES / name
+        path = directory / SCENES / manifest.scenes[token][0]
         if path.exists():
             os.utime(path, (now, now))  # used: the last to be evicted
-            continue
-        try:
-            data = scenes_store.get(name)
-        except MissingObject:
-            raise SplitStoreError(f"scene {scenes_store.url}/{name} of the split is missing") from None
+        else:
+            missing.append(token)
+    fetched = get_many(scenes_store, (manifest.scenes[token][0] for token in missing))
+    for token in missing:
+        name, sha256 = manifest.scenes[token]
+        path, data = directory / SCENES / name, fetched[name]
+        if data is None:
+            raise SplitStoreError(f"scene {scenes_store.url}/{name} of the split is missing")
         if hashlib.sha256(data).hexdigest() != sha256:
             raise SplitStoreError(
                 f"scene {scenes_store.url}/{name} is damaged or changed: its sha256 differs from the "
