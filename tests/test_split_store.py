@@ -154,6 +154,10 @@ def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: W
         score_chunk(chunk, uploads, machine / "cache")
     assert rejected.value.message == SPLIT_UNREADABLE and "s3://" not in rejected.value.message  # the team's
     assert f"{store.url}/scenes/{tokens[1]}" in str(rejected.value.detail)  # the organisers'
+    unregistered = dataclasses.replace(job, run=3, split_hash="0" * 64)  # no manifest under this hash
+    with pytest.raises(Rejected) as rejected:
+        score_chunk(dataclasses.replace(chunk, job=unregistered), uploads, machine / "cache")
+    assert rejected.value.message == SPLIT_UNREADABLE and "manifest" in str(rejected.value.detail)
     uploads.put_bytes(job.stored_name, b"")  # the upload's bytes lost in the store
     with pytest.raises(Rejected) as rejected:
         score_chunk(

@@ -55,11 +55,11 @@ def score_chunk(
         return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
-    seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
+    scored = {*inputs.todo, *inputs.context}
     try:
-        scored = {*inputs.todo, *inputs.context}
+        seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
         split_dir = local_scenes(job.split_source, job.split_hash, scored)
-    except SplitStoreError as error:
+    except SplitStoreError as error:  # its manifest or a scene
         raise Rejected(FailureKind.infrastructure, SPLIT_UNREADABLE, str(error)) from None
     scenes = {token: path for token, path in scene_paths(split_dir).items() if token in scored}
     unbuilt = fetch_caches(cache_store, cache_dir, scenes) if cache_store is not None else []
