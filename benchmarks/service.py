@@ -201,15 +201,18 @@ def storage(kind: str, root: Path, split: Path, cache: Path) -> Iterator[tuple[d
         yield {"CACHE_DIR": str(cache)}, str(split)
         return
     with ExitStack() as stack:
+        own_port = None  # of the moto server started here, when no endpoint is given
         if "AWS_ENDPOINT_URL" not in os.environ:
-            port = free_port()
+            own_port = port = free_port()
             command = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)]
             stack.enter_context(child_process(command, dict(os.environ), root / "moto.log"))
             os.environ |= {"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "bench"}
             os.environ |= {"AWS_SECRET_ACCESS_KEY": "bench", "AWS_DEFAULT_REGION": "us-east-1"}
-            wait_until(lambda: port_answers(port), timeout=60)
-        from object_stores import make_bucket  # the tests' helper: creates the bucket when missing
+        # The tests' helpers, imported once the endpoint is set (they default it to CI's server otherwise).
+        from object_stores import make_bucket, port_answers
 
+        if own_port is not None:
+            wait_until(lambda: port_answers(port), timeout=60)
         make_bucket(BUCKET)
         location = f"s3://{BUCKET}/bench-{uuid.uuid4().hex[:8]}"
         scenes = open_store(f"{location}/split/scenes")
@@ -541,14 +544,6 @@ def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return int(probe.getsockname()[1])
-
-
-def port_answers(port: int) -> bool:
-    try:
-        socket.create_connection(("127.0.0.1", port), timeout=1).close()
-        return True
-    except OSError:
-        return False
 
 
 def answers(client: httpx.Client) -> bool:

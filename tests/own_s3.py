@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 
+from object_stores import port_answers
 from worker_testing import free_port, wait_for
 
 from navsim_lb.processes import child_process
@@ -71,14 +72,6 @@ def with_shutdown(connection: socket.socket) -> None:
     connection.close()
 
 
-def _answers(port: int) -> bool:
-    try:
-        socket.create_connection(("127.0.0.1", port), timeout=1).close()
-        return True
-    except OSError:
-        return False
-
-
 @contextmanager
 def own_s3(directory: Path) -> Iterator[Gate]:
     """Run a moto S3 server for the block; yield the open gate in front of it (its `url` is the endpoint)."""
@@ -86,7 +79,7 @@ def own_s3(directory: Path) -> Iterator[Gate]:
     port = free_port()
     command = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)]
     with child_process(command, dict(os.environ), directory / "moto.log"):
-        wait_for(lambda: _answers(port), f"moto on port {port}")
+        wait_for(lambda: port_answers(port), f"moto on port {port}")
         gate = Gate(port)
         gate.open()
         try:
