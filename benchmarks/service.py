@@ -18,6 +18,11 @@ being scored when the load ended, and a check that every upload was scored exact
 version and seed; one leaderboard entry per version). The target (issue 26): the leaderboard at 200/s with
 p99 at most 100 ms, the upload routes below 1 s, while 2 workers score on the same 2 cores.
 
+With --storage local,s3: each configuration also with its uploads, its split's scenes and the metric caches in
+an S3 object store (moto's server, started here, or the endpoint AWS_ENDPOINT_URL names): the split registered
+from the store, and each worker's caches cold (an earlier worker published them: it fetches them, as it does
+the scenes its chunks need), against the local directory with the cache built.
+
 Every run starts with a header that describes the host (benchmarks/host.py). With each worker size it gives
 the CPU seconds the worker's and the API's processes used from POST to row, against the engine's (on a host
 shared with other work wall times swing, CPU times much less), and the peak RSS (VmHWM) of the worker's
@@ -26,7 +31,7 @@ from /proc just before the worker is stopped. (RUSAGE_CHILDREN would give one ma
 benchmark ever waited for, API and workers alike.)
 
 Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--seeds 1] [--rate 200] [--seconds 10]
-       [--backends embedded,services] [--workers 1,2] [--load 6] [--nice 10]
+       [--backends embedded,services] [--workers 1,2] [--storage local,s3] [--load 6] [--nice 10]
 (Uploads are rate-limited to 30 a minute per token: with --load, keep 2N uploads per minute below that.)
 """
 
@@ -71,10 +76,12 @@ from server.db import make_engine, make_session_factory, transaction
 from server.migrate import upgrade
 from server.models import Approval, Scope, Summary, TokenResultRow
 from server.models import Submission as SubmissionRow
+from server.object_store import open_store
 from server.services.splits import create_phase, register_split, scene_starts
 from server.services.teams import create_team
 from server.services.tokens import create_token
-from server.settings import Settings
+from server.settings import Settings, get_settings
+from server.shared_caches import publish_caches
 from worker import SCORING_NICENESS
 from worker.cli import worker_command
 
@@ -85,6 +92,7 @@ from scratch import scratch_postgres_database, scratch_redis_queue
 DATA = Path(__file__).parent / ".data"
 POSTGRES_URL = os.environ.get("NAVSIM_LB_BENCH_POSTGRES", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 REDIS_URL = os.environ.get("NAVSIM_LB_BENCH_REDIS", "redis://127.0.0.1:6379/0")
+BUCKET = "navsim-lb-bench"
 SPLIT_SEED = 11
 CONNECTIONS = 64  # concurrent clients of the leaderboard load
 REQUEST_TIMEOUT_S = 30.0
@@ -197,7 +205,43 @@ def backend(kind: str, root: Path) -> Iterator[dict[str, str]]:
         }
 
 
-def set_up(database_url: str, split: Path) -> tuple[str, float]:
+@contextmanager
+def storage(kind: str, root: Path, split: Path, cache: Path) -> Iterator[tuple[dict[str, str], str]]:
+    """Yield the variables of a storage `kind` under `root`, and where the split registers from: the local
+    directory with its cache built, or an S3 store holding the split's scenes and its published caches, each
+    worker's own caches empty."""
+    if kind == "local":
+        yield {"CACHE_DIR": str(cache)}, str(split)
+        return
+    with ExitStack() as stack:
+        own_port = None  # of the moto server started here, when no endpoint is given
+        if "AWS_ENDPOINT_URL" not in os.environ:
+            own_port = port = free_port()
+            command = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)]
+            stack.enter_context(child_process(command, dict(os.environ), root / "moto.log"))
+            os.environ |= {"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "bench"}
+            os.environ |= {"AWS_SECRET_ACCESS_KEY": "bench", "AWS_DEFAULT_REGION": "us-east-1"}
+        # The tests' helpers, imported once the endpoint is set (they default it to CI's server otherwise).
+        from object_stores import make_bucket, port_answers
+
+        if own_port is not None:
+            wait_until(lambda: port_answers(port), timeout=60)
+        make_bucket(BUCKET)
+        location = f"s3://{BUCKET}/bench-{uuid.uuid4().hex[:8]}"
+        scenes = open_store(f"{location}/split/scenes")
+        for path in scene_paths(split).values():
+            scenes.put_bytes(path.name, path.read_bytes())
+        publish_caches(open_store(f"{location}/metric-cache"), cache, scene_paths(split))
+        os.environ["DATA_DIR"] = str(root / "organiser")  # where registering copies the split
+        get_settings.cache_clear()
+        variables = {key: os.environ[key] for key in os.environ if key.startswith("AWS_")}
+        yield (
+            variables | {"STORAGE_URL": location, "CACHE_DIR": str(root / "cold-cache")},
+            f"{location}/split",
+        )
+
+
+def set_up(database_url: str, split: Path | str) -> tuple[str, float]:
     """Migrate, register the split (no baselines: nothing may compete) with its index of log frames, open a
     phase; return a team token and the seconds the index took.
 
@@ -465,14 +509,17 @@ class Running:
 
 
 @contextmanager
-def running(kind: str, workers: int, split: Path, cache: Path, nice: int) -> Iterator[Running]:
-    """Run API and worker (its consumers `nice` below it) on a fresh backend for the block."""
+def running(
+    kind: str, workers: int, split: Path, cache: Path, nice: int, stored: str = "local"
+) -> Iterator[Running]:
+    """Run API and worker (its consumers `nice` below it) on a fresh backend and storage for the block."""
     with tempfile.TemporaryDirectory(prefix="navsim-lb-bench-") as tmp, ExitStack() as stack:
         root = Path(tmp)
-        variables = stack.enter_context(backend(kind, root)) | {"CACHE_DIR": str(cache)}
+        files, location = stack.enter_context(storage(stored, root, split, cache))
+        variables = stack.enter_context(backend(kind, root)) | files
         env = {**os.environ, **variables}
         database_url = Settings(**variables).database_url  # type: ignore[arg-type]  # keys are the aliases
-        token, index_s = set_up(database_url, split)
+        token, index_s = set_up(database_url, location)
         worker_log = root / "worker.log"
         worker = stack.enter_context(
             child_process(worker_command(workers, reaper=True, nice=nice), env, worker_log)
@@ -506,10 +553,11 @@ def measure(
     entry: Path,
     latency_load: tuple[float, float] | None,
     nice: int,
+    stored: str = "local",
 ) -> Measured:
-    """Run one configuration on a fresh backend: POST-to-row times of `entry` and the CPU they took, then
-    leaderboard latency if asked, and the worker's peak RSS."""
-    with running(kind, workers, split, cache, nice) as service:
+    """Run one configuration on a fresh backend and storage: POST-to-row times of `entry` and the CPU they took,
+    then leaderboard latency if asked, and the worker's peak RSS."""
+    with running(kind, workers, split, cache, nice, stored) as service:
         cpu = service.cpu_seconds()
         scored, on_board = post_to_row(service.client, entry)
         cpu = service.cpu_seconds() - cpu
@@ -608,6 +656,7 @@ def main() -> None:
     parser.add_argument(
         "--nice", type=int, default=SCORING_NICENESS, help="the workers' `navsim-lb worker --nice`"
     )
+    parser.add_argument("--storage", default="local", help="local,s3: uploads, scenes and caches where")
     args = parser.parse_args()
     print("\n".join(host_header()), flush=True)  # before any thread or process starts (host.py says why)
 
@@ -650,24 +699,23 @@ def main() -> None:
         " the first run on a split builds:"
     )
     print(
-        f"{'backend':10} {'workers':>7} {'scored':>8} {'on board':>9} {'engine':>7} {'ratio':>6}"
+        f"{'backend':10} {'storage':>7} {'workers':>7} {'scored':>8} {'on board':>9} {'engine':>7} {'ratio':>6}"
         f" {'CPU':>7} {'engine':>7} {'ratio':>6} {'index':>6}  worker peak RSS (MiB)"
     )
     latencies = {}
-    for kind in args.backends.split(","):
-        for workers in sizes:
-            # Leaderboard latency once per backend, with the largest worker idle beside the API.
-            load = (args.rate, args.seconds) if workers == max(sizes) else None
-            measured = measure(kind, workers, split, cache, entry, load, args.nice)
-            seconds, cpu = engine[workers]
-            print(
-                f"{kind:10} {workers:>7} {measured.scored:>8.1f} {measured.on_board:>9.1f} {seconds:>7.1f}"
-                f" {measured.on_board / seconds:>5.2f}x {measured.cpu:>7.1f} {cpu:>7.1f}"
-                f" {measured.cpu / cpu:>5.2f}x {measured.index_s:>6.1f}  {peak_rss_text(measured.peaks)}",
-                flush=True,
-            )
-            if measured.latency is not None:
-                latencies[kind] = measured.latency
+    for kind, stored, workers in itertools.product(args.backends.split(","), args.storage.split(","), sizes):
+        # Leaderboard latency once per backend, with the largest worker idle beside the API.
+        load = (args.rate, args.seconds) if workers == max(sizes) and stored == "local" else None
+        measured = measure(kind, workers, split, cache, entry, load, args.nice, stored)
+        seconds, cpu = engine[workers]
+        print(
+            f"{kind:10} {stored:>7} {workers:>7} {measured.scored:>8.1f} {measured.on_board:>9.1f} {seconds:>7.1f}"
+            f" {measured.on_board / seconds:>5.2f}x {measured.cpu:>7.1f} {cpu:>7.1f}"
+            f" {measured.cpu / cpu:>5.2f}x {measured.index_s:>6.1f}  {peak_rss_text(measured.peaks)}",
+            flush=True,
+        )
+        if measured.latency is not None:
+            latencies[kind] = measured.latency
     for kind, latency in latencies.items():
         print(f"GET /leaderboard {kind}: {args.rate:.0f}/s for {args.seconds:.0f} s: {latency.text()}")
 

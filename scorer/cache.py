@@ -586,6 +586,17 @@ def load_caches(
     return caches
 
 
+def cache_file_key(data: bytes) -> CacheKey | None:
+    """Return what a cache file's bytes were built from (its metric_version left empty: a file holds every
+    version it was built for), or None when they are not a whole cache file. Lets caches travel between
+    machines (an object store) named by their key, without reading their arrays."""
+    try:
+        key = _index(data)[0]["key"]
+        return CacheKey(key["scene_hash"], key["engine_version"], "")
+    except (ValueError, KeyError, TypeError):
+        return None
+
+
 def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> MetricCache | None:
     """Return the stored cache of `token` under `version` (`load_caches`), or None."""
     return load_caches(cache_dir, [version], token, scene_hash).get(version)

@@ -125,7 +125,9 @@ def create_token_command(
 @admin_app.command("register-split")
 def register_split_command(
     name: Annotated[str, typer.Argument(help="split name, e.g. private_test_e2e")],
-    directory: Annotated[Path, typer.Argument(help="split directory (holds scenes/)")],
+    directory: Annotated[
+        str, typer.Argument(help="split directory, or s3://bucket/prefix of an object store (holds scenes/)")
+    ],
     public_tokens: Annotated[
         Path | None, typer.Option(help="file with one public token per line; the rest is private")
     ] = None,

@@ -17,7 +17,8 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
@@ -30,6 +31,8 @@ from scorer.files import write_atomically
 S3_SCHEME = "s3"
 # An upload goes to S3 in parts of this size: the most of it held in memory at once (S3's least part is 5 MiB).
 PART_BYTES = 8 * 1024 * 1024
+# Objects read at once by get_many (the S3 client is thread-safe; its pool holds as many connections).
+FETCH_THREADS = 10
 # A store that does not answer within these fails the call (retried by its caller), not the process.
 CONNECT_TIMEOUT_S, READ_TIMEOUT_S, CALL_ATTEMPTS = 5.0, 30.0, 3
 
@@ -193,6 +196,23 @@ class S3Store:
                 found += [item["Key"] for item in page.get("Contents", [])]
         start = len(self.prefix) + 1 if self.prefix else 0
         return sorted(name[start:] for name in found)
+
+
+def get_many(store: ObjectStore, keys: Iterable[str]) -> dict[str, bytes | None]:
+    """Return each key's bytes (None when there is no object), read FETCH_THREADS at a time: a chunk's few
+    hundred scenes and caches cost one round trip each, which is latency, not bandwidth."""
+    keys = list(dict.fromkeys(keys))
+
+    def fetched(key: str) -> bytes | None:
+        try:
+            return store.get(key)
+        except MissingObject:
+            return None
+
+    if len(keys) <= 1:
+        return {key: fetched(key) for key in keys}
+    with ThreadPoolExecutor(min(FETCH_THREADS, len(keys))) as pool:
+        return dict(zip(keys, pool.map(fetched, keys), strict=True))
 
 
 def _code(error: Any) -> str:

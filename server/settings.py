@@ -28,6 +28,8 @@ class Settings(BaseSettings):
     # keys and region from the AWS_* variables): uploads under submissions/, published metric caches under
     # metric-cache/. Empty: uploads in storage_dir, caches only in cache_dir (one machine, or a shared disk).
     storage_url: str = Field("", validation_alias="STORAGE_URL")
+    # The most this machine keeps of the scenes of splits registered from an object store (server.split_store).
+    split_cache_bytes: int = Field(8 * 2**30, ge=0, validation_alias="SPLIT_CACHE_BYTES")
     # Where uploads and metric caches live, as configured (None: under data_dir; see the properties).
     storage_dir_option: Path | None = Field(None, validation_alias="STORAGE_DIR")
     cache_dir_option: Path | None = Field(None, validation_alias="CACHE_DIR")

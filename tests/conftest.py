@@ -41,4 +41,5 @@ def one_token_split(tmp_path: Path) -> tuple[Path, Path]:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Put the fault tests first: they wait (kills, outages, time limits) more than they compute, so on
     `make test`'s two processes they overlap the rest of the suite instead of following it."""
-    items.sort(key=lambda item: item.path.name != "test_worker_faults.py")  # stable: the rest keep order
+    waiting = ("test_worker_faults.py", "test_store_workers.py")
+    items.sort(key=lambda item: item.path.name not in waiting)  # stable: the rest keep order

@@ -5,6 +5,7 @@ needs it fails, never skips, when it does not."""
 from __future__ import annotations
 
 import os
+import socket
 import uuid
 
 import boto3
@@ -22,6 +23,15 @@ for _variable, _default in (
     ("AWS_DEFAULT_REGION", "us-east-1"),
 ):
     os.environ.setdefault(_variable, _default)
+
+
+def port_answers(port: int) -> bool:
+    """Whether a server accepts connections on the loopback port (an S3 server starting)."""
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=1).close()
+        return True
+    except OSError:
+        return False
 
 
 def make_bucket(name: str = BUCKET) -> None:

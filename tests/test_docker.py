@@ -83,7 +83,7 @@ def test_docker_compose_config_refuses_a_broken_file(tmp_path: Path) -> None:
 
 def test_compose_runs_every_role_on_postgres_and_redis() -> None:
     services = _compose()["services"]
-    assert set(services) == {"postgres", "redis", *APP_SERVICES}
+    assert set(services) == {"postgres", "redis", "minio", "bucket", *APP_SERVICES}
     for name in APP_SERVICES:
         service = services[name]
         assert service["build"] == {"context": "..", "dockerfile": "docker/Dockerfile"}, name
@@ -94,10 +94,25 @@ def test_compose_runs_every_role_on_postgres_and_redis() -> None:
         )
         assert environment["BROKER_URL"].startswith("redis://redis:6379/")
         aliases = {field.validation_alias for field in Settings.model_fields.values()}
-        assert set(environment) <= aliases, f"{name} sets variables the settings do not read"
+        # The AWS_* variables are read by the S3 client (server.object_store).
+        settings = {variable for variable in environment if not variable.startswith("AWS_")}
+        assert settings <= aliases, f"{name} sets variables the settings do not read"
+        assert (
+            environment["STORAGE_URL"].startswith("s3://")
+            and environment["AWS_ENDPOINT_URL"] == "http://minio:9000"
+        )
     assert services["worker"]["deploy"]["replicas"]  # a replica count, set from WORKER_REPLICAS
     assert "--reaper" not in services["worker"]["command"]  # exactly one reaper: the reaper service
     assert "--reaper" in services["reaper"]["command"]
+
+
+def test_compose_workers_share_no_volume_and_wait_for_the_bucket() -> None:
+    services = _compose()["services"]
+    for name in ("worker", "reaper"):
+        assert not services[name].get("volumes"), name  # everything through the network: any machine will do
+    assert services["worker"]["depends_on"]["bucket"]["condition"] == "service_completed_successfully"
+    assert services["bucket"]["depends_on"]["minio"]["condition"] == "service_healthy"
+    assert "navsim-lb" in services["bucket"]["command"][0]  # the bucket STORAGE_URL names
 
 
 def test_compose_migrates_before_the_api_and_workers_start() -> None:

@@ -77,7 +77,7 @@ def test_job_names_the_stored_file_and_the_split(world: World) -> None:
     with world.session() as session:
         job = load_job(session, submission_id)
     assert read_file(world.settings.submission_store, job.stored_name) == b"file bytes"
-    assert (job.run, job.split_dir, job.seed_count) == (1, REFERENCE_DIR, 1)
+    assert (job.run, Path(job.split_source), job.seed_count) == (1, REFERENCE_DIR, 1)
     assert job.versions == ("v1.0", "v1.1", "v2.2")
 
 

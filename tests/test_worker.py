@@ -309,7 +309,7 @@ def test_a_process_reads_the_file_of_a_run_once_and_of_a_new_run_again(
         stored_name=store_file(store, sha256, io.BytesIO(data)),
         sha256=sha256,
         split_name="synthetic",
-        split_dir=synthetic_split.directory,
+        split_source=str(synthetic_split.directory),
         split_hash="",
         split_kind=SplitKind.log_replay,
         seed_count=2,

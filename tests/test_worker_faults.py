@@ -24,12 +24,12 @@ import pytest
 from own_servers import OwnPostgres, OwnRedis, own_postgres, own_redis, paused
 from scratch import scratch_redis_queue
 from server_testing import fresh_postgres_database
-from sqlalchemy import func, select
+from sqlalchemy import select
 from worker_testing import (
     Service,
     SplitFixture,
     alive,
-    direct_means,
+    assert_scored_once,
     fault_worker_command,
     predictions,
     running_service,
@@ -38,11 +38,10 @@ from worker_testing import (
 )
 
 from navsim_lb.processes import child_process
-from scorer.submission import Submission as Predictions
 from scorer.versions import LOG_REPLAY_VERSIONS as VERSIONS
 from server.db import transaction
 from server.main import DATABASE_DOWN
-from server.models import ChunkState, FailureKind, ScoringChunk, Status, Summary, TokenResultRow, utc_now
+from server.models import ChunkState, FailureKind, ScoringChunk, Status, TokenResultRow, utc_now
 from server.runs._score import POISONED_TOKEN
 from server.services.workers import LIVE_WITHIN_S
 
@@ -92,22 +91,6 @@ def _running_chunk(service: Service, *submission_ids: int) -> ScoringChunk:
     )
 
 
-def _assert_scored_once(
-    service: Service, split: SplitFixture, submission_id: int, entry: Predictions
-) -> None:
-    """The submission is scored with every row once, one leaderboard entry per version, the engine's numbers."""
-    submission = service.submission(submission_id)
-    assert submission.status == Status.scored, (submission.status, submission.error, submission.error_detail)
-    assert service.rows(submission_id) == len(entry.seeds[0]) * len(entry.seeds) * len(VERSIONS)
-    with service.factory() as session:
-        query = select(Summary.metric_version, func.count()).where(Summary.submission_id == submission_id)
-        entries = dict(session.execute(query.group_by(Summary.metric_version)).all())
-    assert entries == dict.fromkeys(VERSIONS, 1)  # the split has one subset, "all"
-    for version in VERSIONS:
-        expected = direct_means(split, entry, version)["score"]
-        assert service.result(submission_id, version)["score"] == pytest.approx(expected, rel=1e-12)
-
-
 @pytest.mark.parametrize("victim", ["pool process", "main process"])
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_worker_process_killed_mid_chunk_costs_under_two_minutes(
@@ -135,7 +118,7 @@ def test_a_worker_process_killed_mid_chunk_costs_under_two_minutes(
         with supervisor:
             service.final(submission_id, timeout=RECOVERY_S)
         _record(f"{victim} killed ({backend}): kill to scored", killed)
-        _assert_scored_once(service, synthetic_split, submission_id, entry)
+        assert_scored_once(service, synthetic_split, submission_id, entry)
         if victim == "pool process":
             assert {c.deaths for c in _chunks(service, submission_id) if c.id == chunk.id} == {1}
             assert service.worker.poll() is None  # the worker replaced its pool process and went on
@@ -186,9 +169,9 @@ def test_a_kill_at_any_moment_is_recovered_within_a_minute(
             _kill(int(chunk.worker.rsplit("/", 1)[1]), *reapers)
         service.final(submission_id, timeout=RECOVERY_S)
         _record(f"{moment} killed ({backend}): kill to scored", killed)
-        _assert_scored_once(service, synthetic_split, submission_id, entry)
+        assert_scored_once(service, synthetic_split, submission_id, entry)
         if moment == "consumers idle":
-            _assert_scored_once(service, synthetic_split, before_id, before)
+            assert_scored_once(service, synthetic_split, before_id, before)
         else:  # the killed chunk was handed on once: split, its tokens inheriting its one death
             chunks = _chunks(service, submission_id)
             assert [c.deaths for c in chunks if c.state == ChunkState.split_up] == [1]
@@ -264,7 +247,7 @@ def test_a_consumer_wedged_on_its_work_starves_nothing_and_is_replaced(
         assert "hard time limit of 35 s" in (failed.error or "")
         service.final(after_id, timeout=RECOVERY_S)
         _record("wedged consumer killed at the hard limit: kill to the next submission scored", replaced)
-        _assert_scored_once(service, synthetic_split, after_id, after)
+        assert_scored_once(service, synthetic_split, after_id, after)
         assert service.worker.poll() is None
 
 
@@ -356,7 +339,7 @@ def test_chaos_random_kills_while_several_submissions_are_scored(
         _record(f"chaos ({backend}, {', '.join(victims)}): last fault to all scored", last_fault)
         for submission_id, entry in zip(ids, entries, strict=True):
             try:
-                _assert_scored_once(service, synthetic_split, submission_id, entry)
+                assert_scored_once(service, synthetic_split, submission_id, entry)
             except AssertionError as error:
                 raise AssertionError(f"{replay}: submission {submission_id}: {error}") from error
         running = [c.id for i in ids for c in _chunks(service, i) if c.state == ChunkState.running]
@@ -442,7 +425,7 @@ def test_a_worker_stopped_with_sigterm_finishes_its_chunk_and_loses_nothing(
         command = fault_worker_command(2, True, "second")
         with child_process(command, service.env, service.logs / "second-worker.log"):
             service.final(submission_id)
-        _assert_scored_once(service, synthetic_split, submission_id, entry)
+        assert_scored_once(service, synthetic_split, submission_id, entry)
         assert all(c.deaths == 0 for c in _chunks(service, submission_id))
 
 
@@ -469,7 +452,7 @@ def test_a_redis_broker_flushed_then_restarted_under_load_loses_nothing(
                 service.final(submission_id, timeout=RECOVERY_S)
             _record("redis flushed, then restarted: restart to all three scored", restarted)
             for submission_id, entry in zip(ids, entries, strict=True):
-                _assert_scored_once(service, synthetic_split, submission_id, entry)
+                assert_scored_once(service, synthetic_split, submission_id, entry)
 
 
 @pytest.mark.services
@@ -499,9 +482,9 @@ def test_a_database_down_for_twenty_seconds_is_a_503_and_everything_recovers(
             started = time.monotonic()
             service.final(submission_id, timeout=RECOVERY_S)
             _record("postgresql down 20 s: restart to scored", started)
-            _assert_scored_once(service, synthetic_split, submission_id, entry)
+            assert_scored_once(service, synthetic_split, submission_id, entry)
             after = predictions(synthetic_split.directory, seeds=1, noise=0.4, method="after the outage")
             after_id = service.upload(after)
             service.final(after_id)
-            _assert_scored_once(service, synthetic_split, after_id, after)
+            assert_scored_once(service, synthetic_split, after_id, after)
             assert service.worker.poll() is None  # no restart was needed

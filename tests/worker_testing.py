@@ -37,6 +37,7 @@ from server.models import (
     Scope,
     Status,
     Submission,
+    Summary,
     Team,
     TokenResultRow,
     utc_now,
@@ -204,6 +205,20 @@ class Service:
         return response.json()["results"][version]["all"]
 
 
+def assert_scored_once(service: Service, split: SplitFixture, submission_id: int, entry: Predictions) -> None:
+    """The submission is scored with every row once, one leaderboard entry per version, the engine's numbers."""
+    submission = service.submission(submission_id)
+    assert submission.status == Status.scored, (submission.status, submission.error, submission.error_detail)
+    assert service.rows(submission_id) == len(entry.seeds[0]) * len(entry.seeds) * len(LOG_REPLAY_VERSIONS)
+    with service.factory() as session:
+        query = select(Summary.metric_version, func.count()).where(Summary.submission_id == submission_id)
+        entries = dict(session.execute(query.group_by(Summary.metric_version)).all())
+    assert entries == dict.fromkeys(LOG_REPLAY_VERSIONS, 1)  # the split has one subset, "all"
+    for version in LOG_REPLAY_VERSIONS:
+        expected = direct_means(split, entry, version)["score"]
+        assert service.result(submission_id, version)["score"] == pytest.approx(expected, rel=1e-12)
+
+
 def _variables(root: Path, split: SplitFixture, overrides: dict[str, str]) -> dict[str, str]:
     """Return the environment variables configuring one service under `root`, on its own broker queue."""
     return {
@@ -258,14 +273,18 @@ def running_service(
     overrides: dict[str, str] | None = None,
     concurrency: int = 2,
     faults: bool = False,
+    split_location: str | None = None,
 ) -> Iterator[Service]:
     """Start worker (with the reaper) and API on a fresh database under `root`, configured by the environment.
 
     With `faults`, the worker runs tests/fault_worker.py's app, which injects the faults `overrides` name.
+    `split_location` registers the split from there (an object store's prefix) instead of its directory.
     """
     variables = _variables(root, split, overrides or {})
     if faults:
-        variables["PYTHONPATH"] = str(Path(__file__).parent)
+        variables["PYTHONPATH"] = os.pathsep.join(
+            filter(None, [str(Path(__file__).parent), os.getenv("PYTHONPATH")])
+        )
     env = {**os.environ, **variables}
     with pytest.MonkeyPatch.context() as patch:  # the test reads the settings the children will read
         for name, value in variables.items():
@@ -275,7 +294,7 @@ def running_service(
     engine = make_engine(settings.database_url)
     factory = make_session_factory(engine)
     with transaction(factory) as session:
-        registered = register_split(session, "synthetic", split.directory)
+        registered = register_split(session, "synthetic", split_location or split.directory)
         create_phase(session, "test", registered)
         team = create_team(session, "alpha", ["a member"], "a lab", Approval.approved)
         _, team_token = create_token(session, Scope.team, team, "test")

@@ -177,7 +177,9 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
             return "dropped"
         with beating(sessions, chunk_id, worker):
             scored = _through_outages(
-                lambda: runs.score_chunk(inputs, settings.submission_store, settings.cache_dir),
+                lambda: runs.score_chunk(
+                    inputs, settings.submission_store, settings.cache_dir, settings.cache_store
+                ),
                 (StoreUnavailable,),
                 "object store",
             )

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable
-from pathlib import Path
 from typing import Annotated, Literal
 from urllib.parse import quote
 
@@ -147,7 +146,7 @@ def add_split(request: Request, session: SessionDep, admin: AdminDep, split_in: 
         session,
         admin,
         split_in.name,
-        Path(split_in.directory),
+        split_in.directory,
         split_in.public_tokens,
         split_in.scenes_public,
         store if split_in.baselines else None,

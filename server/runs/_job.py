@@ -18,12 +18,12 @@ from pathlib import Path
 from sqlalchemy.orm import Session
 
 from scorer.geometry import FloatArray
-from scorer.scene import scene_paths
 from server.models import FailureKind, SplitKind, Submission
 from server.object_store import ObjectStore
 from server.runs._chunks import ChunkStart, StartAction
 from server.runs._run import completed_tokens, run_versions
 from server.services.errors import NotFound
+from server.split_store import split_tokens
 from server.storage import read_file, read_trajectories
 
 MAX_LISTED_PROBLEMS = 5
@@ -50,7 +50,7 @@ class ScoringJob:
     stored_name: str
     sha256: str  # of the upload: the stored bytes must still match it
     split_name: str
-    split_dir: Path
+    split_source: str  # a directory, or an object store's prefix (server.split_store)
     split_hash: str
     split_kind: SplitKind
     seed_count: int
@@ -81,7 +81,7 @@ def load_job(session: Session, submission_id: int) -> ScoringJob:
         stored_name=submission.stored_name,
         sha256=submission.sha256,
         split_name=split.name,
-        split_dir=Path(split.directory),
+        split_source=split.directory,
         split_hash=split.content_hash,
         split_kind=SplitKind(split.kind),
         seed_count=submission.seed_count,
@@ -142,9 +142,12 @@ def trajectories(job: ScoringJob, store: ObjectStore) -> tuple[dict[str, FloatAr
     from server.services.validation import read_upload
 
     data = _stored_file(job, store)
-    stages = load_two_stage_split(job.split_dir) if job.split_kind == SplitKind.two_stage else None
+    # A two-stage split is a local directory (server.services.splits.register_split); its mapping lists its tokens.
+    stages = load_two_stage_split(Path(job.split_source)) if job.split_kind == SplitKind.two_stage else None
     tokens = (
-        [*stages.stage_one_tokens, *stages.stage_two_tokens] if stages else list(scene_paths(job.split_dir))
+        [*stages.stage_one_tokens, *stages.stage_two_tokens]
+        if stages
+        else list(split_tokens(job.split_source, job.split_hash))
     )
     seeds = read_trajectories(store, job.stored_name, job.sha256)
     if seeds is None:

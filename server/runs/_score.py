@@ -10,14 +10,16 @@ from pathlib import Path
 from time import perf_counter
 from typing import TYPE_CHECKING, Any
 
-from server.models import SplitKind
+from server.models import FailureKind, SplitKind
 from server.object_store import ObjectStore
-from server.runs._job import ChunkInputs, ScoringJob, trajectories
+from server.runs._job import ChunkInputs, Rejected, trajectories
 from server.runs._two_stage import stage_rows
+from server.split_store import SplitStoreError, local_scenes
 
 if TYPE_CHECKING:
     from scorer.evaluate import TokenResult
 
+SPLIT_UNREADABLE = "the split's scenes cannot be read from the server's store; the organisers are told"
 POISONED_TOKEN = (
     "scoring this token stopped the worker process twice (a crash or running out of memory); "
     "it was not scored and counts as a failed token"
@@ -33,10 +35,16 @@ class ScoredChunk:
     admin_note: str | None = None  # what admins read of the run's problems (the team sees per-token errors)
 
 
-def score_chunk(inputs: ChunkInputs, store: ObjectStore, cache_dir: Path) -> ScoredChunk:
-    """Score the chunk's tokens without rows (raises Rejected when the run's file cannot be used)."""
+def score_chunk(
+    inputs: ChunkInputs, store: ObjectStore, cache_dir: Path, cache_store: ObjectStore | None = None
+) -> ScoredChunk:
+    """Score the chunk's tokens without rows (raises Rejected when the run's file or the split's scenes cannot
+    be used; StoreUnavailable while the object store does not answer). With `cache_store`, the metric caches
+    of the chunk's scenes come from there when another worker built them, and go there when built here."""
     # The engine is heavy: the API imports this package without it.
     from scorer.evaluate import TokenResult, score_seeds
+    from scorer.scene import scene_paths
+    from server.shared_caches import fetch_caches, publish_caches
 
     job = inputs.job
     if inputs.poisoned:
@@ -51,22 +59,33 @@ def score_chunk(inputs: ChunkInputs, store: ObjectStore, cache_dir: Path) -> Sco
         return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
-    seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
+    scored = {*inputs.todo, *inputs.context}
+    try:
+        seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
+        split_dir = local_scenes(job.split_source, job.split_hash, scored)
+    except SplitStoreError as error:  # its manifest or a scene
+        raise Rejected(FailureKind.infrastructure, SPLIT_UNREADABLE, str(error)) from None
+    scenes = {token: path for token, path in scene_paths(split_dir).items() if token in scored}
+    unbuilt = fetch_caches(cache_store, cache_dir, scenes) if cache_store is not None else []
     started = perf_counter()
     if job.split_kind == SplitKind.two_stage:
-        rows = {version: _two_stage_rows(job, cache_dir, seeds, version, inputs) for version in job.versions}
+        rows = {
+            version: _two_stage_rows(split_dir, cache_dir, seeds, version, inputs) for version in job.versions
+        }
     else:
-        rows = score_seeds(job.split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
+        rows = score_seeds(split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
+    if cache_store is not None:
+        publish_caches(cache_store, cache_dir, {token: scenes[token] for token in unbuilt})
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))
 
 
 def _two_stage_rows(
-    job: ScoringJob, cache_dir: Path, seeds: Mapping[int | None, Any], version: str, inputs: ChunkInputs
+    split_dir: Path, cache_dir: Path, seeds: Mapping[int | None, Any], version: str, inputs: ChunkInputs
 ) -> list[TokenResult]:
     """Score a two-stage chunk's tokens beside their comfort partners (its context) under `version`."""
     from scorer.two_stage.score import score_two_stage_part
 
-    scored = score_two_stage_part(job.split_dir, cache_dir, seeds, version, inputs.todo, inputs.context)
+    scored = score_two_stage_part(split_dir, cache_dir, seeds, version, inputs.todo, inputs.context)
     return stage_rows(scored, {seed: list(predictions) for seed, predictions in seeds.items()})
 
 

@@ -156,7 +156,7 @@ def add_split(
     session: Session,
     actor: ApiToken | None,
     name: str,
-    directory: Path,
+    directory: Path | str,
     public_tokens: list[str] | None,
     scenes_public: bool,
     baselines_to: ObjectStore | None,

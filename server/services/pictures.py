@@ -26,6 +26,7 @@ from server.storage import read_file, read_trajectories
 def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path:
     """Return the token's scene file if the caller may see this picture; raise why not otherwise."""
     from scorer.scene import scene_paths
+    from server.split_store import local_scenes
 
     split = submission.split
     if submission.status != Status.scored:
@@ -34,7 +35,7 @@ def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path
         raise NotFound(
             f"submission {submission.id} has {submission.seed_count} seed(s); seed {seed} does not exist"
         )
-    paths = scene_paths(split.directory)
+    paths = scene_paths(local_scenes(split.directory, split.content_hash, [token]))
     if token not in paths:
         raise NotFound(f"token {token} is not part of split {split.name!r}")
     if not admin:

@@ -12,7 +12,9 @@ from sqlalchemy.orm import Session
 
 from scorer.scene import SceneFormatError, scene_paths
 from scorer.two_stage.split import MAPPING_FILE, TwoStageSplitError, load_two_stage_split
+from server import split_store
 from server.models import Phase, Split, SplitKind, SplitSubset, utc_now
+from server.object_store import StoreUnavailable
 from server.services.errors import Conflict, Invalid, NotFound
 
 if TYPE_CHECKING:
@@ -25,11 +27,11 @@ PRIVATE_SUBSET = "private"
 
 def split_tokens(split: Split) -> tuple[str, ...]:
     """Return the tokens a submission of the split covers: a log-replay split's scenes in token order, a
-    two-stage split's stage-one then stage-two tokens (`stage_mapping`)."""
+    two-stage split's stage-one then stage-two tokens (`stage_mapping`); a stored split's from its manifest."""
     if split.kind == SplitKind.two_stage:
         stages = stage_mapping(split)
         return stages.stage_one_tokens + stages.stage_two_tokens
-    return tuple(scene_paths(split.directory))
+    return split_store.split_tokens(split.directory, split.content_hash)
 
 
 def stage_mapping(split: Split) -> TwoStageSplit:
@@ -52,7 +54,8 @@ def scene_starts(session: Session, split: Split) -> dict[str, tuple[str, int]]:
         from scorer.scene import scene_start  # the engine is heavy: imported only when the index is built
 
         starts: dict[str, list[Any]] = {}
-        for token, path in scene_paths(split.directory).items():
+        directory = split_store.local_scenes(split.directory, split.content_hash, split_tokens(split))
+        for token, path in scene_paths(directory).items():
             try:
                 starts[token] = list(scene_start(path))
             except (SceneFormatError, OSError):
@@ -65,33 +68,47 @@ def scene_starts(session: Session, split: Split) -> dict[str, tuple[str, int]]:
 def register_split(
     session: Session,
     name: str,
-    directory: Path,
+    directory: Path | str,
     public_tokens: list[str] | None = None,
     scenes_public: bool = False,
 ) -> Split:
-    """Register a split directory under `name`; with `public_tokens`, the rest of the split is the private subset.
-    `scenes_public` lets teams see its scenes in drill-down pictures (never for a hidden test split)."""
+    """Register a split directory, or an object store's prefix (s3://bucket/prefix, holding scenes/), under
+    `name`; with `public_tokens`, the rest of the split is the private subset. `scenes_public` lets teams see
+    its scenes in drill-down pictures (never for a hidden test split)."""
     from scorer.evaluate import split_content_hash  # the engine is heavy: imported only when a split is added
 
     if session.scalar(select(Split.id).where(Split.name == name)) is not None:
         raise Conflict(f"split {name!r} is already registered")
+    source, stored = str(directory), split_store.is_stored_split(str(directory))
+    local = Path(directory)
     try:
-        directory = Path(directory).resolve()
-        tokens = list(scene_paths(directory))
+        if stored:
+            if MAPPING_FILE in split_store.open_store(source).keys(""):
+                # Its stage mapping is read from the split's directory wherever it is used (uploads, chunks).
+                raise Conflict(
+                    f"split {name!r}: a two-stage split is registered from a directory, not a store"
+                )
+            local = split_store.fetch_whole_split(source)  # read once, to hash; its manifest published
+        else:
+            local = local.resolve()
+            source = str(local)
+        tokens = list(scene_paths(local))
     except SceneFormatError as error:
+        raise Conflict(f"split {name!r}: {error}") from None
+    except StoreUnavailable as error:
         raise Conflict(f"split {name!r}: {error}") from None
     except OSError as error:  # e.g. a name too long for the file system
         raise Conflict(
-            f"split {name!r}: directory {str(directory)[:200]!r} cannot be read ({error.strerror})"
+            f"split {name!r}: directory {source[:200]!r} cannot be read ({error.strerror})"
         ) from None
     if not tokens:
-        raise Conflict(f"split {name!r}: no scene in {directory / 'scenes'}")
-    kind = SplitKind.two_stage if (directory / MAPPING_FILE).is_file() else SplitKind.log_replay
+        raise Conflict(f"split {name!r}: no scene in {source}/scenes")
+    kind = SplitKind.two_stage if (local / MAPPING_FILE).is_file() else SplitKind.log_replay
     if kind == SplitKind.two_stage:
         try:
-            stages = load_two_stage_split(directory)
+            stages = load_two_stage_split(local)
         except TwoStageSplitError as error:
-            raise Conflict(f"split {name!r}: {str(error).replace(str(directory), '<split>')}") from None
+            raise Conflict(f"split {name!r}: {str(error).replace(str(local), '<split>')}") from None
         tokens = [*stages.stage_one_tokens, *stages.stage_two_tokens]
         if public_tokens is not None:
             raise Conflict(
@@ -100,8 +117,8 @@ def register_split(
             )
     split = Split(
         name=name,
-        directory=str(directory),
-        content_hash=split_content_hash(directory),
+        directory=source,
+        content_hash=split_content_hash(local),
         token_count=len(tokens),
         scenes_public=scenes_public,
         kind=kind,
@@ -120,6 +137,8 @@ def register_split(
         ]
     session.add(split)
     session.flush()
+    if stored:
+        scene_starts(session, split)  # from the copy read now: the machines that plan runs need no scene
     return split
 
 

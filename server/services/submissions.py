@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 from collections.abc import Sequence
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select, update
@@ -116,17 +115,18 @@ def add_baselines(session: Session, split: Split, store: ObjectStore) -> list[Su
     from scorer.submission import dump_submission_json, dump_two_stage_submission_json
     from server.services.splits import split_tokens, upload_stages
     from server.services.validation import validate_upload
+    from server.split_store import local_scenes
 
     team = baseline_team(session)
     tokens = split_tokens(split)
     stages = upload_stages(split)
     created = []
     for kind, method in BASELINES:
+        directory = local_scenes(split.directory, split.content_hash, tokens)
         if stages is None:
-            data = dump_submission_json(baseline_submission(Path(split.directory), kind, method))
+            data = dump_submission_json(baseline_submission(directory, kind, method))
         else:
-            baseline = two_stage_baseline_submission(Path(split.directory), kind, method)
-            data = dump_two_stage_submission_json(baseline)
+            data = dump_two_stage_submission_json(two_stage_baseline_submission(directory, kind, method))
         upload = validate_upload(data, f"{kind}.json", tokens, {"method": method}, stages)
         submission = _new_submission(team, split, None, upload, _store(store, upload))
         submission.is_baseline = True

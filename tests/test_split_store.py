@@ -1,0 +1,166 @@
+"""Splits registered from an object store (CI's moto server): the same tokens and content hash as from a
+directory; other machines read the manifest, not the scenes; a worker fetches only the scenes it needs, each
+checked, within a bounded mirror; a missing or changed scene is an error naming the object. Metric caches
+built by one worker are published once and read by the others."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import os
+import shutil
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+from object_stores import fresh_s3_store
+from server_testing import REFERENCE_DIR, World
+from worker_testing import SplitFixture
+
+from scorer.cache import cache_path
+from scorer.evaluate import split_content_hash
+from scorer.scene import scene_paths
+from server.db import transaction
+from server.object_store import S3Store
+from server.runs import ChunkInputs, Rejected, ScoringJob, score_chunk
+from server.runs._score import SPLIT_UNREADABLE
+from server.services.splits import register_split, scene_starts, split_tokens
+from server.settings import get_settings
+from server.shared_caches import fetch_caches, publish_caches
+from server.split_store import SplitStoreError, evict, local_scenes, mirror_dir
+from server.storage import store_file
+
+
+def _upload_split(directory: Path) -> S3Store:
+    store = fresh_s3_store()
+    for path in sorted((directory / "scenes").iterdir()):
+        store.put_bytes(f"scenes/{path.name}", path.read_bytes())
+    return store
+
+
+@pytest.fixture
+def machine(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    """A machine of its own: the data directory get_settings() names (where the scene mirror lives)."""
+    monkeypatch.setenv("DATA_DIR", str(tmp_path / "machine"))
+    get_settings.cache_clear()
+    yield tmp_path / "machine"
+    get_settings.cache_clear()
+
+
+def test_a_stored_split_registers_as_its_directory_would(world: World, machine: Path) -> None:
+    store = _upload_split(REFERENCE_DIR)
+    with transaction(world.factory) as session:
+        split = register_split(session, "stored", store.url)
+        assert split.directory == store.url
+        assert split.content_hash == split_content_hash(REFERENCE_DIR)
+        assert split_tokens(split) == tuple(scene_paths(REFERENCE_DIR))
+        starts = scene_starts(session, split)
+    assert len(starts) == len(scene_paths(REFERENCE_DIR))
+    # Another machine: no scene on its disk, the tokens from the manifest alone.
+    shutil.rmtree(machine)
+    with world.factory() as session:
+        assert split_tokens(session.merge(split)) == tuple(scene_paths(REFERENCE_DIR))
+    assert not machine.exists()
+
+
+def test_a_worker_fetches_only_the_scenes_it_needs_each_checked(world: World, machine: Path) -> None:
+    store = _upload_split(REFERENCE_DIR)
+    with transaction(world.factory) as session:
+        content_hash = register_split(session, "stored", store.url).content_hash
+    shutil.rmtree(mirror_dir(content_hash))
+    tokens = list(scene_paths(REFERENCE_DIR))
+    directory = local_scenes(store.url, content_hash, tokens[:3])
+    assert list(scene_paths(directory)) == tokens[:3]
+    assert all(
+        path.read_bytes() == scene_paths(REFERENCE_DIR)[token].read_bytes()
+        for token, path in scene_paths(directory).items()
+    )
+    name = scene_paths(REFERENCE_DIR)[tokens[3]].name
+    store.put_bytes(f"scenes/{name}", b"changed after registration")
+    with pytest.raises(SplitStoreError, match=f"{name} is damaged or changed"):
+        local_scenes(store.url, content_hash, tokens[3:4])
+    store.put_bytes(f"scenes/{name}", b"")  # the object is there, but empty: still refused
+    with pytest.raises(SplitStoreError, match="damaged"):
+        local_scenes(store.url, content_hash, tokens[3:4])
+    with pytest.raises(SplitStoreError, match="manifest .* is missing"):
+        local_scenes(store.url, "0" * 64, tokens[:1])
+
+
+def test_the_mirror_keeps_to_its_bound_least_recently_used_first(tmp_path: Path) -> None:
+    scenes = tmp_path / "hash" / "scenes"
+    scenes.mkdir(parents=True)
+    for age, name in enumerate(["new", "middle", "old"]):
+        (scenes / name).write_bytes(b"x" * 100)
+        os.utime(scenes / name, (time.time() - 1000 * age, time.time() - 1000 * age))
+    evict(tmp_path, 250, used_before=time.time() - 1500)
+    assert sorted(path.name for path in scenes.iterdir()) == ["middle", "new"]
+    evict(tmp_path, 0, used_before=time.time() - 1500)  # used within the time limit: kept
+    assert sorted(path.name for path in scenes.iterdir()) == ["middle", "new"]
+
+
+def test_a_metric_cache_built_once_is_read_by_the_other_workers(
+    synthetic_split: SplitFixture, tmp_path: Path
+) -> None:
+    caches = fresh_s3_store()
+    scenes = dict(list(scene_paths(synthetic_split.directory).items())[:2])
+    builder, readers = tmp_path / "builder", [tmp_path / f"reader{n}" for n in range(2)]
+    builder.mkdir()
+    assert fetch_caches(caches, builder, scenes) == list(scenes)  # the store has none yet
+    for token in scenes:  # as the engine builds them
+        shutil.copy(cache_path(synthetic_split.cache_dir, token), cache_path(builder, token))
+    # Two workers that built the same entries publish at once: each entry is stored once.
+    with ThreadPoolExecutor(2) as pool:
+        published = list(pool.map(lambda _: publish_caches(caches, builder, scenes), range(2)))
+    assert sum(published) == len(scenes)
+    for reader in readers:
+        reader.mkdir()
+        assert fetch_caches(caches, reader, scenes) == []
+        for token in scenes:
+            assert cache_path(reader, token).read_bytes() == cache_path(builder, token).read_bytes()
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    key = next(iter(caches.keys("")))
+    caches.put_bytes(key, b"not a cache file")
+    assert len(fetch_caches(caches, damaged, scenes)) == 1  # rebuilt, not read
+
+
+def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: World, machine: Path) -> None:
+    store = _upload_split(REFERENCE_DIR)
+    with transaction(world.factory) as session:
+        content_hash = register_split(session, "stored", store.url).content_hash
+    shutil.rmtree(mirror_dir(content_hash))
+    uploads = fresh_s3_store()
+    data = (REFERENCE_DIR / "submissions" / "human.json").read_bytes()
+    sha256 = hashlib.sha256(data).hexdigest()
+    tokens = tuple(scene_paths(REFERENCE_DIR))
+    job = ScoringJob(
+        1,
+        1,
+        "human.json",
+        store_file(uploads, sha256, io.BytesIO(data)),
+        sha256,
+        "stored",
+        store.url,
+        content_hash,
+        1,
+        ("v1.1",),
+    )
+    chunk = ChunkInputs(1, job, tokens[:2], (), poisoned=False)
+    store.put_bytes(f"scenes/{scene_paths(REFERENCE_DIR)[tokens[1]].name}", b"changed")
+    with pytest.raises(Rejected) as rejected:
+        score_chunk(chunk, uploads, machine / "cache")
+    assert rejected.value.message == SPLIT_UNREADABLE and "s3://" not in rejected.value.message  # the team's
+    assert f"{store.url}/scenes/{tokens[1]}" in str(rejected.value.detail)  # the organisers'
+    unregistered = dataclasses.replace(job, run=3, split_hash="0" * 64)  # no manifest under this hash
+    with pytest.raises(Rejected) as rejected:
+        score_chunk(dataclasses.replace(chunk, job=unregistered), uploads, machine / "cache")
+    assert rejected.value.message == SPLIT_UNREADABLE and "manifest" in str(rejected.value.detail)
+    uploads.put_bytes(job.stored_name, b"")  # the upload's bytes lost in the store
+    with pytest.raises(Rejected) as rejected:
+        score_chunk(
+            dataclasses.replace(chunk, job=dataclasses.replace(job, run=2)), uploads, machine / "cache"
+        )
+    assert "damaged" in rejected.value.message and uploads.url in str(rejected.value.detail)

@@ -1,0 +1,157 @@
+"""Workers that share no filesystem with the API or each other, reaching everything through the network: the
+split's scenes, the uploads and the metric caches in an S3 store (moto, on ports of the test's own), the queue
+and the rows in Redis and PostgreSQL. And the store down for twenty seconds while chunks run: the chunks wait
+and go on, nothing is lost or doubled, uploads are refused with a 503 saying so, the board is still served.
+
+(Separate data directories only: running the workers in network namespaces of their own would need the
+database, the broker and the store to listen beyond loopback.)"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+from object_stores import BUCKET, make_bucket
+from own_s3 import Gate, own_s3
+from scratch import scratch_redis_queue
+from server_testing import fresh_postgres_database
+from sqlalchemy import func, select
+from worker_testing import (
+    Service,
+    SplitFixture,
+    assert_scored_once,
+    predictions,
+    running_service,
+    wait_for,
+    worker_command,
+)
+
+from navsim_lb.processes import child_process
+from scorer.scene import scene_paths
+from scorer.submission import dump_submission_json
+from scorer.versions import LOG_REPLAY_VERSIONS as VERSIONS
+from server.main import STORE_DOWN
+from server.models import ChunkState, ScoringChunk, Summary
+from server.object_store import open_store
+from server.settings import get_settings
+from server.shared_caches import publish_caches
+
+REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
+OUTAGE_S = 20.0
+RECOVERY_S = 120.0
+
+
+def _stored_split(
+    s3: Gate, split: SplitFixture, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> tuple[str, str]:
+    """Put the split's scenes and its metric caches in the store; return the split's and the storage's URLs.
+    The test process registers the split as an organiser's machine would, with a data directory of its own."""
+    monkeypatch.setenv("AWS_ENDPOINT_URL", s3.url)
+    monkeypatch.setenv("DATA_DIR", str(tmp_path / "organiser"))
+    get_settings.cache_clear()
+    make_bucket()
+    split_url, storage_url = f"s3://{BUCKET}/split", f"s3://{BUCKET}/leaderboard"
+    scenes = open_store(f"{split_url}/scenes")
+    for path in scene_paths(split.directory).values():
+        scenes.put_bytes(path.name, path.read_bytes())
+    # Built once by an earlier worker: these workers read them instead of building.
+    publish_caches(open_store(f"{storage_url}/metric-cache"), split.cache_dir, scene_paths(split.directory))
+    return split_url, storage_url
+
+
+def _chunks(service: Service, submission_id: int) -> list[ScoringChunk]:
+    with service.factory() as session:
+        return list(session.scalars(select(ScoringChunk).where(ScoringChunk.submission_id == submission_id)))
+
+
+def _scenes_on_disk(data_dir: Path) -> set[str]:
+    return {path.name for path in data_dir.glob("split-cache/*/scenes/*")}
+
+
+@pytest.mark.services
+def test_two_workers_sharing_no_disk_score_every_row_once(
+    tmp_path: Path, synthetic_split: SplitFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with (
+        own_s3(tmp_path / "s3") as s3,
+        fresh_postgres_database() as database_url,
+        scratch_redis_queue(REDIS_URL, "navsim-lb-store") as queue,
+    ):
+        split_url, storage_url = _stored_split(s3, synthetic_split, monkeypatch, tmp_path)
+        network = {"DATABASE_URL": database_url, "BROKER_URL": REDIS_URL, "QUEUE_NAME": queue}
+        shared = network | {"STORAGE_URL": storage_url, "AWS_ENDPOINT_URL": s3.url, "CHUNK_SIZE": "2"}
+        api_dir, second_dir = tmp_path / "api-and-first-worker", tmp_path / "second-worker"
+        api_dir.mkdir()
+        second_dir.mkdir()
+        own = {"CACHE_DIR": str(api_dir / "cache")}
+        with running_service(
+            api_dir, synthetic_split, shared | own, concurrency=1, split_location=split_url
+        ) as service:
+            second_env = service.env | {"DATA_DIR": str(second_dir), "CACHE_DIR": str(second_dir / "cache")}
+            with child_process(
+                worker_command(1, reaper=False, name="second"), second_env, second_dir / "worker.log"
+            ):
+                wait_for(
+                    lambda: "ready." in (second_dir / "worker.log").read_text(errors="replace"), "worker 2"
+                )
+                entry = predictions(synthetic_split.directory, seeds=2, noise=0.3, method="no shared disk")
+                submission_id = service.upload(entry)
+                service.final(submission_id)
+                assert_scored_once(service, synthetic_split, submission_id, entry)
+                workers = {
+                    chunk.worker.split("/")[0] for chunk in _chunks(service, submission_id) if chunk.worker
+                }
+        first, second = _scenes_on_disk(api_dir), _scenes_on_disk(second_dir)
+        assert len(workers) == 2 and first and second  # both scored, each from the scenes it fetched
+        assert not (api_dir / "submissions").exists() and not (second_dir / "submissions").exists()
+        for data_dir in (api_dir, second_dir):  # each read the caches of the scenes it scored from the store
+            cached = {path.name.removesuffix(".nlc") for path in (data_dir / "cache").iterdir()}
+            assert cached == {name.split(".")[0] for name in _scenes_on_disk(data_dir)}
+
+
+def test_the_store_down_for_twenty_seconds_while_chunks_run(
+    tmp_path: Path, synthetic_split: SplitFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    faults = {"FAULT_CHUNK_SECONDS": "2", "CHUNK_SIZE": "4", "REAPER_INTERVAL": "5"}
+    with own_s3(tmp_path / "s3") as s3:
+        split_url, storage_url = _stored_split(s3, synthetic_split, monkeypatch, tmp_path)
+        settings = {
+            "STORAGE_URL": storage_url,
+            "AWS_ENDPOINT_URL": s3.url,
+            "CACHE_DIR": str(tmp_path / "cache"),
+        }
+        root = tmp_path / "service"
+        root.mkdir()
+        with running_service(
+            root, synthetic_split, settings | faults, faults=True, split_location=split_url
+        ) as service:
+            entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method="store outage")
+            submission_id = service.upload(entry)
+            wait_for(
+                lambda: any(c.state == ChunkState.running for c in _chunks(service, submission_id)),
+                "a chunk to run",
+            )
+            s3.close()
+            closed = time.monotonic()
+            late = dump_submission_json(
+                predictions(synthetic_split.directory, seeds=1, noise=0.5, method="late")
+            )
+            with service.client() as client:
+                while time.monotonic() - closed < OUTAGE_S:
+                    refused = client.post("/api/v1/submissions", files={"file": ("late.json", late)})
+                    assert refused.status_code == 503 and refused.json() == {"detail": STORE_DOWN}, (
+                        refused.text
+                    )
+                    board = client.get("/api/v1/leaderboard", params={"phase": "test"})
+                    assert board.status_code == 200, board.text
+                    time.sleep(2)
+            s3.open()
+            service.final(submission_id, timeout=RECOVERY_S)
+            assert_scored_once(service, synthetic_split, submission_id, entry)
+            assert "object store unreachable" in service.worker_log()  # the chunks waited, and went on
+            with service.factory() as session:
+                assert session.scalar(select(func.count()).select_from(Summary)) == len(
+                    VERSIONS
+                )  # no late row
