@@ -24,6 +24,7 @@ from scorer.cache import cache_path
 from scorer.evaluate import split_content_hash
 from scorer.scene import scene_paths
 from server.db import transaction
+from server.models import SplitKind
 from server.object_store import S3Store
 from server.runs import ChunkInputs, Rejected, ScoringJob, score_chunk
 from server.runs._score import SPLIT_UNREADABLE
@@ -145,6 +146,7 @@ def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: W
         "stored",
         store.url,
         content_hash,
+        SplitKind.log_replay,
         1,
         ("v1.1",),
     )
