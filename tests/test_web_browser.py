@@ -697,7 +697,7 @@ def _leaked_entry(demo: Demo, team: str) -> str:
     token = _api(
         demo, "POST", f"/admin/teams/{created.json()['id']}/tokens", demo.admin_token, json={"name": "t"}
     ).json()["token"]
-    (split_dir,) = (demo.data_dir / "splits").iterdir()
+    split_dir = demo.data_dir / "splits" / "demo"
     leaked = dump_submission_json(baseline_submission(split_dir, "human", f"Oracle {team}"))
     uploaded = _api(demo, "POST", "/submissions", token, files={"file": ("oracle.json", leaked)})
     assert uploaded.status_code == 202, uploaded.text
