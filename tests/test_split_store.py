@@ -18,16 +18,18 @@ from pathlib import Path
 import pytest
 from object_stores import fresh_s3_store
 from server_testing import REFERENCE_DIR, World
+from sqlalchemy import select
 from worker_testing import SplitFixture
 
 from scorer.cache import cache_path
 from scorer.evaluate import split_content_hash
 from scorer.scene import scene_paths
 from server.db import transaction
-from server.models import SplitKind
+from server.models import Split, SplitKind
 from server.object_store import S3Store
 from server.runs import ChunkInputs, Rejected, ScoringJob, score_chunk
 from server.runs._score import SPLIT_UNREADABLE
+from server.services.errors import Conflict
 from server.services.splits import register_split, scene_starts, split_tokens
 from server.settings import get_settings
 from server.shared_caches import fetch_caches, publish_caches
@@ -166,3 +168,16 @@ def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: W
             dataclasses.replace(chunk, job=dataclasses.replace(job, run=2)), uploads, machine / "cache"
         )
     assert "damaged" in rejected.value.message and uploads.url in str(rejected.value.detail)
+
+
+def test_a_two_stage_split_in_a_store_is_refused_naming_what_to_do(world: World, machine: Path) -> None:
+    """A two-stage split's stage mapping is read from its directory by uploads and chunks: from a store it is
+    refused by name, never registered as a one-stage split of its scenes."""
+    directory = Path(__file__).parent / "fixtures" / "epdms-two-stage-reactive"
+    store = _upload_split(directory)
+    store.put_bytes("two_stage.json", (directory / "two_stage.json").read_bytes())
+    refused = pytest.raises(Conflict, match="a two-stage split is registered from a directory, not a store")
+    with refused, transaction(world.factory) as session:
+        register_split(session, "stored-two-stage", store.url)
+    with world.factory() as session:
+        assert session.scalar(select(Split.id).where(Split.name == "stored-two-stage")) is None
