@@ -48,7 +48,6 @@ from scorer.pdm_scorer import (
 from scorer.scene import Scene, SceneFormatError, load_scene, scene_file_hash, scene_paths
 from scorer.simulation import simulate
 from scorer.trajectory import agent_references, initial_state
-from scorer.two_stage.split import MAPPING_FILE
 from scorer.versions import (
     METRIC_COLUMNS,
     VERSIONS,
@@ -95,6 +94,8 @@ class TokenError(Exception):
 def split_content_hash(split_dir: Path) -> str:
     """Return a hash over (token, scene file hash) of the split in token order, and over its stage mapping where
     it has one (a two-stage split's groups and weights follow it)."""
+    from scorer.two_stage.split import MAPPING_FILE  # the two-stage code loads only where it is used
+
     digest = hashlib.sha256()
     for token, path in scene_paths(split_dir).items():
         digest.update(f"{token}:{scene_file_hash(path)}\n".encode())
