@@ -29,6 +29,20 @@ class LogFormatError(ValueError):
     """A log pickle cannot be read as a list of OpenScene frame dicts; the message names the file."""
 
 
+# What a damaged or hostile stream raises inside the unpickler: the file's fault, reported, never executed around.
+UNPICKLING_ERRORS = (
+    pickle.UnpicklingError,
+    EOFError,
+    ValueError,
+    TypeError,
+    AttributeError,
+    IndexError,
+    KeyError,
+    OverflowError,
+    RecursionError,
+)
+
+
 class RestrictedUnpickler(pickle.Unpickler):
     """An unpickler that resolves only the globals of `allowed` and refuses persistent ids."""
 
@@ -52,7 +66,7 @@ def load_log(path: Path | str) -> list[dict[str, Any]]:
     path = Path(path)
     try:
         frames = RestrictedUnpickler(path.read_bytes(), NUMPY_GLOBALS, "a log pickle").load()
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError) as error:
+    except UNPICKLING_ERRORS as error:
         raise LogFormatError(f"{path}: not a readable log pickle ({error})") from None
     if not isinstance(frames, list) or not all(isinstance(frame, dict) for frame in frames):
         raise LogFormatError(f"{path}: expected a list of frame dicts, got {type(frames).__name__}")

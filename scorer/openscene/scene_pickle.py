@@ -17,7 +17,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from scorer.openscene.log_pickle import NUMPY_GLOBALS, RestrictedUnpickler
+from scorer.openscene.log_pickle import NUMPY_GLOBALS, UNPICKLING_ERRORS, RestrictedUnpickler
 
 # The nuPlan classes an extended future holds (nuplan-devkit v1.2 module paths).
 RECORD_CLASSES = {
@@ -98,14 +98,5 @@ def load_scene_pickle(path: Path | str) -> Any:
     path = Path(path)
     try:
         return RestrictedUnpickler(path.read_bytes(), _ALLOWED_GLOBALS, "a synthetic scene pickle").load()
-    except (
-        pickle.UnpicklingError,
-        EOFError,
-        ValueError,
-        TypeError,
-        AttributeError,
-        IndexError,
-        KeyError,
-        RecursionError,
-    ) as error:
+    except UNPICKLING_ERRORS as error:
         raise ScenePickleError(f"{path}: not a readable synthetic scene pickle ({error})") from None
