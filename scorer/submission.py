@@ -459,6 +459,20 @@ class _RestrictedUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError("persistent ids are not allowed")
 
 
+# What a damaged or hostile stream raises inside the unpickler: the file's fault, reported, never executed around.
+UNPICKLING_ERRORS = (
+    pickle.UnpicklingError,
+    EOFError,
+    ValueError,
+    TypeError,
+    AttributeError,
+    IndexError,
+    KeyError,
+    OverflowError,
+    RecursionError,
+)
+
+
 def _check_opcodes(data: bytes) -> None:
     """Walk the opcodes before unpickling: a damaged stream can declare an argument longer than the file or a
     memo index far beyond its size, which the C unpickler would allocate memory for before failing
@@ -480,19 +494,8 @@ def _unpickle(data: bytes) -> Any:
     try:
         _check_opcodes(data)
         return _RestrictedUnpickler(io.BytesIO(data)).load()
-    except (
-        pickle.UnpicklingError,
-        EOFError,
-        ValueError,
-        TypeError,
-        AttributeError,
-        IndexError,
-        KeyError,
-        OverflowError,
-        RecursionError,
-        # With sizes bounded by `_check_opcodes`, the C unpickler still reports some damaged frames so.
-        MemoryError,
-    ) as error:
+    # With sizes bounded by `_check_opcodes`, the C unpickler still reports some damaged frames as MemoryError.
+    except (*UNPICKLING_ERRORS, MemoryError) as error:
         # Any failure inside the stream is the file's fault: report it, never execute around it.
         raise SubmissionError(
             [Problem(None, None, f"not a readable NAVSIM submission pickle: {error}")]

@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 from numpy._core import multiarray, numeric
 
+from scorer.submission import UNPICKLING_ERRORS
+
 # numpy < 2 writers name `numpy.core.*`, numpy >= 2 writers `numpy._core.*`; both map to the same code.
 NUMPY_GLOBALS: dict[tuple[str, str], Any] = {
     ("numpy", "ndarray"): np.ndarray,
@@ -27,20 +29,6 @@ NUMPY_GLOBALS: dict[tuple[str, str], Any] = {
 
 class LogFormatError(ValueError):
     """A log pickle cannot be read as a list of OpenScene frame dicts; the message names the file."""
-
-
-# What a damaged or hostile stream raises inside the unpickler: the file's fault, reported, never executed around.
-UNPICKLING_ERRORS = (
-    pickle.UnpicklingError,
-    EOFError,
-    ValueError,
-    TypeError,
-    AttributeError,
-    IndexError,
-    KeyError,
-    OverflowError,
-    RecursionError,
-)
 
 
 class RestrictedUnpickler(pickle.Unpickler):

@@ -17,7 +17,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from scorer.openscene.log_pickle import NUMPY_GLOBALS, UNPICKLING_ERRORS, RestrictedUnpickler
+from scorer.openscene.log_pickle import NUMPY_GLOBALS, RestrictedUnpickler
+from scorer.submission import UNPICKLING_ERRORS
 
 # The nuPlan classes an extended future holds (nuplan-devkit v1.2 module paths).
 RECORD_CLASSES = {
