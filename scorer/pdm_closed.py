@@ -59,6 +59,7 @@ from scorer.route import (
 )
 from scorer.scene import Scene
 from scorer.simulation import simulate
+from scorer.svml_pow import power_avx512
 from scorer.trajectory import initial_state
 from scorer.versions import ScorerConfig
 
@@ -178,7 +179,9 @@ def idm_step(
         MIN_GAP + speed * HEADWAY_TIME + (speed * (speed - lead_speed)) / (2 * np.sqrt(ACCEL_MAX * DECEL_MAX))
     )
     gap = np.maximum(lead_progress - progress - lead_rear, MIN_GAP)
-    acceleration = ACCEL_MAX * (1 - (speed / targets) ** ACCELERATION_EXPONENT - (desired_gap / gap) ** 2)
+    acceleration = ACCEL_MAX * (
+        1 - power_avx512(speed / targets, ACCELERATION_EXPONENT) - (desired_gap / gap) ** 2
+    )
     acceleration = np.clip(acceleration, -DECEL_MAX, ACCEL_MAX)
     return progress + STEP_S * speed, speed + STEP_S * acceleration
 

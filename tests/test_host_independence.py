@@ -1,16 +1,14 @@
 """Workers on different CPUs simulate and score with the same bits, as far as numpy's own kernels go.
 
 numpy picks its math kernels by CPU: on AVX-512 it runs Intel SVML for arctan2, tan, power and others,
-elsewhere the C library's. The engine uses numpy's arctan2 and tan where they are SVML and an emulation of them
-elsewhere (docs/engine.md, "Host dependence and kernels"), so the simulation (the tracker and the bicycle model)
-must give every state the same bits for the same input with numpy's AVX-512 dispatch switched off (an AVX2
-host's numpy) and with every dispatch target above the baseline switched off: over a whole run, the metric
-cache (PDM-Closed's proposals and reference, the humans) and the submissions' simulations under every
-log-replay version, and every result must keep its bits.
-
-One input still moves: PDM-Closed's IDM takes (v / v0) ** 10 with numpy's power, which is SVML's pow on AVX-512
-and is not emulated; it moves the last bit of a few proposals' headings (none selected on these scenes), so
-those simulations get other inputs (`test_pdm_closed_proposals_keep_their_bits`, expected to fail for now).
+elsewhere the C library's. The engine uses numpy's arctan2, tan and power where they are SVML and an emulation
+of them elsewhere (docs/engine.md, "Host dependence and kernels"), so the simulation (the tracker and the
+bicycle model) must give every state the same bits for the same input with numpy's AVX-512 dispatch switched
+off (an AVX2 host's numpy) and with every dispatch target above the baseline switched off: over a whole run,
+the metric cache (PDM-Closed's proposals and reference, the humans) and the submissions' simulations under
+every log-replay version, and every result must keep its bits. PDM-Closed's IDM takes (v / v0) ** 10, which
+moved the last bit of a few proposals' headings before power was emulated: every simulation now gets the
+same input on every path (`test_pdm_closed_proposals_keep_their_bits`).
 
 OpenBLAS's kernels move last bits of their own (the tracker's `pinv`): `scorer.blas` selects the official
 results' SkylakeX ones where the CPU runs them and `test_blas` checks that it does. So the comparison holds
@@ -54,6 +52,7 @@ from scorer.blas import blas_kernels
 from scorer.evaluate import build_split_cache, score_versions
 from scorer.geometry import NUMPY_ARCTAN2_IS_SVML
 from scorer.submission import load_submission
+from scorer.svml_pow import NUMPY_POWER_IS_SVML
 from scorer.svml_tan import NUMPY_TAN_IS_SVML
 from scorer.versions import LOG_REPLAY_VERSIONS
 
@@ -79,7 +78,7 @@ for split in map(Path, sys.argv[2:]):
                 metrics = {k: None if math.isnan(v) else v for k, v in r.metrics.items()}
                 rows.append([split.name, path.stem, version, r.token, r.valid, metrics])
 print(json.dumps({
-    "svml": [NUMPY_ARCTAN2_IS_SVML, NUMPY_TAN_IS_SVML],
+    "svml": [NUMPY_ARCTAN2_IS_SVML, NUMPY_TAN_IS_SVML, NUMPY_POWER_IS_SVML],
     "kernels": list(blas_kernels()),
     "simulations": simulations,
     "rows": rows,
@@ -102,7 +101,8 @@ def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 DETECT = (
-    "import scorer.geometry as g, scorer.svml_tan as t; print(g.NUMPY_ARCTAN2_IS_SVML, t.NUMPY_TAN_IS_SVML)"
+    "import scorer.geometry as g, scorer.svml_pow as p, scorer.svml_tan as t;"
+    " print(g.NUMPY_ARCTAN2_IS_SVML, t.NUMPY_TAN_IS_SVML, p.NUMPY_POWER_IS_SVML)"
 )
 
 
@@ -117,16 +117,16 @@ def test_numpy_svml_is_detected_and_the_emulations_take_over_without_it() -> Non
         )
         return done.stdout.strip()
 
-    assert detected(NUMPY_PATHS["without AVX-512"]) == "False False"
-    assert detected(NUMPY_PATHS["baseline"]) == "False False"
+    assert detected(NUMPY_PATHS["without AVX-512"]) == "False False False"
+    assert detected(NUMPY_PATHS["baseline"]) == "False False False"
     if NUMPY_RUNS_SVML:
-        assert detected({}) == "True True"
+        assert detected({}) == "True True True"
 
 
 def _compared(kernels: str, numpy_path: str, cache_dir: Path) -> tuple[dict, dict]:
     native, other = _run(kernels, "native", cache_dir), _run(kernels, numpy_path, cache_dir)
-    assert other["svml"] == [False, False]  # the switch took effect: the emulations ran
-    assert native["svml"] == [NUMPY_RUNS_SVML] * 2
+    assert other["svml"] == [False] * 3  # the switch took effect: the emulations ran
+    assert native["svml"] == [NUMPY_RUNS_SVML] * 3
     assert len(native["simulations"]) == len(other["simulations"])
     return native, other
 
@@ -192,7 +192,6 @@ def test_every_submission_is_simulated_as_the_official_v2_2_results_on_every_num
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(NUMPY_RUNS_SVML, reason="IDM's power is SVML's pow on AVX-512, not emulated", strict=True)
 def test_pdm_closed_proposals_keep_their_bits(cache_dir: Path) -> None:
     native, other = _compared(KERNELS[0], "without AVX-512", cache_dir)
     assert [ours[1] for ours in native["simulations"]] == [theirs[1] for theirs in other["simulations"]]
