@@ -12,7 +12,8 @@ every operation is an IEEE operation on doubles whose result is defined bit for 
 (`geometry._fused_multiply_add`), the roundings toward zero and downward that SVML asks of a few operations
 emulated exactly (`scorer.directed_rounding`), `vrcp14pd` from its table (`scorer.rcp14`), and `vgetmantpd`,
 `vgetexppd`, `vrndscalepd` and `vreducepd`, which are exact, by `frexp`, `round` and `floor` (vreducepd's
-final subtraction rounds downward). The tables and coefficients are SVML's (`__svml_dpow_ha_data_internal_avx512`).
+final subtraction rounds downward). The tables and coefficients are SVML's (`__svml_dpow_ha_data_internal_avx512`;
+2^(j/16) and the shifter are exp's, `scorer.svml_exp`).
 It gives this host's SVML bits on every one of millions of random bases (tests/test_svml_pow.py).
 
 log2 x = e + log2 m for x = m 2^e, m in [1/2, 1): m times r (`vrcp14pd`'s estimate of 1/m rounded to 1/32)
@@ -42,15 +43,11 @@ from scorer.directed_rounding import (
 )
 from scorer.geometry import FloatArray, _fused_multiply_add
 from scorer.rcp14 import rcp14
-
-
-def _hex_table(*values: str) -> FloatArray:
-    return np.array([float.fromhex(value) for value in values])
-
+from scorer.svml_exp import EXP2_16THS_HI, EXP2_16THS_LO, SIXTEENTHS_SHIFTER, hex_table
 
 # -log2 r as high (22-34 bits) + low part, for r = 1 + i/32 (i = 0 .. 15, e stays) and, for r in [1.5, 2),
 # 1 - log2 r (i = 16 .. 31, e one less); r = 2 takes entry 0.
-_LOG_HI = _hex_table(
+_LOG_HI = hex_table(
     "0x0.0p+0", "-0x1.6bad3758e0000p-5", "-0x1.663f6fac90000p-4", "-0x1.08c588cda8000p-3",
     "-0x1.5c01a39fc0000p-3", "-0x1.acf5e2db50000p-3", "-0x1.fbc16b9028000p-3", "-0x1.24407ab0e0000p-2",
     "-0x1.49a784bcd0000p-2", "-0x1.6e221cd9d0000p-2", "-0x1.91bba891f0000p-2", "-0x1.b47ebf7388000p-2",
@@ -60,7 +57,7 @@ _LOG_HI = _hex_table(
     "0x1.8a8980abf8000p-3", "0x1.563dc29ff8000p-3", "0x1.22dadc2ab0000p-3", "0x1.e0b1ae8f30000p-4",
     "0x1.7d60496d00000p-4", "0x1.1bb32a6000000p-4", "0x1.77394c9da0000p-5", "0x1.743ee86200000p-6",
 )  # fmt: skip
-_LOG_LO = _hex_table(
+_LOG_LO = hex_table(
     "0x0.0p+0", "-0x1.fb0e626c0de13p-42", "-0x1.3167ccc538261p-44", "0x1.871a7610e40bdp-45",
     "0x1.4bc302ffa76fbp-42", "0x1.36c101ee13440p-43", "0x1.7f5dc57266758p-43", "-0x1.ce60916e52e91p-44",
     "-0x1.b8afe492bf6ffp-42", "-0x1.9bcaf1aa4168ap-43", "-0x1.708b4b2b5056cp-42", "-0x1.50520a377c7ecp-45",
@@ -69,19 +66,6 @@ _LOG_LO = _hex_table(
     "-0x1.1979a5db68722p-42", "-0x1.d4f1b95e0ff45p-43", "0x1.f1a4847f7b278p-42", "-0x1.667f21fa8423fp-44",
     "0x1.e9933354dbf17p-42", "0x1.6590643906f2ap-42", "0x1.a4b69691d7994p-42", "-0x1.54cda62d3926ep-47",
     "-0x1.12ce6312ebb82p-42", "0x1.52743318a8a57p-42", "-0x1.4e55443478fe0p-42", "-0x1.95539356f93dcp-43",
-)  # fmt: skip
-# 2^(j/16) = high + low, j = 0 .. 15.
-_EXP2_HI = _hex_table(
-    "0x1.0000000000000p+0", "0x1.0b5586cf9890fp+0", "0x1.172b83c7d517bp+0", "0x1.2387a6e756238p+0",
-    "0x1.306fe0a31b715p+0", "0x1.3dea64c123422p+0", "0x1.4bfdad5362a27p+0", "0x1.5ab07dd485429p+0",
-    "0x1.6a09e667f3bcdp+0", "0x1.7a11473eb0187p+0", "0x1.8ace5422aa0dbp+0", "0x1.9c49182a3f090p+0",
-    "0x1.ae89f995ad3adp+0", "0x1.c199bdd85529cp+0", "0x1.d5818dcfba487p+0", "0x1.ea4afa2a490dap+0",
-)  # fmt: skip
-_EXP2_LO = _hex_table(
-    "0x0.0p+0", "0x1.79aa65d837b6dp-54", "-0x1.01b15eaa59348p-55", "0x1.68efde3a8a894p-54",
-    "0x1.34d754db0abb6p-55", "0x1.59f48a72a4c6dp-55", "0x1.690cebb7aafb0p-56", "0x1.063e1e21c5409p-54",
-    "-0x1.3b3efbf5e2228p-54", "-0x1.b32dcb94da51dp-56", "0x1.db72fc1f0eab4p-55", "0x1.1affc2b91ce27p-56",
-    "0x1.c1a7792cb3387p-55", "0x1.36eae30af0cb3p-56", "0x1.4a385a63d07a7p-56", "-0x1.ff7128fd391f0p-55",
 )  # fmt: skip
 _TWO_OVER_LN2 = float.fromhex("0x1.71547652b82fep+1")  # log2(1 + 2u) = (2 / ln 2)(u - u^2 + ...)
 # The rest of log2(1 + 2u) as pairs (a, b) = a u + b, highest first, combined in SVML's order (below); the
@@ -96,9 +80,6 @@ _LOG_PAIRS = tuple(
         ("-0x1.778d9c7190437p-55", "0x1.777df70b75d10p-55"),
     )
 )
-# W + this, rounded downward: 1.5 * 2^48 (ulp 1/16) plus the exponent bias 1023, so the sum's low 4 bits are
-# j and the bits above them n + 1023.
-_EXP2_SHIFTER = float.fromhex("0x1.8000000003ff0p+48")
 # 2^f - 1 over f as pairs a f + b, highest first.
 _EXP2_PAIRS = tuple(
     (float.fromhex(a), float.fromhex(b))
@@ -149,7 +130,7 @@ def svml_power_emulated(base: npt.ArrayLike, exponent: float) -> FloatArray:
     product = multiply_toward_zero(log_high, y)
     product_low = fused_multiply_add_toward_zero(y, log_low, fma(y, log_high, -product))
     w = add_toward_zero(product, product_low)
-    shifted = add_downward(w, np.full_like(x_in, _EXP2_SHIFTER))
+    shifted = add_downward(w, np.full_like(x_in, SIXTEENTHS_SHIFTER))
     f = add_downward(w, -np.floor(w * 16) / 16) + (
         product_low - (w - product)
     )  # vreducepd, then W's low part
@@ -159,9 +140,9 @@ def svml_power_emulated(base: npt.ArrayLike, exponent: float) -> FloatArray:
     scale = ((bits << 48) & _EXPONENT_MASK).view(np.float64)
     f2 = f * f
     first, second, third = (pair(a, b, f) for a, b in _EXP2_PAIRS)
-    polynomial = fma(f, fma(f2, fma(f2, first, second), third), _EXP2_LO[j])
+    polynomial = fma(f, fma(f2, fma(f2, first, second), third), EXP2_16THS_LO[j])
     with np.errstate(over="ignore"):  # lanes off the main path only
-        result = fma(_EXP2_HI[j], polynomial, _EXP2_HI[j]) * scale
+        result = fma(EXP2_16THS_HI[j], polynomial, EXP2_16THS_HI[j]) * scale
     main_path = positive & (np.abs(w) <= _MAIN_PATH_W)
     return np.where(main_path, result, np.power(x, exponent))
 
@@ -169,7 +150,7 @@ def svml_power_emulated(base: npt.ArrayLike, exponent: float) -> FloatArray:
 # Bases whose tenth power SVML rounds other than the C library, with SVML's results: numpy is SVML here exactly
 # when it gives these.
 _SVML_PROBE_BASES = np.array([0.7771, 1.4142, 1.0106, 2.8012])
-_SVML_PROBE_POWERS = _hex_table(
+_SVML_PROBE_POWERS = hex_table(
     "0x1.48f308d97fb93p-4", "0x1.fff36e40df3c4p+4", "0x1.1c77b8bcf1314p+0", "0x1.d0cb73f450cb1p+14"
 )
 NUMPY_POWER_IS_SVML = bool(np.array_equal(np.power(_SVML_PROBE_BASES, 10.0), _SVML_PROBE_POWERS))

@@ -8,7 +8,8 @@ off (an AVX2 host's numpy) and with every dispatch target above the baseline swi
 the metric cache (PDM-Closed's proposals and reference, the humans) and the submissions' simulations under
 every log-replay version, and every result must keep its bits. PDM-Closed's IDM takes (v / v0) ** 10, which
 moved the last bit of a few proposals' headings before power was emulated: every simulation now gets the
-same input on every path (`test_pdm_closed_proposals_keep_their_bits`).
+same input on every path (`test_pdm_closed_proposals_keep_their_bits`). The two-stage weights take numpy's
+exp, which is SVML's on AVX-512 and replayed elsewhere: they must be the official ones on every path.
 
 OpenBLAS's kernels move last bits of their own (the tracker's `pinv`): `scorer.blas` selects the official
 results' SkylakeX ones where the CPU runs them and `test_blas` checks that it does. So the comparison holds
@@ -52,6 +53,7 @@ from scorer.blas import blas_kernels
 from scorer.evaluate import build_split_cache, score_versions
 from scorer.geometry import NUMPY_ARCTAN2_IS_SVML
 from scorer.submission import load_submission
+from scorer.svml_exp import NUMPY_EXP_IS_SVML
 from scorer.svml_pow import NUMPY_POWER_IS_SVML
 from scorer.svml_tan import NUMPY_TAN_IS_SVML
 from scorer.versions import LOG_REPLAY_VERSIONS
@@ -78,7 +80,7 @@ for split in map(Path, sys.argv[2:]):
                 metrics = {k: None if math.isnan(v) else v for k, v in r.metrics.items()}
                 rows.append([split.name, path.stem, version, r.token, r.valid, metrics])
 print(json.dumps({
-    "svml": [NUMPY_ARCTAN2_IS_SVML, NUMPY_TAN_IS_SVML, NUMPY_POWER_IS_SVML],
+    "svml": [NUMPY_ARCTAN2_IS_SVML, NUMPY_TAN_IS_SVML, NUMPY_POWER_IS_SVML, NUMPY_EXP_IS_SVML],
     "kernels": list(blas_kernels()),
     "simulations": simulations,
     "rows": rows,
@@ -101,8 +103,8 @@ def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 DETECT = (
-    "import scorer.geometry as g, scorer.svml_pow as p, scorer.svml_tan as t;"
-    " print(g.NUMPY_ARCTAN2_IS_SVML, t.NUMPY_TAN_IS_SVML, p.NUMPY_POWER_IS_SVML)"
+    "import scorer.geometry as g, scorer.svml_exp as e, scorer.svml_pow as p, scorer.svml_tan as t;"
+    " print(g.NUMPY_ARCTAN2_IS_SVML, t.NUMPY_TAN_IS_SVML, p.NUMPY_POWER_IS_SVML, e.NUMPY_EXP_IS_SVML)"
 )
 
 
@@ -117,16 +119,16 @@ def test_numpy_svml_is_detected_and_the_emulations_take_over_without_it() -> Non
         )
         return done.stdout.strip()
 
-    assert detected(NUMPY_PATHS["without AVX-512"]) == "False False False"
-    assert detected(NUMPY_PATHS["baseline"]) == "False False False"
+    assert detected(NUMPY_PATHS["without AVX-512"]) == " ".join(["False"] * 4)
+    assert detected(NUMPY_PATHS["baseline"]) == " ".join(["False"] * 4)
     if NUMPY_RUNS_SVML:
-        assert detected({}) == "True True True"
+        assert detected({}) == " ".join(["True"] * 4)
 
 
 def _compared(kernels: str, numpy_path: str, cache_dir: Path) -> tuple[dict, dict]:
     native, other = _run(kernels, "native", cache_dir), _run(kernels, numpy_path, cache_dir)
-    assert other["svml"] == [False] * 3  # the switch took effect: the emulations ran
-    assert native["svml"] == [NUMPY_RUNS_SVML] * 3
+    assert other["svml"] == [False] * 4  # the switch took effect: the emulations ran
+    assert native["svml"] == [NUMPY_RUNS_SVML] * 4
     assert len(native["simulations"]) == len(other["simulations"])
     return native, other
 
@@ -195,3 +197,28 @@ def test_every_submission_is_simulated_as_the_official_v2_2_results_on_every_num
 def test_pdm_closed_proposals_keep_their_bits(cache_dir: Path) -> None:
     native, other = _compared(KERNELS[0], "without AVX-512", cache_dir)
     assert [ours[1] for ours in native["simulations"]] == [theirs[1] for theirs in other["simulations"]]
+
+
+# The two-stage weights of every reference family (fixtures/two-stage, official values from an AVX-512 host):
+# the tokens whose weight or weight detail differs. Their Gaussians are SVML's exp on every path (numpy's exp
+# without its AVX-512 path moved 233 of them).
+TWO_STAGE_WEIGHTS = """
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import scorer
+from two_stage_reference import FAMILIES, SPLIT, aggregation_input, official_tokens
+from scorer.two_stage.aggregate import aggregate_two_stage
+
+differing = []
+for family in FAMILIES:
+    result, lines = aggregate_two_stage(aggregation_input(family), SPLIT), official_tokens(family)
+    differing += [[family, t] for t, weight in result.weights.items() if weight != lines[t]["weight"]]
+    differing += [[family, t] for t, d in result.weight_detail.items() if d != lines[t]["weight_detail"]]
+print(json.dumps({"differing": differing}))
+"""
+
+
+@pytest.mark.parametrize("numpy_path", list(NUMPY_PATHS))
+def test_the_two_stage_weights_are_the_official_ones_on_every_numpy_path(numpy_path: str) -> None:
+    output = run_python(TWO_STAGE_WEIGHTS, [str(Path(__file__).parent)], NUMPY_PATHS[numpy_path])
+    assert output["differing"] == []

@@ -8,7 +8,8 @@ frame: w = exp(-d² / (2 * 0.1)), normalised over the set; when the Gaussians su
 Bit for bit: d² is dx ** 2 + dy ** 2 of Python floats, and a float's `** 2` is the C library's pow(x, 2),
 which is not always x * x (5 of the 400 reference distances differ in the last bit): numpy's `float_power`
 calls that pow element by element, where `x ** 2` and `power` on arrays square or take a SIMD path. The
-exponential is numpy's (it differs from the C library's in the last bit for a few percent of arguments);
+exponential is numpy's on AVX-512 (SVML's, replayed elsewhere: `svml_exp.exp_avx512`; it differs from the C
+library's in the last bit for a few percent of arguments);
 the set's sum is numpy's over the set in mapping order (`sums.sums_by_group`). The endpoint is nuPlan's `relative_to_absolute_poses` of the submitted last
 pose: (cos h0 * x + (-sin h0) * y) + x0 and (sin h0 * x + cos h0 * y) + y0, without fused multiply-adds.
 """
@@ -21,6 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from scorer.geometry import BoolArray, FloatArray, IntArray
+from scorer.svml_exp import exp_avx512
 from scorer.two_stage.sums import sums_by_group
 
 GAUSSIAN_DENOMINATOR = 2 * 0.1  # 2 sigma² with the official sigma² = 0.1 m²
@@ -61,7 +63,7 @@ def pseudo_closed_loop_weights(
     squared = np.float_power(difference, 2.0)
     squared_distance = squared[:, 0] + squared[:, 1]
     exponent = -squared_distance / GAUSSIAN_DENOMINATOR
-    gaussian = np.exp(exponent)
+    gaussian = exp_avx512(exponent)
     set_sum = sums_by_group(gaussian, sets)
     set_size = np.array([len(members) for members in sets], dtype=np.intp)
     uniform = (set_sum <= UNIFORM_BELOW) | np.isnan(set_sum)
