@@ -37,10 +37,15 @@ _RCP14_STEPS = (
 )
 
 
+def decoded_steps(text: str) -> npt.NDArray[np.uint8]:
+    """Return the steps between a table's significands, stored as base64 of their zlib-compressed bytes."""
+    return np.frombuffer(zlib.decompress(base64.b64decode(text)), dtype=np.uint8)
+
+
 @cache
 def significands() -> npt.NDArray[np.floating[Any]]:
     """Return the table (decoded once, when first needed: on AVX-512 hosts numpy's own SVML runs instead)."""
-    steps = np.frombuffer(zlib.decompress(base64.b64decode("".join(_RCP14_STEPS))), dtype=np.uint8)
+    steps = decoded_steps(_RCP14_STEPS)
     return (2**16 + (2**16 - np.cumsum(steps, dtype=np.int64))) * 2.0**-17
 
 

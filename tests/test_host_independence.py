@@ -1,8 +1,8 @@
 """Workers on different CPUs simulate and score with the same bits, as far as numpy's own kernels go.
 
 numpy picks its math kernels by CPU: on AVX-512 it runs Intel SVML for arctan2, tan, power and others,
-elsewhere the C library's. The engine uses numpy's arctan2, tan and power where they are SVML and an emulation
-of them elsewhere (docs/engine.md, "Host dependence and kernels"), so the simulation (the tracker and the
+elsewhere the C library's. The engine uses numpy's arctan2, tan, power and arccos where they are SVML and an
+emulation of them elsewhere (docs/engine.md, "Host dependence and kernels"), so the simulation (the tracker and the
 bicycle model) must give every state the same bits for the same input with numpy's AVX-512 dispatch switched
 off (an AVX2 host's numpy) and with every dispatch target above the baseline switched off: over a whole run,
 the metric cache (PDM-Closed's proposals and reference, the humans) and the submissions' simulations under
@@ -53,6 +53,7 @@ from scorer.blas import blas_kernels
 from scorer.evaluate import build_split_cache, score_versions
 from scorer.geometry import NUMPY_ARCTAN2_IS_SVML
 from scorer.submission import load_submission
+from scorer.svml_acos import NUMPY_ARCCOS_IS_SVML
 from scorer.svml_exp import NUMPY_EXP_IS_SVML
 from scorer.svml_pow import NUMPY_POWER_IS_SVML
 from scorer.svml_tan import NUMPY_TAN_IS_SVML
@@ -80,7 +81,7 @@ for split in map(Path, sys.argv[2:]):
                 metrics = {k: None if math.isnan(v) else v for k, v in r.metrics.items()}
                 rows.append([split.name, path.stem, version, r.token, r.valid, metrics])
 print(json.dumps({
-    "svml": [NUMPY_ARCTAN2_IS_SVML, NUMPY_TAN_IS_SVML, NUMPY_POWER_IS_SVML, NUMPY_EXP_IS_SVML],
+    "svml": [NUMPY_ARCTAN2_IS_SVML, NUMPY_TAN_IS_SVML, NUMPY_POWER_IS_SVML, NUMPY_EXP_IS_SVML, NUMPY_ARCCOS_IS_SVML],
     "kernels": list(blas_kernels()),
     "simulations": simulations,
     "rows": rows,
@@ -103,9 +104,11 @@ def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 DETECT = (
-    "import scorer.geometry as g, scorer.svml_exp as e, scorer.svml_pow as p, scorer.svml_tan as t;"
-    " print(g.NUMPY_ARCTAN2_IS_SVML, t.NUMPY_TAN_IS_SVML, p.NUMPY_POWER_IS_SVML, e.NUMPY_EXP_IS_SVML)"
+    "import scorer.geometry as g, scorer.svml_acos as a, scorer.svml_exp as e, scorer.svml_pow as p,"
+    " scorer.svml_tan as t; print(g.NUMPY_ARCTAN2_IS_SVML, t.NUMPY_TAN_IS_SVML, p.NUMPY_POWER_IS_SVML,"
+    " e.NUMPY_EXP_IS_SVML, a.NUMPY_ARCCOS_IS_SVML)"
 )
+SVML_REPLAYS = 5  # arctan2, tan, power, exp, arccos
 
 
 def test_numpy_svml_is_detected_and_the_emulations_take_over_without_it() -> None:
@@ -119,16 +122,16 @@ def test_numpy_svml_is_detected_and_the_emulations_take_over_without_it() -> Non
         )
         return done.stdout.strip()
 
-    assert detected(NUMPY_PATHS["without AVX-512"]) == " ".join(["False"] * 4)
-    assert detected(NUMPY_PATHS["baseline"]) == " ".join(["False"] * 4)
+    assert detected(NUMPY_PATHS["without AVX-512"]) == " ".join(["False"] * SVML_REPLAYS)
+    assert detected(NUMPY_PATHS["baseline"]) == " ".join(["False"] * SVML_REPLAYS)
     if NUMPY_RUNS_SVML:
-        assert detected({}) == " ".join(["True"] * 4)
+        assert detected({}) == " ".join(["True"] * SVML_REPLAYS)
 
 
 def _compared(kernels: str, numpy_path: str, cache_dir: Path) -> tuple[dict, dict]:
     native, other = _run(kernels, "native", cache_dir), _run(kernels, numpy_path, cache_dir)
-    assert other["svml"] == [False] * 4  # the switch took effect: the emulations ran
-    assert native["svml"] == [NUMPY_RUNS_SVML] * 4
+    assert other["svml"] == [False] * SVML_REPLAYS  # the switch took effect: the emulations ran
+    assert native["svml"] == [NUMPY_RUNS_SVML] * SVML_REPLAYS
     assert len(native["simulations"]) == len(other["simulations"])
     return native, other
 

@@ -19,6 +19,7 @@ from scorer.geometry import BoolArray, FloatArray, IntArray
 from scorer.metrics.convex import is_convex_counterclockwise, quads_intersect, segment_meets_quad
 from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, same_token_pairs
 from scorer.observation import ObservationBatch
+from scorer.svml_acos import arccos_avx512
 
 AHEAD_ANGLE = float(np.deg2rad(30.0))  # nuPlan `is_agent_ahead`
 BEHIND_ANGLE = float(np.deg2rad(150.0))  # nuPlan `is_agent_behind`
@@ -111,13 +112,13 @@ def relative_angle(rear_axle: FloatArray, targets: FloatArray) -> FloatArray:
     contact makes the same calls on the same 2-vectors rather than an array expression: contacts are few.
     A target on the rear axle gives NaN too (0 / 0), as in the devkit.
     """
-    angles = np.empty(len(targets))
+    cosines = np.empty(len(targets))
     offsets = targets - rear_axle[:, :2]  # elementwise, as the devkit's scalar differences
     with np.errstate(invalid="ignore", divide="ignore"):
         for contact, (offset, heading) in enumerate(zip(offsets, rear_axle[:, 2].tolist(), strict=True)):
             heading_vector = np.array([np.cos(heading), np.sin(heading)])
-            angles[contact] = np.arccos(np.dot(heading_vector, offset / np.linalg.norm(offset)))
-    return angles
+            cosines[contact] = np.dot(heading_vector, offset / np.linalg.norm(offset))
+        return arccos_avx512(cosines)  # SVML's, as the devkit's numpy on AVX-512 (`scorer.svml_acos`)
 
 
 def centroids(polygons: npt.NDArray[np.object_]) -> FloatArray:
