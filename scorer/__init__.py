@@ -3,7 +3,7 @@
 Importing it first selects the OpenBLAS kernels the official results were made with (`scorer.blas`).
 """
 
-ENGINE_VERSION = "0.6.0"
+ENGINE_VERSION = "0.6.1"
 
 from scorer.blas import select_devkit_kernels  # after ENGINE_VERSION, which it imports
 

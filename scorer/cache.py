@@ -1,11 +1,12 @@
 """The per-scene metric cache: what scoring needs from a scene, built once and kept on disk.
 
-One `.nlc` file per token holds every metric version's cache (`_pack` gives the layout): a small index,
-each version's JSON header (metadata, and the dtype, shape and offset of each array), then the arrays' raw
-bytes, each distinct content once, so the versions share the map and, where they observe alike, the
-observation (v1.0 and v1.1's were identical). Numbers only, so a cache file can never execute code; read
-in one call (npz spent more time parsing its per-array headers than scoring), one version's header parsed
-only for that version. A file is reused only while its key (scene file hash, engine version) matches;
+One `.nlc` file per token holds every metric version's cache (`_pack` gives the layout): one JSON header
+(the key, each distinct metadata value once, each distinct array's dtype, shape and offset, and per version
+which of them it holds by name), then the arrays' raw bytes, each distinct content once, so the versions share
+the map and, where they observe alike, the observation (v1.0 and v1.1's were identical). Numbers only, so a
+cache file can never execute code; read in one call (npz spent more time parsing its per-array headers than
+scoring), what versions share parsed and viewed once (a log-replay token's three sections cost about one).
+A file is reused only while its key (scene file hash, engine version) matches;
 otherwise it is rebuilt. Every scene is built in isolation: PDM-Closed's collided-track list starts empty
 for each scene, unlike the devkit, whose planner instance carries it across the scenes of a worker batch.
 """
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Collection, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -44,7 +45,8 @@ if TYPE_CHECKING:
 # version from its cache never loads it (start-up of `navsim-lb score`).
 
 _MEASURES_PREFIX = "reference_"
-_PREFIX = 16  # a cache file's first bytes: its index's length and its own, 8 bytes each
+_MEASURES = tuple(f.name for f in fields(ProposalMeasures))
+_PREFIX = 16  # a cache file's first bytes: its header's length and its own, 8 bytes each
 
 
 @dataclass(frozen=True)
@@ -384,7 +386,7 @@ def _read_sections(
         return {}
     if stored_key != key:
         return {}
-    return {version: (meta, arrays) for version, (meta, arrays, _) in sections.items()}
+    return sections
 
 
 def _cache_section(cache: MetricCache) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -423,14 +425,12 @@ def _cache_section(cache: MetricCache) -> tuple[dict[str, Any], dict[str, np.nda
         **(
             {}
             if cache.reference_measures is None
-            else {
-                _MEASURES_PREFIX + f.name: getattr(cache.reference_measures, f.name)
-                for f in fields(ProposalMeasures)
-            }
+            else {_MEASURES_PREFIX + name: getattr(cache.reference_measures, name) for name in _MEASURES}
         ),
     }
-    if cache.starting_traffic is not None:
-        meta["starting_traffic"] = _traffic_meta(cache.starting_traffic)
+    if cache.starting_traffic is not None:  # its JSON's bytes: parsed only where a reactive version reads it
+        traffic = json.dumps(_traffic_meta(cache.starting_traffic)).encode()
+        arrays["starting_traffic"] = np.frombuffer(traffic, dtype=np.uint8)
     return meta, arrays
 
 
@@ -491,70 +491,94 @@ def _red_light_arrays(red_lights: RedLights | None) -> dict[str, np.ndarray]:
 
 
 def _pack(key: dict[str, str], sections: Mapping[str, tuple[dict[str, Any], dict[str, np.ndarray]]]) -> bytes:
-    """Return a cache file: the index's length and the file's (8 bytes each, little endian), the index (JSON: the
-    key and where each version's header lies), each version's header (JSON: its metadata and each array's
-    dtype, shape and offset), then the arrays' C-order bytes, each distinct content once (arrays of equal
-    bytes share it, whatever their names and versions). A reader of one version parses its header only."""
-    offsets: dict[bytes, int] = {}
+    """Return a cache file: the header's length and the file's (8 bytes each, little endian), the header (JSON),
+    then the arrays' C-order bytes.
+
+    The header holds the key, each distinct metadata value once (`values`), each distinct array once (`arrays`:
+    dtype, shape, offset) and, per version, the index of each of its metadata values and arrays by name: the
+    versions' sections hold mostly the same map, route and objects, which a reader parses and views once. An
+    array's bytes are stored once, and not at all where they begin a stored array's (a shorter observation's
+    corners are the first rows of a longer one's)."""
+    values: list[Any] = []
+    value_at: dict[str, int] = {}
+    layout: list[tuple[str, tuple[int, ...], int]] = []
+    array_at: dict[tuple[str, tuple[int, ...], int], int] = {}
     blobs: list[bytes] = []
+    blob_at: dict[bytes, int] = {}
     size = 0
-    headers: dict[str, bytes] = {}
+    versions = {}
     for version, (meta, arrays) in sections.items():
-        layout = {}
+        meta_refs = {}
+        for name, value in meta.items():
+            text = json.dumps(value)
+            if text not in value_at:
+                value_at[text] = len(values)
+                values.append(value)
+            meta_refs[name] = value_at[text]
+        array_refs = {}
         for name, array in arrays.items():
             blob = np.ascontiguousarray(array).tobytes()
-            if blob not in offsets:
-                offsets[blob] = size
-                blobs.append(blob)
-                size += len(blob)
-            layout[name] = [np.asarray(array).dtype.str, list(np.shape(array)), offsets[blob]]
-        headers[version] = json.dumps({"meta": meta, "arrays": layout}).encode()
-    places, start = {}, 0
-    for version, header in headers.items():
-        places[version] = [start, start + len(header)]
-        start += len(header)
-    index = json.dumps({"key": key, "versions": places}).encode()
-    file_size = _PREFIX + len(index) + start + size
-    prefix = len(index).to_bytes(8, "little") + file_size.to_bytes(8, "little")
-    return prefix + index + b"".join(headers.values()) + b"".join(blobs)
+            if blob not in blob_at:
+                within = next((at for stored, at in blob_at.items() if stored.startswith(blob)), None)
+                if within is None:
+                    within, size = size, size + len(blob)
+                    blobs.append(blob)
+                blob_at[blob] = within
+            entry = (np.asarray(array).dtype.str, tuple(np.shape(array)), blob_at[blob])
+            if entry not in array_at:
+                array_at[entry] = len(layout)
+                layout.append(entry)
+            array_refs[name] = array_at[entry]
+        versions[version] = {"meta": meta_refs, "arrays": array_refs}
+    header = json.dumps({"key": key, "values": values, "arrays": layout, "versions": versions}).encode()
+    file_size = _PREFIX + len(header) + size
+    prefix = len(header).to_bytes(8, "little") + file_size.to_bytes(8, "little")
+    return prefix + header + b"".join(blobs)
 
 
-def _index(data: bytes) -> tuple[dict[str, Any], int]:
-    """Return a cache file's index and where its version headers start; raise ValueError if the file is not
-    the size its prefix states (cut short)."""
+def _header(data: bytes) -> tuple[dict[str, Any], int]:
+    """Return a cache file's header and where its arrays' bytes start; raise ValueError if the file is not the
+    size its prefix states (cut short)."""
     length, stated = int.from_bytes(data[:8], "little"), int.from_bytes(data[8:_PREFIX], "little")
     if stated != len(data):
         raise ValueError(f"a cache file of {stated} bytes holds {len(data)}")
     return json.loads(data[_PREFIX : _PREFIX + length]), _PREFIX + length
 
 
-Section = tuple[dict[str, Any], dict[str, np.ndarray], dict[str, int]]  # metadata, arrays, their offsets
+Section = tuple[dict[str, Any], dict[str, np.ndarray]]  # metadata, arrays
 
 
 def _unpack(
     data: bytes, versions: Collection[str] | None = None
 ) -> tuple[dict[str, str], dict[str, Section]]:
     """Invert `_pack` for `versions` (all by default): the file's key and each version's section, its arrays
-    read-only views of `data` (versions share what they share on disk; nothing writes a cache's arrays).
-    Raise ValueError on anything malformed, a file cut short included."""
-    index, headers_start = _index(data)
-    places = index["versions"]
-    body = memoryview(data)[headers_start + max((end for _, end in places.values()), default=0) :]
-    sections = {}
-    for version, (start, end) in places.items():
-        if versions is not None and version not in versions:
-            continue
-        section = json.loads(data[headers_start + start : headers_start + end])
-        arrays, offsets = {}, {}
-        for name, (dtype, shape, offset) in section["arrays"].items():
-            dtype = np.dtype(dtype)
-            if dtype.hasobject:
-                raise ValueError(f"{name}: object arrays are not allowed")
-            count = math.prod(shape)  # the header's integers (numpy's prod costs more than reading the array)
-            arrays[name] = np.frombuffer(body, dtype=dtype, count=count, offset=offset).reshape(shape)
-            offsets[name] = offset
-        sections[version] = (section["meta"], arrays, offsets)
-    return index["key"], sections
+    read-only views of `data`. What versions share on disk they share in memory: the same value and array
+    objects (nothing writes a cache's metadata or arrays). Raise ValueError on anything malformed, a file cut
+    short included."""
+    header, body_start = _header(data)
+    body = memoryview(data)[body_start:]
+    values, layout = header["values"], header["arrays"]
+    refs = {
+        version: version_refs
+        for version, version_refs in header["versions"].items()
+        if versions is None or version in versions
+    }
+    views = {}
+    for at in {at for version_refs in refs.values() for at in version_refs["arrays"].values()}:
+        dtype_str, shape, offset = layout[at]
+        dtype = np.dtype(dtype_str)
+        if dtype.hasobject:
+            raise ValueError("object arrays are not allowed")
+        count = math.prod(shape)  # the header's integers (numpy's prod costs more than reading the array)
+        views[at] = np.frombuffer(body, dtype=dtype, count=count, offset=offset).reshape(shape)
+    sections = {
+        version: (
+            {name: values[at] for name, at in version_refs["meta"].items()},
+            {name: views[at] for name, at in version_refs["arrays"].items()},
+        )
+        for version, version_refs in refs.items()
+    }
+    return header["key"], sections
 
 
 def load_caches(
@@ -571,16 +595,19 @@ def load_caches(
         return {}  # missing, truncated or foreign: rebuild
     if stored_key != key:
         return {}
-    polygons: dict[tuple[int, int], np.ndarray] = {}  # by their arrays' offsets: one map serves every version
+    shared: dict[tuple[object, ...], Any] = {}  # what sections hold alike, built once (`_cache_of`)
+    of_source: dict[str, MetricCache] = {}  # a section serves every version that reads it
     caches = {}
     for version, source in sources.items():
         if source not in sections:
             continue
-        meta, arrays, offsets = sections[source]
+        version_key = CacheKey(scene_hash, key["engine_version"], version)
+        if source in of_source:
+            caches[version] = replace(of_source[source], key=version_key)
+            continue
+        meta, arrays = sections[source]
         try:
-            caches[version] = _cache_of(
-                CacheKey(scene_hash, key["engine_version"], version), meta, arrays, offsets, polygons
-            )
+            caches[version] = of_source[source] = _cache_of(version_key, meta, arrays, shared)
         except (ValueError, KeyError, TypeError):
             continue  # a damaged section: that version is rebuilt
     return caches
@@ -591,7 +618,7 @@ def cache_file_key(data: bytes) -> CacheKey | None:
     version it was built for), or None when they are not a whole cache file. Lets caches travel between
     machines (an object store) named by their key, without reading their arrays."""
     try:
-        key = _index(data)[0]["key"]
+        key = _header(data)[0]["key"]
         return CacheKey(key["scene_hash"], key["engine_version"], "")
     except (ValueError, KeyError, TypeError):
         return None
@@ -606,27 +633,50 @@ def _cache_of(
     key: CacheKey,
     meta: dict[str, Any],
     arrays: dict[str, np.ndarray],
-    offsets: dict[str, int],
-    polygons: dict[tuple[int, int], np.ndarray],
+    shared: dict[tuple[object, ...], Any],
 ) -> MetricCache:
-    """Return the cache a file's section holds; `polygons` keeps the polygons unpacked from the same bytes."""
+    """Return the cache a file's section holds. `shared` keeps what the file's other sections hold alike (the
+    same arrays on disk, the same metadata): their map and, where they observe alike, their observation are
+    built once and are the same objects."""
 
-    def unpacked(coords: str, counts: str) -> np.ndarray:
-        where = (offsets[coords], offsets[counts])
-        if where not in polygons:
-            polygons[where] = _unpack_polygons(arrays[coords], arrays[counts])
-        return polygons[where]
+    def once(names: Sequence[str], metas: Sequence[str], build: Callable[[], Any]) -> Any:
+        # The arrays by identity: `_unpack` gives one view per stored array (offset, dtype and shape).
+        where = (*names, *metas, *(id(arrays[name]) for name in names), *(id(meta[name]) for name in metas))
+        if where not in shared:
+            shared[where] = build()
+        return shared[where]
 
-    present = arrays["object_present"]
-    corners = np.full((*present.shape, 4, 2), np.nan)
-    corners[present] = arrays["object_corners"]
-    red_lights = None
-    if meta["red_light_lanes"] is not None:
-        red_lights = RedLights(
-            lane_ids=tuple(meta["red_light_lanes"]),
-            polygons=unpacked("red_light_coords", "red_light_counts"),
-            present=arrays["red_light_present"],
+    def observation() -> Observation:
+        present = arrays["object_present"]
+        corners = np.full((*present.shape, 4, 2), np.nan)
+        corners[present] = arrays["object_corners"]
+        red_lights = None
+        if meta["red_light_lanes"] is not None:
+            red_lights = RedLights(
+                lane_ids=tuple(meta["red_light_lanes"]),
+                polygons=_unpack_polygons(arrays["red_light_coords"], arrays["red_light_counts"]),
+                present=arrays["red_light_present"],
+            )
+        return Observation(
+            tokens=tuple(meta["object_tokens"]),
+            object_types=tuple(meta["object_types"]),
+            is_agent=arrays["object_is_agent"],
+            first_speed=arrays["object_first_speed"],
+            present=present,
+            corners=corners,
+            red_lights=red_lights,
         )
+
+    lights = (
+        ("red_light_coords", "red_light_counts", "red_light_present") if "red_light_coords" in arrays else ()
+    )
+    object_arrays = ("object_present", "object_corners", "object_is_agent", "object_first_speed", *lights)
+    object_meta = ("object_tokens", "object_types", "red_light_lanes")
+    map_polygons = once(
+        ("map_coords", "map_counts"),
+        (),
+        lambda: _unpack_polygons(arrays["map_coords"], arrays["map_counts"]),
+    )
     return MetricCache(
         token=meta["token"],
         key=key,
@@ -638,28 +688,26 @@ def _cache_of(
         route_lane_ids=tuple(meta["route_lane_ids"]),
         route_roadblocks=tuple(meta["route_roadblocks"]),
         idm_target_velocities=arrays["idm_target_velocities"],
-        drivable_map=DrivableMap(
-            tokens=tuple(meta["map_tokens"]),
-            types=tuple(meta["map_types"]),
-            polygons=unpacked("map_coords", "map_counts"),
+        drivable_map=once(
+            ("map_coords", "map_counts"),
+            ("map_tokens", "map_types"),
+            lambda: DrivableMap(
+                tokens=tuple(meta["map_tokens"]), types=tuple(meta["map_types"]), polygons=map_polygons
+            ),
         ),
-        observation=Observation(
-            tokens=tuple(meta["object_tokens"]),
-            object_types=tuple(meta["object_types"]),
-            is_agent=arrays["object_is_agent"],
-            first_speed=arrays["object_first_speed"],
-            present=present,
-            corners=corners,
-            red_lights=red_lights,
-        ),
+        observation=once(object_arrays, object_meta, observation),
         reference_measures=(
-            ProposalMeasures(**{f.name: arrays[_MEASURES_PREFIX + f.name] for f in fields(ProposalMeasures)})
-            if "starting_traffic" not in meta
+            ProposalMeasures(**{name: arrays[_MEASURES_PREFIX + name] for name in _MEASURES})
+            if "starting_traffic" not in arrays
             else None
         ),
         dropped_tracks=tuple(meta["dropped_tracks"]),
         human=meta["human"],
         past_states=arrays.get("past_states"),
         reference_states=arrays.get("reference_states"),
-        starting_traffic=_traffic_of(meta["starting_traffic"]) if "starting_traffic" in meta else None,
+        starting_traffic=(
+            _traffic_of(json.loads(arrays["starting_traffic"].tobytes()))
+            if "starting_traffic" in arrays
+            else None
+        ),
     )

@@ -175,10 +175,11 @@ def test_stale_or_damaged_files_are_rebuilt(
     (result,) = score_tokens(REFERENCE, tmp_path, poses, "v1.1", [token])
     assert result.valid
     assert load_cache(tmp_path, "v1.1", token, scene_file_hash(path)) is not None
-    # Damaged in place, its size kept: the version's header no longer parses, and it is rebuilt too.
+    # Damaged in place, its size kept: the header no longer parses, and it is rebuilt too.
     data = bytearray(written.read_bytes())
-    headers = 16 + int.from_bytes(data[:8], "little")
-    data[headers + json.loads(data[16:headers])["versions"]["v1.1"][0]] = ord("x")
+    header = data[16 : 16 + int.from_bytes(data[:8], "little")]
+    assert json.loads(header)["versions"]["v1.1"]  # the JSON header the damage breaks
+    data[16] = ord("x")
     written.write_bytes(bytes(data))
     assert load_cache(tmp_path, "v1.1", token, scene_file_hash(path)) is None
     (result,) = score_tokens(REFERENCE, tmp_path, poses, "v1.1", [token])
