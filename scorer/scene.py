@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import orjson
 import shapely
 
 from scorer.geometry import FloatArray
@@ -32,8 +31,8 @@ CATEGORIES = AGENT_CATEGORIES + STATIC_CATEGORIES
 _CATEGORY_SET = frozenset(CATEGORIES)
 FUTURE_FRAMES = 10  # the engine observes current + 10 frames (5 s at 2 Hz)
 AREA_LAYERS = ("intersections", "carpark_areas", "drivable_areas", "crosswalks", "walkways")
-# A map id of digits (`_Reader.check_id`) with a leading zero, in ids joined by spaces.
-_LEADING_ZERO = re.compile(r"(?:^| )0[^ ]")
+# A map id of digits (`_Reader.check_id`) with a leading zero, in ids joined by spaces (compiled on first use).
+_LEADING_ZERO = r"(?:^| )0[^ ]"
 
 
 class SceneFormatError(ValueError):
@@ -192,7 +191,7 @@ class _Reader:
         ):
             raise self.fail(self.path(where, key), "expected a list of id strings")
         # Most lists pass: checked in two calls; otherwise item by item, to name the first bad one.
-        if not (all(map(str.isdigit, value)) and _LEADING_ZERO.search(" ".join(value)) is None):
+        if not (all(map(str.isdigit, value)) and re.search(_LEADING_ZERO, " ".join(value)) is None):
             for item in value:
                 self.check_id(item, self.path(where, key))
         return tuple(value)
@@ -573,6 +572,8 @@ def _parse_json(data: bytes, path: Path) -> Any:
     document is read by the standard library, so every error still names its field. The one difference
     left: an integer beyond 64 bits comes back as a float, refused wherever an integer is required.
     """
+    import orjson  # here: scoring from a warm cache reads no scene (start-up of `navsim-lb score`)
+
     try:
         return orjson.loads(data)
     except orjson.JSONDecodeError:
