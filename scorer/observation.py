@@ -61,17 +61,6 @@ class Observation:
         return np.array([RED_LIGHT_TOKEN in token for token in self.tokens], dtype=bool)
 
 
-def polygon_corners(polygons: npt.NDArray[np.object_]) -> FloatArray:
-    """Return the 4 ring corners (..., 4, 2) of box polygons (...); NaN where None. Raise on other shapes."""
-    corners = np.full((*polygons.shape, 4, 2), np.nan)
-    present = polygons != None
-    rings = shapely.get_exterior_ring(polygons[present])
-    if not (shapely.get_num_coordinates(rings) == 5).all():
-        raise ValueError("observation objects must be 4-corner boxes")
-    corners[present] = shapely.get_coordinates(rings).reshape(-1, 5, 2)[:, :4]
-    return corners
-
-
 @dataclass(frozen=True, eq=False)
 class ObservationBatch:
     """The observations of several scene tokens side by side: object j of token b is column start[b] + j."""

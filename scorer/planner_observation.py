@@ -32,7 +32,7 @@ from scorer.geometry import (
     ego_center,
     normalize_angle,
 )
-from scorer.observation import Observation, polygon_corners
+from scorer.observation import Observation
 from scorer.red_lights import RED_LIGHT_TOKEN, RedLights, red_lanes
 from scorer.scene import AGENT_CATEGORIES, Lane, Scene
 
@@ -56,6 +56,7 @@ class PlannerObservation:
     headings: FloatArray  # (n,) box heading (0 for red lights)
     collided: BoolArray  # (n,) overlaps the ego footprint at t0 (red lights: contain it); ignored throughout
     polygons: npt.NDArray[np.object_]  # (26, n) forecast map j = sample 2j
+    corners: FloatArray  # (26, n, 4, 2) the boxes' ring corners FL, RL, RR, FR in each map (NaN: red lights)
     trees: tuple[shapely.STRtree, ...]  # per forecast map, node capacity 10 (query order = the devkit's)
     red_lights: RedLights  # the red lights of the maps, at every time index (v2's TLC reads them)
 
@@ -111,12 +112,22 @@ def observe_for_planner(
     red_lights = RedLights.constant(red_lanes(frame.traffic_lights, route_lanes), SCORING_STEPS)
     light_polygons = red_lights.polygons
 
-    static_polygons = shapely.polygons(rings[static])
-    maps = np.empty((len(FORECAST_SAMPLES), len(static) + len(agents) + len(light_polygons)), dtype=object)
-    for index, sample in enumerate(FORECAST_SAMPLES):
-        delta_t = float(sample) * SAMPLE_INTERVAL_S
-        agent_polygons = shapely.polygons(rings[agents] + delta_t * agent_velocity[:, None])
-        maps[index] = np.concatenate([static_polygons, agent_polygons, light_polygons])
+    # Every map's boxes at once: agents moved by delta_t * velocity, static objects where they stand.
+    delta_t = FORECAST_SAMPLES * SAMPLE_INTERVAL_S
+    box_rings = np.concatenate(
+        [
+            np.broadcast_to(rings[static], (len(FORECAST_SAMPLES), *rings[static].shape)),
+            rings[agents] + delta_t[:, None, None, None] * agent_velocity[:, None],
+        ],
+        axis=1,
+    )
+    boxes_end = len(static) + len(agents)
+    maps = np.empty((len(FORECAST_SAMPLES), boxes_end + len(light_polygons)), dtype=object)
+    maps[:, : len(static)] = shapely.polygons(rings[static])  # the same objects in every map
+    maps[:, len(static) : boxes_end] = shapely.polygons(box_rings[:, len(static) :])
+    maps[:, boxes_end:] = light_polygons
+    corners = np.full((*maps.shape, 4, 2), np.nan)
+    corners[:, :boxes_end] = box_rings[..., :4, :]
     trees = tuple(shapely.STRtree(polygons, node_capacity=10) for polygons in maps)
 
     tokens = tuple(frame.tracks[i] for i in static) + tuple(frame.tracks[i] for i in agents)
@@ -139,6 +150,7 @@ def observe_for_planner(
         headings=np.concatenate([headings[objects], pad]),
         collided=collided,
         polygons=maps,
+        corners=corners,
         trees=trees,
         red_lights=red_lights,
     )
@@ -160,6 +172,6 @@ def scoring_observation(observation: PlannerObservation) -> Observation:
         is_agent=observation.is_agent[kept],
         first_speed=observation.speeds[kept],
         present=np.ones((SCORING_STEPS, len(kept)), dtype=bool),
-        corners=polygon_corners(observation.polygons[time_to_map][:, kept]),
+        corners=observation.corners[time_to_map][:, kept],
         red_lights=observation.red_lights,
     )

@@ -80,6 +80,8 @@ BROKEN = [
     (_set(["frames", 4, "timestamp_us"], 0), "frames[4].timestamp_us"),
     (_set(["frames", 3, "driving_command"], [0, 1, 0]), "frames[3].driving_command"),
     (_set(["frames", 3, "route_roadblocks"], ["abc"]), "frames[3].route_roadblocks"),
+    (_set(["frames", 3, "route_roadblocks"], ["12", "012"]), "frames[3].route_roadblocks"),
+    (_set(["frames", 3, "objects", 1, "track"], ""), "frames[3].objects[1].track"),
     (_set(["frames", 3, "traffic_lights"], [["303236", "red"]]), "frames[3].traffic_lights[0]"),
     (_set(["current_index"], 5), "frames"),
     (_set(["token"], "ffffffffffffffff"), "token"),
