@@ -5,12 +5,10 @@ two-stage form."""
 from __future__ import annotations
 
 import csv
-import gzip
 import json
 import math
 import shutil
 from datetime import timedelta
-from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -18,9 +16,12 @@ import numpy as np
 import pytest
 from server_testing import REFERENCE_DIR, REFERENCE_SUBMISSIONS, World, add_team
 from sqlalchemy import select
+from two_stage_reference import EXCERPT as TWO_STAGE_DIR
+from two_stage_reference import EXCERPT_STAGES as STAGES
+from two_stage_reference import family_poses, family_submission
 
-from scorer.submission import SubmissionMetadata, TwoStageSubmission, dump_two_stage_submission_json
-from scorer.two_stage.split import MAPPING_FILE, load_two_stage_split
+from scorer.submission import dump_two_stage_submission_json
+from scorer.two_stage.split import MAPPING_FILE
 from scorer.versions import DEFAULT_VERSION
 from server.db import transaction
 from server.models import Result, ScoringChunk, SplitKind, Submission, Summary, TokenResultRow, utc_now
@@ -44,9 +45,7 @@ from server.services.splits import create_phase, register_split, split_tokens
 from server.settings import Settings
 from server.storage import read_trajectories
 
-TWO_STAGE_DIR = Path(__file__).parent / "fixtures" / "epdms-two-stage-reactive"
 FULL_REFERENCE_PICKLE = Path(__file__).parent / "fixtures" / "epdms-two-stage" / "submissions" / "human.pkl"
-STAGES = load_two_stage_split(TWO_STAGE_DIR)
 PHASE = "navhard"
 
 
@@ -64,27 +63,6 @@ def two_stage_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def server_settings(server_settings: Settings, two_stage_cache: Path) -> Settings:
     """The test database's settings, scoring from the excerpt's prebuilt caches."""
     return server_settings.model_copy(update={"cache_dir_option": two_stage_cache})
-
-
-@cache
-def family_poses(family: str) -> dict[str, np.ndarray]:
-    """Return a reference family's submitted poses of the 36 excerpt tokens."""
-    with gzip.open(TWO_STAGE_DIR / "predictions.json.gz", "rt") as handle:
-        predictions: dict[str, dict[str, Any]] = json.load(handle)
-    return {token: np.array(poses) for token, poses in predictions[family].items()}
-
-
-def family_submission(family: str, seeds: int = 1) -> TwoStageSubmission:
-    """Return a family's two-stage submission of the excerpt; seed i > 0 moves every pose i x 0.3 m ahead."""
-    poses = family_poses(family)
-    shifted = [
-        {token: value + [0.3 * seed, 0.0, 0.0] for token, value in poses.items()} for seed in range(seeds)
-    ]
-    first, second = (
-        tuple({token: seed[token] for token in tokens} for seed in shifted)
-        for tokens in (STAGES.stage_one_tokens, STAGES.stage_two_tokens)
-    )
-    return TwoStageSubmission(SubmissionMetadata(method=family), first, second)
 
 
 def add_two_stage_phase(world: World) -> None:
