@@ -233,14 +233,24 @@ def test_a_worker_scores_a_stored_two_stage_group_from_its_scenes_alone(
     sha256 = hashlib.sha256(data).hexdigest()
     stored = store_file(uploads, sha256, io.BytesIO(data))
     [group, *_] = EXCERPT_STAGES.groups or ()
+    kind, versions = SplitKind.two_stage, ("v2.2-two-stage",)
+    job = ScoringJob(1, 1, "two.json", stored, sha256, "s", store.url, content_hash, kind, 1, versions)
     rows = {}
     for source, cache in ((store.url, tmp_path / "cache"), (str(EXCERPT), tmp_path / "local-cache")):
-        kind, versions = SplitKind.two_stage, ("v2.2-two-stage",)
-        job = ScoringJob(1, 1, "two.json", stored, sha256, "s", source, content_hash, kind, 1, versions)
-        chunk = score_chunk(ChunkInputs(1, job, group.tokens, (), poisoned=False), uploads, cache)
+        chunk_job = dataclasses.replace(job, split_source=source)
+        chunk = score_chunk(ChunkInputs(1, chunk_job, group.tokens, (), poisoned=False), uploads, cache)
         rows[source] = chunk.rows["v2.2-two-stage"]
     fetched = {path.name for path in (mirror_dir(content_hash) / "scenes").iterdir()}
     assert fetched == {scene_paths(EXCERPT)[token].name for token in group.tokens}
     assert len(fetched) < len(scene_paths(EXCERPT))
     assert any(len(token) == 17 for token in group.tokens)  # synthetic scenes among them
     assert len(rows[store.url]) == len(group.tokens) and rows[store.url] == rows[str(EXCERPT)]
+    # A machine that finds the stage mapping changed fails the run, naming the object for the organisers.
+    _another_machine(monkeypatch, tmp_path / "third")
+    store.put_bytes(MAPPING_FILE, b"{}")
+    with pytest.raises(Rejected) as rejected:
+        score_chunk(
+            ChunkInputs(1, dataclasses.replace(job, run=2), group.tokens, (), False), uploads, tmp_path
+        )
+    assert rejected.value.message == SPLIT_UNREADABLE
+    assert f"{store.url}/{MAPPING_FILE} is damaged or changed" in str(rejected.value.detail)

@@ -4,7 +4,8 @@ trajectory simulated once), or, for a token that killed its workers, failed rows
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from time import perf_counter
@@ -56,18 +57,17 @@ def score_chunk(
         ]
         note = f"token {', '.join(inputs.todo)}: written as failed, {POISONED_TOKEN}"
         if job.split_kind == SplitKind.two_stage:
-            failed = _stage_failed(failed, trajectories(job, store))
+            with _split_read():
+                failed = _stage_failed(failed, trajectories(job, store))
         return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
     scored = {*inputs.todo, *inputs.context}
-    try:
+    with _split_read():
         seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
         split_dir = local_scenes(job.split_source, job.split_hash, scored)
         two_stage = job.split_kind == SplitKind.two_stage
         stages = split_stages(job.split_source, job.split_hash) if two_stage else None
-    except SplitStoreError as error:  # its manifest or a scene
-        raise Rejected(FailureKind.infrastructure, SPLIT_UNREADABLE, str(error)) from None
     scenes = {token: path for token, path in scene_paths(split_dir).items() if token in scored}
     unbuilt = fetch_caches(cache_store, cache_dir, scenes) if cache_store is not None else []
     started = perf_counter()
@@ -81,6 +81,16 @@ def score_chunk(
     if cache_store is not None:
         publish_caches(cache_store, cache_dir, {token: scenes[token] for token in unbuilt})
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))
+
+
+@contextmanager
+def _split_read() -> Iterator[None]:
+    """Turn a stored split that cannot be read (its manifest, stage mapping or a scene) into the run's
+    Rejected, naming the object for the organisers."""
+    try:
+        yield
+    except SplitStoreError as error:
+        raise Rejected(FailureKind.infrastructure, SPLIT_UNREADABLE, str(error)) from None
 
 
 def _two_stage_rows(
