@@ -17,9 +17,12 @@ from pathlib import Path
 
 import boto3
 import pytest
+import typer
 from object_stores import fresh_s3_store
 from server_testing import REFERENCE_DIR, World
+from sqlalchemy import select
 from two_stage_reference import EXCERPT, EXCERPT_STAGES, family_submission
+from typer.testing import CliRunner
 from worker_testing import SplitFixture
 
 from scorer.cache import cache_path
@@ -27,8 +30,9 @@ from scorer.evaluate import split_content_hash
 from scorer.scene import scene_paths
 from scorer.submission import dump_two_stage_submission_json
 from scorer.two_stage.split import MAPPING_FILE
-from server.db import transaction
-from server.models import SplitKind
+from server.cli import register
+from server.db import make_engine, make_session_factory, transaction
+from server.models import Split, SplitKind, Submission
 from server.object_store import S3Store
 from server.runs import ChunkInputs, Rejected, ScoringJob, score_chunk
 from server.runs._score import SPLIT_UNREADABLE
@@ -254,3 +258,23 @@ def test_a_worker_scores_a_stored_two_stage_group_from_its_scenes_alone(
         )
     assert rejected.value.message == SPLIT_UNREADABLE
     assert f"{store.url}/{MAPPING_FILE} is damaged or changed" in str(rejected.value.detail)
+
+
+def test_the_command_line_registers_a_stored_two_stage_split_with_its_baselines(machine: Path) -> None:
+    """`navsim-lb admin register-split NAME s3://...` of a two-stage split: a two-stage split, its two
+    baselines queued in the two-stage form."""
+    store = _stored_two_stage_split()
+    app = typer.Typer()
+    register(app)
+    runner = CliRunner()
+    for command in (["db", "upgrade"], ["admin", "register-split", "navhard", store.url]):
+        result = runner.invoke(app, command)
+        assert result.exit_code == 0, result.output
+    assert "baselines queued as submissions" in " ".join(result.output.split())
+    engine = make_engine(get_settings().database_url)
+    with make_session_factory(engine)() as session:
+        split = session.scalars(select(Split).where(Split.name == "navhard")).one()
+        assert (split.kind, split.directory, split.token_count) == (SplitKind.two_stage, store.url, 36)
+        baselines = session.scalars(select(Submission).where(Submission.split_id == split.id)).all()
+        assert len(baselines) == 2 and all(b.is_baseline and b.token_count == 36 for b in baselines)
+    engine.dispose()
