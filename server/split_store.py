@@ -21,15 +21,11 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from scorer.files import write_atomically
-from scorer.two_stage.split import MAPPING_FILE
+from scorer.two_stage.split import MAPPING_FILE, TwoStageSplit, load_two_stage_split
 from server.object_store import MissingObject, child, get_many, is_store_url, open_store
 from server.settings import get_settings
-
-if TYPE_CHECKING:
-    from scorer.two_stage.split import TwoStageSplit
 
 SCENES = "scenes"
 MANIFESTS = ".navsim-lb"  # beside scenes/: the manifests of the splits registered from this prefix
@@ -144,8 +140,6 @@ def split_stages(location: str, content_hash: str) -> TwoStageSplit:
     """Return the stage mapping of a registered two-stage split: a local split's `two_stage.json`; a stored
     split's, kept in this machine's mirror (fetched once, checked against the manifest's sha256), its tokens
     those of the manifest (the mirror holds only the scenes used here)."""
-    from scorer.two_stage.split import load_two_stage_split
-
     if not is_stored_split(location):
         return load_two_stage_split(Path(location))
     return _stored_stages(location, content_hash, mirror_dir(content_hash))
@@ -154,8 +148,6 @@ def split_stages(location: str, content_hash: str) -> TwoStageSplit:
 @lru_cache(maxsize=8)
 def _stored_stages(location: str, content_hash: str, mirror: Path) -> TwoStageSplit:
     """Return the stage mapping of a stored split, kept in `mirror` (the data directory's, a key of the cache)."""
-    from scorer.two_stage.split import load_two_stage_split
-
     manifest = split_manifest(location, content_hash)
     store = open_store(location)
     where = f"{store.url}/{MAPPING_FILE}"
