@@ -16,17 +16,19 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import boto3
+import numpy as np
 import pytest
 import typer
 from object_stores import fresh_s3_store
 from server_testing import REFERENCE_DIR, World
 from sqlalchemy import select
-from two_stage_reference import EXCERPT, EXCERPT_STAGES, family_submission
+from two_stage_reference import EXCERPT, EXCERPT_STAGES, family_poses, family_submission
 from typer.testing import CliRunner
 from worker_testing import SplitFixture
 
 from scorer.cache import cache_path
 from scorer.evaluate import split_content_hash
+from scorer.explain import explain_split_token
 from scorer.scene import scene_paths
 from scorer.submission import dump_two_stage_submission_json
 from scorer.two_stage.split import MAPPING_FILE
@@ -36,6 +38,7 @@ from server.models import Split, SplitKind, Submission
 from server.object_store import S3Store
 from server.runs import ChunkInputs, Rejected, ScoringJob, score_chunk
 from server.runs._score import SPLIT_UNREADABLE
+from server.services.pictures import picture_scenes
 from server.services.splits import register_split, scene_starts, split_tokens, stage_mapping
 from server.settings import get_settings
 from server.shared_caches import fetch_caches, publish_caches
@@ -278,3 +281,28 @@ def test_the_command_line_registers_a_stored_two_stage_split_with_its_baselines(
         baselines = session.scalars(select(Submission).where(Submission.split_id == split.id)).all()
         assert len(baselines) == 2 and all(b.is_baseline and b.token_count == 36 for b in baselines)
     engine.dispose()
+
+
+def test_a_picture_of_a_stored_two_stage_token_reads_its_scene_and_its_synthetic_starts_only(
+    world: World, machine: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The drill-down of a stage-one token draws its synthetic starts with their weights: on a machine with
+    none of the split's scenes, the token's and its starts' scenes are fetched, and the starts and weights
+    equal those of the split's directory."""
+    store = _stored_two_stage_split()
+    with transaction(world.factory) as session:
+        split = register_split(session, "stored-two-stage", store.url)
+    _another_machine(monkeypatch, tmp_path / "api")
+    [group, *_] = EXCERPT_STAGES.groups or ()
+    poses = family_poses("human")[group.original]
+    with world.factory() as session:
+        directory = picture_scenes(session.merge(split), group.original)
+    assert set(scene_paths(directory)) == {group.original, *group.now_tokens}
+    version = "v2.2-two-stage"
+    stored, local = (
+        explain_split_token(where, tmp_path / "cache", group.original, poses, version).synthetic_starts
+        for where in (directory, EXCERPT)
+    )
+    assert stored is not None and local is not None and stored.tokens == local.tokens == group.now_tokens
+    assert np.array_equal(stored.start_poses, local.start_poses)
+    assert np.array_equal(stored.weights.weight, local.weights.weight)
