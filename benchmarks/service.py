@@ -23,6 +23,13 @@ an S3 object store (moto's server, started here, or the endpoint AWS_ENDPOINT_UR
 from the store, and each worker's caches cold (an earlier worker published them: it fetches them, as it does
 the scenes its chunks need), against the local directory with the cache built.
 
+With --two-stage GROUPS (and --pairs P): a synthetic two-stage split of GROUPS groups, each an original and
+its previous frame (stage one) with P synthetic pairs (stage two), scorer.synth.two_stage; navhard's size is
+--two-stage 225 --pairs 12 (450 stage-one and 5,400 stage-two tokens). One two-stage upload of every token
+(the human trajectories with noise, --seeds seeds) on each backend and worker size: seconds from POST to its
+scored status and to its board row (v2.2-two-stage), the CPU seconds of the worker and the API meanwhile, and
+the worker's peak RSS, with the load average before and after.
+
 Every run starts with a header that describes the host (benchmarks/host.py). With each worker size it gives
 the CPU seconds the worker's and the API's processes used from POST to row, against the engine's (on a host
 shared with other work wall times swing, CPU times much less), and the peak RSS (VmHWM) of the worker's
@@ -32,6 +39,7 @@ benchmark ever waited for, API and workers alike.)
 
 Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--seeds 1] [--rate 200] [--seconds 10]
        [--backends embedded,services] [--workers 1,2] [--storage local,s3] [--load 6] [--nice 10]
+       [--two-stage 225 --pairs 12]
 (Uploads are rate-limited to 30 a minute per token: with --load, keep 2N uploads per minute below that.)
 """
 
@@ -69,9 +77,18 @@ from scorer.baselines import baseline_submission
 from scorer.evaluate import build_split_cache, score_seeds, score_versions
 from scorer.geometry import FloatArray
 from scorer.scene import scene_paths
-from scorer.submission import Submission, SubmissionMetadata, dump_submission_json, load_submission
+from scorer.submission import (
+    Submission,
+    SubmissionMetadata,
+    TwoStageSubmission,
+    dump_submission_json,
+    dump_two_stage_submission_json,
+    load_submission,
+)
 from scorer.synth import synthesize_split
-from scorer.versions import LOG_REPLAY_VERSIONS
+from scorer.synth.two_stage import synthesize_two_stage_split
+from scorer.two_stage.split import load_two_stage_split
+from scorer.versions import LOG_REPLAY_VERSIONS, TWO_STAGE_VERSIONS
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import upgrade
 from server.models import Approval, Scope, Summary, TokenResultRow
@@ -137,6 +154,39 @@ def entry_file(split: Path, out: Path, seed: int = 0, seeds: int = 1) -> Path:
         for _ in range(seeds)
     )
     out.write_bytes(dump_submission_json(Submission(SubmissionMetadata(method="bench"), noisy)))
+    return out
+
+
+def prepared_two_stage_split(groups: int, pairs: int) -> tuple[Path, Path]:
+    """Return a synthetic two-stage split of `groups` groups of `pairs` synthetic pairs and its cache directory
+    (under the two-stage versions), both built on first use."""
+    name = f"{groups}x{pairs}_{SPLIT_SEED}"
+    split, cache = DATA / f"two_stage_split_{name}", DATA / f"two_stage_cache_{name}"
+    if not (split / "scenes").is_dir():
+        started = time.perf_counter()
+        synthesize_two_stage_split(split, groups, pairs, SPLIT_SEED)
+        print(f"synthesised {groups * (2 + 2 * pairs)} scenes in {time.perf_counter() - started:.0f} s")
+    started = time.perf_counter()
+    failures = build_split_cache(split, cache, list(TWO_STAGE_VERSIONS), workers=os.cpu_count() or 1)
+    assert not failures, failures
+    print(f"metric cache ready in {time.perf_counter() - started:.0f} s (built where missing)", flush=True)
+    return split, cache
+
+
+def two_stage_entry_file(split: Path, out: Path, seeds: int = 1) -> Path:
+    """Write a two-stage submission of `seeds` seeds (the human trajectories with noise) of every token."""
+    rng = np.random.default_rng(0)
+    human, stages = human_trajectories(split), load_two_stage_split(split)
+    noisy = [
+        {token: poses + rng.normal(0.0, 0.2, poses.shape) for token, poses in human.items()}
+        for _ in range(seeds)
+    ]
+    first, second = (
+        tuple({token: seed[token] for token in tokens} for seed in noisy)
+        for tokens in (stages.stage_one_tokens, stages.stage_two_tokens)
+    )
+    submission = TwoStageSubmission(SubmissionMetadata(method="bench"), first, second)
+    out.write_bytes(dump_two_stage_submission_json(submission))
     return out
 
 
@@ -270,8 +320,11 @@ def wait_until(condition: Callable[[], bool], timeout: float = 600.0, poll_s: fl
         time.sleep(poll_s)
 
 
-def post_to_row(client: httpx.Client, entry: Path) -> tuple[float, float]:
-    """POST the entry; return seconds until it is scored and until its leaderboard row is served."""
+def post_to_row(
+    client: httpx.Client, entry: Path, versions: tuple[str, ...] = LOG_REPLAY_VERSIONS
+) -> tuple[float, float]:
+    """POST the entry; return seconds until it is scored and until its row is on the board of each of
+    `versions` (the split's)."""
     started = time.perf_counter()
     response = client.post("/api/v1/submissions", files={"file": (entry.name, entry.read_bytes())})
     assert response.status_code == 202, response.text
@@ -285,10 +338,7 @@ def post_to_row(client: httpx.Client, entry: Path) -> tuple[float, float]:
     assert state["status"] == "scored", state["error"]
 
     def on_board() -> bool:
-        rows = [
-            client.get("/api/v1/leaderboard", params={"version": v}).json()["rows"]
-            for v in LOG_REPLAY_VERSIONS
-        ]
+        rows = [client.get("/api/v1/leaderboard", params={"version": v}).json()["rows"] for v in versions]
         return all(any(row["submission_id"] == submission_id for row in board) for board in rows)
 
     wait_until(on_board)
@@ -554,12 +604,13 @@ def measure(
     latency_load: tuple[float, float] | None,
     nice: int,
     stored: str = "local",
+    versions: tuple[str, ...] = LOG_REPLAY_VERSIONS,
 ) -> Measured:
-    """Run one configuration on a fresh backend and storage: POST-to-row times of `entry` and the CPU they took,
-    then leaderboard latency if asked, and the worker's peak RSS."""
+    """Run one configuration on a fresh backend and storage: POST-to-row times of `entry` (its rows on the
+    boards of `versions`) and the CPU they took, then leaderboard latency if asked, and the worker's peak RSS."""
     with running(kind, workers, split, cache, nice, stored) as service:
         cpu = service.cpu_seconds()
-        scored, on_board = post_to_row(service.client, entry)
+        scored, on_board = post_to_row(service.client, entry, versions)
         cpu = service.cpu_seconds() - cpu
         latency = None
         if latency_load:
@@ -657,11 +708,16 @@ def main() -> None:
         "--nice", type=int, default=SCORING_NICENESS, help="the workers' `navsim-lb worker --nice`"
     )
     parser.add_argument("--storage", default="local", help="local,s3: uploads, scenes and caches where")
+    parser.add_argument("--two-stage", type=int, default=0, help="groups of a two-stage split (navhard: 225)")
+    parser.add_argument("--pairs", type=int, default=12, help="synthetic pairs of each two-stage group")
     args = parser.parse_args()
     print("\n".join(host_header()), flush=True)  # before any thread or process starts (host.py says why)
 
-    split, cache = prepared_split(args.tokens)
     sizes = [int(n) for n in args.workers.split(",")]
+    if args.two_stage:
+        two_stage(args.two_stage, args.pairs, args.seeds, args.backends.split(","), sizes, args.nice)
+        return
+    split, cache = prepared_split(args.tokens)
     if args.load:
         for kind in args.backends.split(","):
             loaded = under_load(
@@ -718,6 +774,35 @@ def main() -> None:
             latencies[kind] = measured.latency
     for kind, latency in latencies.items():
         print(f"GET /leaderboard {kind}: {args.rate:.0f}/s for {args.seconds:.0f} s: {latency.text()}")
+
+
+def two_stage(groups: int, pairs: int, seeds: int, backends: list[str], sizes: list[int], nice: int) -> None:
+    """Time a two-stage upload of a synthetic two-stage split from POST to its board row (--two-stage)."""
+    split, cache = prepared_two_stage_split(groups, pairs)
+    entry = two_stage_entry_file(
+        split, DATA / f"two_stage_entry_{groups}x{pairs}_{SPLIT_SEED}_{seeds}.json", seeds
+    )
+    print(
+        f"two-stage split of {groups} groups x {pairs} synthetic pairs ({2 * groups} stage-one and"
+        f" {2 * groups * pairs} stage-two tokens) x {seeds} seeds, {', '.join(TWO_STAGE_VERSIONS)}, metric cache"
+        " built: seconds from POST to its scored status and to its board row; CPU seconds of the worker and the"
+        " API meanwhile; load average before and after:"
+    )
+    print(
+        f"{'backend':10} {'workers':>7} {'scored':>8} {'on board':>9} {'CPU':>8} {'CPU-ms/token':>12}"
+        f" {'load before':>16} {'load after':>16}  worker peak RSS (MiB)"
+    )
+    tokens = 2 * groups * (1 + pairs) * seeds
+    for kind, workers in itertools.product(backends, sizes):
+        before = os.getloadavg()
+        measured = measure(kind, workers, split, cache, entry, None, nice, versions=TWO_STAGE_VERSIONS)
+        after = os.getloadavg()
+        loads = [" ".join(f"{value:.2f}" for value in load) for load in (before, after)]
+        print(
+            f"{kind:10} {workers:>7} {measured.scored:>8.1f} {measured.on_board:>9.1f} {measured.cpu:>8.1f}"
+            f" {1000 * measured.cpu / tokens:>12.1f} {loads[0]:>16} {loads[1]:>16}  {peak_rss_text(measured.peaks)}",
+            flush=True,
+        )
 
 
 def free_port() -> int:

@@ -126,7 +126,11 @@ def create_token_command(
 def register_split_command(
     name: Annotated[str, typer.Argument(help="split name, e.g. private_test_e2e")],
     directory: Annotated[
-        str, typer.Argument(help="split directory, or s3://bucket/prefix of an object store (holds scenes/)")
+        str,
+        typer.Argument(
+            help="split directory, or s3://bucket/prefix of an object store (holds scenes/, and two_stage.json "
+            "for a two-stage split)"
+        ),
     ],
     public_tokens: Annotated[
         Path | None, typer.Option(help="file with one public token per line; the rest is private")

@@ -23,6 +23,7 @@ from functools import lru_cache
 from pathlib import Path
 
 from scorer.files import write_atomically
+from scorer.two_stage.split import MAPPING_FILE, TwoStageSplit, load_two_stage_split
 from server.object_store import MissingObject, child, get_many, is_store_url, open_store
 from server.settings import get_settings
 
@@ -38,20 +39,25 @@ class SplitStoreError(Exception):
 
 @dataclass(frozen=True)
 class Manifest:
-    """The scene files of a split in the store: token -> (file name under scenes/, sha256), in token order."""
+    """The scene files of a split in the store: token -> (file name under scenes/, sha256), in token order, and
+    a two-stage split's stage mapping (`two_stage.json` beside scenes/): its sha256, None for a one-stage split."""
 
     source: str
     scenes: Mapping[str, tuple[str, str]]
+    mapping: str | None = None
 
     def content_hash(self) -> str:
-        """The split's content hash (scorer.evaluate.split_content_hash), from the scenes' sha256s alone."""
+        """The split's content hash (scorer.evaluate.split_content_hash), from the sha256s alone."""
         digest = hashlib.sha256()
         for token, (_, sha256) in self.scenes.items():
             digest.update(f"{token}:{sha256}\n".encode())
+        if self.mapping is not None:
+            digest.update(f"{MAPPING_FILE}:{self.mapping}\n".encode())
         return digest.hexdigest()
 
     def to_json(self) -> bytes:
-        return json.dumps({"source": self.source, "scenes": self.scenes}, sort_keys=True).encode()
+        document = {"source": self.source, "scenes": self.scenes, "mapping": self.mapping}
+        return json.dumps(document, sort_keys=True).encode()
 
 
 def is_stored_split(location: str) -> bool:
@@ -88,7 +94,14 @@ def fetch_whole_split(source: str) -> Path:
         path = staging / SCENES / names[token]
         scenes_store.download(names[token], path)
         scenes[token] = (names[token], scene_file_hash(path))
-    manifest = Manifest(source, scenes)
+    try:  # a two-stage split's stage mapping
+        document = store.get(MAPPING_FILE)
+    except MissingObject:
+        mapping = None
+    else:
+        write_atomically(staging / MAPPING_FILE, document, durable=False)
+        mapping = hashlib.sha256(document).hexdigest()
+    manifest = Manifest(source, scenes, mapping)
     store.put_if_absent(_manifest_key(manifest.content_hash()), manifest.to_json())
     directory = mirror_dir(manifest.content_hash())
     shutil.rmtree(directory, ignore_errors=True)  # a part left by an interrupted fetch
@@ -103,7 +116,8 @@ def split_manifest(source: str, content_hash: str) -> Manifest:
     where = f"{store.url}/{_manifest_key(content_hash)}"
     try:
         data = json.loads(store.get(_manifest_key(content_hash)))
-        manifest = Manifest(data["source"], {token: tuple(entry) for token, entry in data["scenes"].items()})
+        scenes = {token: tuple(entry) for token, entry in data["scenes"].items()}
+        manifest = Manifest(data["source"], scenes, data.get("mapping"))
     except MissingObject:
         raise SplitStoreError(f"the split's manifest {where} is missing: register the split again") from None
     except (ValueError, KeyError, TypeError, AttributeError):
@@ -120,6 +134,38 @@ def split_tokens(location: str, content_hash: str) -> tuple[str, ...]:
     if is_stored_split(location):
         return tuple(split_manifest(location, content_hash).scenes)
     return tuple(scene_paths(location))
+
+
+def split_stages(location: str, content_hash: str) -> TwoStageSplit:
+    """Return the stage mapping of a registered two-stage split: a local split's `two_stage.json`; a stored
+    split's, kept in this machine's mirror (fetched once, checked against the manifest's sha256), its tokens
+    those of the manifest (the mirror holds only the scenes used here)."""
+    if not is_stored_split(location):
+        return load_two_stage_split(Path(location))
+    return _stored_stages(location, content_hash, mirror_dir(content_hash))
+
+
+@lru_cache(maxsize=8)
+def _stored_stages(location: str, content_hash: str, mirror: Path) -> TwoStageSplit:
+    """Return the stage mapping of a stored split, kept in `mirror` (the data directory's, a key of the cache)."""
+    manifest = split_manifest(location, content_hash)
+    store = open_store(location)
+    where = f"{store.url}/{MAPPING_FILE}"
+    if manifest.mapping is None:
+        raise SplitStoreError(f"the split at {store.url} was registered without a stage mapping")
+    path = mirror / MAPPING_FILE
+    if not path.is_file() or hashlib.sha256(path.read_bytes()).hexdigest() != manifest.mapping:
+        try:
+            data = store.get(MAPPING_FILE)
+        except MissingObject:
+            raise SplitStoreError(f"the split's stage mapping {where} is missing; restore it") from None
+        if hashlib.sha256(data).hexdigest() != manifest.mapping:
+            raise SplitStoreError(
+                f"the split's stage mapping {where} is damaged or changed: its sha256 "
+                "differs from the registered split's; restore it"
+            )
+        write_atomically(path, data, durable=False)
+    return load_two_stage_split(mirror, manifest.scenes)
 
 
 def local_scenes(location: str, content_hash: str, tokens: Iterable[str]) -> Path:

@@ -15,25 +15,40 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import boto3
+import numpy as np
 import pytest
+import typer
 from object_stores import fresh_s3_store
 from server_testing import REFERENCE_DIR, World
 from sqlalchemy import select
+from two_stage_reference import EXCERPT, EXCERPT_STAGES, family_poses, family_submission
+from typer.testing import CliRunner
 from worker_testing import SplitFixture
 
 from scorer.cache import cache_path
 from scorer.evaluate import split_content_hash
+from scorer.explain import explain_split_token
 from scorer.scene import scene_paths
-from server.db import transaction
-from server.models import Split, SplitKind
+from scorer.submission import dump_two_stage_submission_json
+from scorer.two_stage.split import MAPPING_FILE
+from server.cli import register
+from server.db import make_engine, make_session_factory, transaction
+from server.models import Split, SplitKind, Submission
 from server.object_store import S3Store
 from server.runs import ChunkInputs, Rejected, ScoringJob, score_chunk
 from server.runs._score import SPLIT_UNREADABLE
-from server.services.errors import Conflict
-from server.services.splits import register_split, scene_starts, split_tokens
+from server.services.pictures import picture_scenes
+from server.services.splits import register_split, scene_starts, split_tokens, stage_mapping
 from server.settings import get_settings
 from server.shared_caches import fetch_caches, publish_caches
-from server.split_store import SplitStoreError, evict, local_scenes, mirror_dir
+from server.split_store import (
+    SplitStoreError,
+    evict,
+    local_scenes,
+    mirror_dir,
+    split_stages,
+)
 from server.storage import store_file
 
 
@@ -170,14 +185,124 @@ def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: W
     assert "damaged" in rejected.value.message and uploads.url in str(rejected.value.detail)
 
 
-def test_a_two_stage_split_in_a_store_is_refused_naming_what_to_do(world: World, machine: Path) -> None:
-    """A two-stage split's stage mapping is read from its directory by uploads and chunks: from a store it is
-    refused by name, never registered as a one-stage split of its scenes."""
-    directory = Path(__file__).parent / "fixtures" / "epdms-two-stage-reactive"
-    store = _upload_split(directory)
-    store.put_bytes("two_stage.json", (directory / "two_stage.json").read_bytes())
-    refused = pytest.raises(Conflict, match="a two-stage split is registered from a directory, not a store")
-    with refused, transaction(world.factory) as session:
-        register_split(session, "stored-two-stage", store.url)
+def _stored_two_stage_split() -> S3Store:
+    store = _upload_split(EXCERPT)
+    store.put_bytes(MAPPING_FILE, (EXCERPT / MAPPING_FILE).read_bytes())
+    return store
+
+
+def _another_machine(monkeypatch: pytest.MonkeyPatch, directory: Path) -> Path:
+    """Become another machine: another data directory (its own scene mirror), nothing this process kept."""
+    monkeypatch.setenv("DATA_DIR", str(directory))
+    get_settings.cache_clear()
+    return directory
+
+
+def test_a_stored_two_stage_split_registers_with_its_stage_mapping(
+    world: World, machine: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The manifest carries the stage mapping's sha256, so the split's hash is its directory's; another machine
+    reads the mapping from the store (checked), the tokens from the manifest, and no scene."""
+    store = _stored_two_stage_split()
+    with transaction(world.factory) as session:
+        split = register_split(session, "stored-two-stage", store.url)
+        assert (split.kind, split.directory) == (SplitKind.two_stage, store.url)
+        assert split.content_hash == split_content_hash(EXCERPT)
+        content_hash = split.content_hash
+    other = _another_machine(monkeypatch, machine.parent / "other")
     with world.factory() as session:
-        assert session.scalar(select(Split.id).where(Split.name == "stored-two-stage")) is None
+        split = session.merge(split)
+        assert stage_mapping(split) == EXCERPT_STAGES
+        assert split_tokens(split) == EXCERPT_STAGES.stage_one_tokens + EXCERPT_STAGES.stage_two_tokens
+    assert [path.relative_to(other) for path in other.rglob("*") if path.is_file()] == [
+        mirror_dir(content_hash).relative_to(other) / MAPPING_FILE
+    ]
+    _another_machine(monkeypatch, machine.parent / "third")
+    store.put_bytes(MAPPING_FILE, b'{"changed": true}')
+    with pytest.raises(SplitStoreError, match=f"{MAPPING_FILE} is damaged or changed"):
+        split_stages(store.url, content_hash)
+    boto3.client("s3").delete_object(Bucket=store.bucket, Key=f"{store.prefix}/{MAPPING_FILE}")
+    with pytest.raises(SplitStoreError, match=f"{MAPPING_FILE} is missing"):
+        split_stages(store.url, content_hash)
+
+
+def test_a_worker_scores_a_stored_two_stage_group_from_its_scenes_alone(
+    world: World, machine: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """A worker with an empty disk scores a chunk of one group (its synthetic scenes included) and fetches
+    those scenes only; its rows equal those of the same chunk on the split's directory, bit for bit."""
+    store = _stored_two_stage_split()
+    with transaction(world.factory) as session:
+        content_hash = register_split(session, "stored-two-stage", store.url).content_hash
+    _another_machine(monkeypatch, tmp_path / "worker")
+    uploads = fresh_s3_store()
+    data = dump_two_stage_submission_json(family_submission("swerve_left_fast"))
+    sha256 = hashlib.sha256(data).hexdigest()
+    stored = store_file(uploads, sha256, io.BytesIO(data))
+    [group, *_] = EXCERPT_STAGES.groups or ()
+    kind, versions = SplitKind.two_stage, ("v2.2-two-stage",)
+    job = ScoringJob(1, 1, "two.json", stored, sha256, "s", store.url, content_hash, kind, 1, versions)
+    rows = {}
+    for source, cache in ((store.url, tmp_path / "cache"), (str(EXCERPT), tmp_path / "local-cache")):
+        chunk_job = dataclasses.replace(job, split_source=source)
+        chunk = score_chunk(ChunkInputs(1, chunk_job, group.tokens, (), poisoned=False), uploads, cache)
+        rows[source] = chunk.rows["v2.2-two-stage"]
+    fetched = {path.name for path in (mirror_dir(content_hash) / "scenes").iterdir()}
+    assert fetched == {scene_paths(EXCERPT)[token].name for token in group.tokens}
+    assert len(fetched) < len(scene_paths(EXCERPT))
+    assert any(len(token) == 17 for token in group.tokens)  # synthetic scenes among them
+    assert len(rows[store.url]) == len(group.tokens) and rows[store.url] == rows[str(EXCERPT)]
+    # A machine that finds the stage mapping changed fails the run, naming the object for the organisers.
+    _another_machine(monkeypatch, tmp_path / "third")
+    store.put_bytes(MAPPING_FILE, b"{}")
+    with pytest.raises(Rejected) as rejected:
+        score_chunk(
+            ChunkInputs(1, dataclasses.replace(job, run=2), group.tokens, (), False), uploads, tmp_path
+        )
+    assert rejected.value.message == SPLIT_UNREADABLE
+    assert f"{store.url}/{MAPPING_FILE} is damaged or changed" in str(rejected.value.detail)
+
+
+def test_the_command_line_registers_a_stored_two_stage_split_with_its_baselines(machine: Path) -> None:
+    """`navsim-lb admin register-split NAME s3://...` of a two-stage split: a two-stage split, its two
+    baselines queued in the two-stage form."""
+    store = _stored_two_stage_split()
+    app = typer.Typer()
+    register(app)
+    runner = CliRunner()
+    for command in (["db", "upgrade"], ["admin", "register-split", "navhard", store.url]):
+        result = runner.invoke(app, command)
+        assert result.exit_code == 0, result.output
+    assert "baselines queued as submissions" in " ".join(result.output.split())
+    engine = make_engine(get_settings().database_url)
+    with make_session_factory(engine)() as session:
+        split = session.scalars(select(Split).where(Split.name == "navhard")).one()
+        assert (split.kind, split.directory, split.token_count) == (SplitKind.two_stage, store.url, 36)
+        baselines = session.scalars(select(Submission).where(Submission.split_id == split.id)).all()
+        assert len(baselines) == 2 and all(b.is_baseline and b.token_count == 36 for b in baselines)
+    engine.dispose()
+
+
+def test_a_picture_of_a_stored_two_stage_token_reads_its_scene_and_its_synthetic_starts_only(
+    world: World, machine: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The drill-down of a stage-one token draws its synthetic starts with their weights: on a machine with
+    none of the split's scenes, the token's and its starts' scenes are fetched, and the starts and weights
+    equal those of the split's directory."""
+    store = _stored_two_stage_split()
+    with transaction(world.factory) as session:
+        split = register_split(session, "stored-two-stage", store.url)
+    _another_machine(monkeypatch, tmp_path / "api")
+    [group, *_] = EXCERPT_STAGES.groups or ()
+    poses = family_poses("human")[group.original]
+    with world.factory() as session:
+        directory = picture_scenes(session.merge(split), group.original)
+    assert set(scene_paths(directory)) == {group.original, *group.now_tokens}
+    version = "v2.2-two-stage"
+    stored, local = (
+        explain_split_token(where, tmp_path / "cache", group.original, poses, version).synthetic_starts
+        for where in (directory, EXCERPT)
+    )
+    assert stored is not None and local is not None and stored.tokens == local.tokens == group.now_tokens
+    assert np.array_equal(stored.start_poses, local.start_poses)
+    assert np.array_equal(stored.weights.weight, local.weights.weight)

@@ -5,12 +5,10 @@ two-stage form."""
 from __future__ import annotations
 
 import csv
-import gzip
 import json
 import math
 import shutil
 from datetime import timedelta
-from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -18,21 +16,36 @@ import numpy as np
 import pytest
 from server_testing import REFERENCE_DIR, REFERENCE_SUBMISSIONS, World, add_team
 from sqlalchemy import select
+from two_stage_reference import EXCERPT as TWO_STAGE_DIR
+from two_stage_reference import EXCERPT_STAGES as STAGES
+from two_stage_reference import family_poses, family_submission
 
-from scorer.submission import SubmissionMetadata, TwoStageSubmission, dump_two_stage_submission_json
-from scorer.two_stage.split import MAPPING_FILE, load_two_stage_split
+from scorer.submission import dump_two_stage_submission_json
+from scorer.two_stage.split import MAPPING_FILE
 from scorer.versions import DEFAULT_VERSION
 from server.db import transaction
 from server.models import Result, ScoringChunk, SplitKind, Submission, Summary, TokenResultRow, utc_now
-from server.runs import RUN_VERSIONS, run_versions
+from server.runs import (
+    POISON_DEATHS,
+    RUN_VERSIONS,
+    ChunkStart,
+    StartAction,
+    chunk_inputs,
+    claim_submission,
+    mark_scored,
+    plan_run,
+    run_versions,
+    score_chunk,
+    start_chunk,
+    write_chunk,
+    write_chunk_results,
+)
 from server.services.errors import Conflict
 from server.services.splits import create_phase, register_split, split_tokens
 from server.settings import Settings
 from server.storage import read_trajectories
 
-TWO_STAGE_DIR = Path(__file__).parent / "fixtures" / "epdms-two-stage-reactive"
 FULL_REFERENCE_PICKLE = Path(__file__).parent / "fixtures" / "epdms-two-stage" / "submissions" / "human.pkl"
-STAGES = load_two_stage_split(TWO_STAGE_DIR)
 PHASE = "navhard"
 
 
@@ -50,27 +63,6 @@ def two_stage_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def server_settings(server_settings: Settings, two_stage_cache: Path) -> Settings:
     """The test database's settings, scoring from the excerpt's prebuilt caches."""
     return server_settings.model_copy(update={"cache_dir_option": two_stage_cache})
-
-
-@cache
-def family_poses(family: str) -> dict[str, np.ndarray]:
-    """Return a reference family's submitted poses of the 36 excerpt tokens."""
-    with gzip.open(TWO_STAGE_DIR / "predictions.json.gz", "rt") as handle:
-        predictions: dict[str, dict[str, Any]] = json.load(handle)
-    return {token: np.array(poses) for token, poses in predictions[family].items()}
-
-
-def family_submission(family: str, seeds: int = 1) -> TwoStageSubmission:
-    """Return a family's two-stage submission of the excerpt; seed i > 0 moves every pose i x 0.3 m ahead."""
-    poses = family_poses(family)
-    shifted = [
-        {token: value + [0.3 * seed, 0.0, 0.0] for token, value in poses.items()} for seed in range(seeds)
-    ]
-    first, second = (
-        tuple({token: seed[token] for token in tokens} for seed in shifted)
-        for tokens in (STAGES.stage_one_tokens, STAGES.stage_two_tokens)
-    )
-    return TwoStageSubmission(SubmissionMetadata(method=family), first, second)
 
 
 def add_two_stage_phase(world: World) -> None:
@@ -177,22 +169,7 @@ def _run_in_process(world: World, submission_id: int, chunk_size: int, dies: int
     """Play the workers of a run in this process: plan it in chunks of `chunk_size`, let the process of the
     first `dies` chunks die once (they are split one token per chunk), score and write every chunk. Return
     each scored chunk's tokens and context."""
-    from server.runs import (
-        StartAction,
-        chunk_inputs,
-        claim_submission,
-        plan_run,
-        score_chunk,
-        start_chunk,
-        write_chunk,
-    )
-
-    settings = world.settings
-    with transaction(world.factory) as session:
-        run = claim_submission(session, submission_id, "w")
-        assert run is not None
-        plan = plan_run(session, submission_id, run, chunk_size, "test-engine", 200)
-    pending = list(plan.chunks)
+    run, pending = _claim_and_plan(world, submission_id, chunk_size)
     with transaction(world.factory) as session:
         for chunk_id in pending[:dies]:
             session.get(ScoringChunk, chunk_id).deaths = 1  # type: ignore[union-attr]
@@ -205,14 +182,29 @@ def _run_in_process(world: World, submission_id: int, chunk_size: int, dies: int
             pending += start.children
             continue
         assert start.action == StartAction.score
-        with world.session() as session:
-            inputs = chunk_inputs(session, submission_id, run, start)
-        assert inputs is not None
-        chunk = score_chunk(inputs, settings.submission_store, settings.cache_dir)
-        with transaction(world.factory) as session:
-            write_chunk(session, inputs, chunk, "w", "test-engine", 200)
+        _score_and_write(world, submission_id, run, start)
         scored.append([*start.tokens, "|", *start.context])
     return scored
+
+
+def _claim_and_plan(world: World, submission_id: int, chunk_size: int) -> tuple[int, list[int]]:
+    """Claim the submission's run as worker "w" and plan it in chunks of `chunk_size`: the run, its chunks."""
+    with transaction(world.factory) as session:
+        run = claim_submission(session, submission_id, "w")
+        assert run is not None
+        plan = plan_run(session, submission_id, run, chunk_size, "test-engine", 200)
+    return run, list(plan.chunks)
+
+
+def _score_and_write(world: World, submission_id: int, run: int, start: ChunkStart) -> bool:
+    """Score a started chunk as a worker does and write its rows; return whether it was poisoned."""
+    with world.session() as session:
+        inputs = chunk_inputs(session, submission_id, run, start)
+    assert inputs is not None
+    chunk = score_chunk(inputs, world.settings.submission_store, world.settings.cache_dir)
+    with transaction(world.factory) as session:
+        write_chunk(session, inputs, chunk, "w", "test-engine", 200)
+    return inputs.poisoned
 
 
 def _cli_results(world: World, data: bytes, seeds: int, tmp_path: Path) -> list[dict[str, dict[str, str]]]:
@@ -316,7 +308,6 @@ def _write_official_rows(world: World, submission_id: int, family: str) -> None:
     writes of them), then aggregate it."""
     from two_stage_reference import aggregation_input
 
-    from server.runs import claim_submission, mark_scored, write_chunk_results
     from server.runs._two_stage import stage_rows
 
     excerpt = set(split_tokens_of_excerpt())
@@ -430,24 +421,11 @@ def test_a_token_that_killed_its_workers_is_written_failed_in_its_place_of_the_s
 ) -> None:
     """A group's chunk died twice: split one token per chunk, each token poisoned; its failed row keeps its
     stage and its row in the submission (what the aggregation orders rows by), its points unknown."""
-    from server.runs import (
-        POISON_DEATHS,
-        StartAction,
-        chunk_inputs,
-        claim_submission,
-        plan_run,
-        score_chunk,
-        start_chunk,
-        write_chunk,
-    )
-
     add_two_stage_phase(world)
     response = post(world, dump_two_stage_submission_json(family_submission("human")), "two.json")
     submission_id = response.json()["id"]
+    run, [first, *_] = _claim_and_plan(world, submission_id, 12)
     with transaction(world.factory) as session:
-        run = claim_submission(session, submission_id, "w")
-        assert run is not None
-        first = plan_run(session, submission_id, run, 12, "test-engine", 200).chunks[0]
         session.get(ScoringChunk, first).deaths = POISON_DEATHS  # type: ignore[union-attr]
     with transaction(world.factory) as session:
         split_up = start_chunk(session, first, run, "w")
@@ -457,12 +435,7 @@ def test_a_token_that_killed_its_workers_is_written_failed_in_its_place_of_the_s
     with transaction(world.factory) as session:
         start = start_chunk(session, child, run, "w")
     assert start.action == StartAction.poisoned
-    with world.session() as session:
-        inputs = chunk_inputs(session, submission_id, run, start)
-    assert inputs is not None and inputs.poisoned
-    chunk = score_chunk(inputs, world.settings.submission_store, world.settings.cache_dir)
-    with transaction(world.factory) as session:
-        write_chunk(session, inputs, chunk, "w", "test-engine", 200)
+    assert _score_and_write(world, submission_id, run, start)
     with world.session() as session:
         [row] = session.scalars(
             select(TokenResultRow).where(TokenResultRow.submission_id == submission_id)

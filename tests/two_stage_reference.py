@@ -6,16 +6,23 @@ import csv
 import gzip
 import json
 import math
+from functools import cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from scorer.evaluate import TokenResult
+from scorer.submission import SubmissionMetadata, TwoStageSubmission
 from scorer.two_stage.aggregate import GROUP_PARTS, SCORE_COLUMNS, TwoStageResult, TwoStageToken
-from scorer.two_stage.split import read_two_stage_split
+from scorer.two_stage.split import load_two_stage_split, read_two_stage_split
 
 FIXTURE = Path(__file__).parent / "fixtures" / "epdms-two-stage"
 FAMILIES = sorted(path.name.split(".")[0] for path in (FIXTURE / "expected").glob("*.csv"))
 SPLIT = read_two_stage_split(FIXTURE / "two_stage.json")
+# The excerpt the server's tests score: 3 groups of the reference (36 tokens), the families' submitted poses.
+EXCERPT = Path(__file__).parent / "fixtures" / "epdms-two-stage-reactive"
+EXCERPT_STAGES = load_two_stage_split(EXCERPT)
 
 
 def official_tokens(family: str) -> dict[str, dict[str, Any]]:
@@ -103,3 +110,24 @@ def group_mismatches(result: TwoStageResult, groups: list[dict[str, Any]]) -> li
         if group.combined["score"] != expected["combined"]:
             found.append(f"group {group.original}: {group.combined['score']!r} != {expected['combined']!r}")
     return found
+
+
+@cache
+def family_poses(family: str) -> dict[str, np.ndarray]:
+    """Return a reference family's submitted poses of the 36 excerpt tokens."""
+    with gzip.open(EXCERPT / "predictions.json.gz", "rt") as handle:
+        predictions: dict[str, dict[str, Any]] = json.load(handle)
+    return {token: np.array(poses) for token, poses in predictions[family].items()}
+
+
+def family_submission(family: str, seeds: int = 1) -> TwoStageSubmission:
+    """Return a family's two-stage submission of the excerpt; seed i > 0 moves every pose i x 0.3 m ahead."""
+    poses = family_poses(family)
+    shifted = [
+        {token: value + [0.3 * seed, 0.0, 0.0] for token, value in poses.items()} for seed in range(seeds)
+    ]
+    first, second = (
+        tuple({token: seed[token] for token in tokens} for seed in shifted)
+        for tokens in (EXCERPT_STAGES.stage_one_tokens, EXCERPT_STAGES.stage_two_tokens)
+    )
+    return TwoStageSubmission(SubmissionMetadata(method=family), first, second)

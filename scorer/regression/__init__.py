@@ -1,7 +1,12 @@
-"""Metric-version regression guard: golden per-token results of a fixed synthetic split, v1.0, v1.1, v2.2.
+"""Metric-version regression guard: golden per-token results of a fixed synthetic split under every registered
+version, and of a fixed synthetic two-stage split with its aggregation under every two-stage version.
 
-The split is regenerated from its seed each run (the generator is deterministic), scored with every
-trajectory family under every registered version, and compared with the versioned golden files.
+The splits are regenerated from their seed each run (the generators are deterministic), scored with every
+trajectory family, and compared with the versioned golden files. The two-stage golden
+(`<version>.aggregation.jsonl`) holds per family every token's columns, stage and weight, every group's four
+parts and value, and the three summary rows (stage one, stage two, combined, with whether the official
+script would have given them): what weights, groups and the combined score come to, beside what each token
+scores.
 """
 
 from __future__ import annotations
@@ -21,6 +26,11 @@ from scorer.versions import VERSIONS, get_version
 GOLDEN_DIR = Path(__file__).parent / "golden"
 SPLIT_SCENES = 24
 SPLIT_SEED = 20261122
+# The two-stage split: groups of NAVSIM's form (orig, prev and synthetic pairs), small enough to score in
+# seconds, with enough pairs that the weights are not all uniform.
+TWO_STAGE_GROUPS = 4
+TWO_STAGE_PAIRS = 2
+AGGREGATION = "aggregation"  # the two-stage golden's name: <version>.aggregation
 TOLERANCE = 1e-9
 
 Change = tuple[str, str, str, str, object, object]
@@ -29,7 +39,8 @@ Change = tuple[str, str, str, str, object, object]
 def compute_results(
     work_dir: Path, progress: Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
 ) -> dict[str, list[dict[str, object]]]:
-    """Return version -> rows (family, token, valid, metrics) of the regression split."""
+    """Return golden name -> rows (family, token, values): per version, the regression split's rows (valid,
+    metrics); per two-stage version, `<version>.aggregation`, the two-stage split's (`two_stage_rows`)."""
     from scorer.synth import synthesize_split
 
     split = work_dir / "regression_split"
@@ -44,6 +55,70 @@ def compute_results(
                     rows[version].append(
                         {"family": family, "token": result.token, "valid": result.valid, **result.metrics}
                     )
+    return rows | two_stage_rows(work_dir, progress)
+
+
+def two_stage_rows(
+    work_dir: Path, progress: Callable[[str, int], AbstractContextManager[Callable[[int], None]]]
+) -> dict[str, list[dict[str, object]]]:
+    """Return `<version>.aggregation` -> rows of the two-stage regression split per family under each two-stage
+    version: a row per token (its columns, stage and weight), per group (`group <orig>`: its parts and value,
+    as `<part>.<column>`) and per summary row (`SUMMARY_TOKENS`, the combined one with `official`)."""
+    from scorer.submission import SubmissionMetadata, TwoStageSubmission
+    from scorer.synth.two_stage import synthesize_two_stage_split
+    from scorer.two_stage.result_csv import SUMMARY_TOKENS
+    from scorer.two_stage.score import score_two_stage
+    from scorer.two_stage.split import load_two_stage_split
+    from scorer.versions import TWO_STAGE_VERSIONS
+
+    split = work_dir / "two_stage_regression_split"
+    synthesize_two_stage_split(split, TWO_STAGE_GROUPS, TWO_STAGE_PAIRS, SPLIT_SEED)
+    stages = load_two_stage_split(split)
+    scenes = {scene.token: scene for scene in iter_scenes(split)}
+    rows: dict[str, list[dict[str, object]]] = {}
+    with progress("two-stage regression split", len(TWO_STAGE_VERSIONS) * len(FAMILIES)) as advance:
+        for version in TWO_STAGE_VERSIONS:
+            found = rows.setdefault(f"{version}.{AGGREGATION}", [])
+            for family, make in FAMILIES.items():
+                first, second = (
+                    {token: make(scenes[token]) for token in tokens}
+                    for tokens in (stages.stage_one_tokens, stages.stage_two_tokens)
+                )
+                submission = TwoStageSubmission(SubmissionMetadata(method=family), (first,), (second,))
+                [result] = score_two_stage(split, work_dir / "cache", submission, version)
+                found.extend(
+                    {
+                        "family": family,
+                        "token": row.token,
+                        "stage": 1 if row.token in first else 2,
+                        "weight": result.weights.get(row.token, math.nan),
+                        "valid": row.valid,
+                        **row.metrics,
+                    }
+                    for row in result.rows
+                )
+                found.extend(
+                    {
+                        "family": family,
+                        "token": f"group {group.original}",
+                        **{
+                            f"{part}.{column}": value
+                            for part, values in (*group.parts.items(), ("combined", group.combined))
+                            for column, value in values.items()
+                        },
+                    }
+                    for group in result.groups
+                )
+                summaries = (
+                    result.stage_one,
+                    result.stage_two,
+                    {**result.combined, "official": result.official},
+                )
+                found.extend(
+                    {"family": family, "token": token, **summary}
+                    for token, summary in zip(SUMMARY_TOKENS, summaries, strict=True)
+                )
+                advance(1)
     return rows
 
 
@@ -57,10 +132,19 @@ def _read_golden(version: str) -> dict[tuple[str, str], dict[str, object]]:
     return {(row["family"], row["token"]): row for row in rows}
 
 
+def _compared(name: str, old: dict[str, object], new: dict[str, object]) -> list[str]:
+    """Return what a golden row's comparison covers: a version's validity and result columns; every value of
+    a two-stage aggregation's row (its weights, stages, parts and summaries, whatever either row holds)."""
+    if name.endswith(f".{AGGREGATION}"):
+        return sorted((old.keys() | new.keys()) - {"family", "token"})
+    return ["valid", *get_version(name).result_columns]
+
+
 def compare(
     version: str, golden: dict[tuple[str, str], dict[str, object]], rows: list[dict[str, object]]
 ) -> list[Change]:
-    """Return (version, family, token, metric, old, new) for every difference above the tolerance."""
+    """Return (golden name, family, token, metric, old, new) for every difference above the tolerance; the
+    name is a version's, or `<version>.aggregation` for its two-stage split."""
     changes: list[Change] = []
     seen = set()
     for row in rows:
@@ -70,7 +154,7 @@ def compare(
         if old is None:
             changes.append((version, *key, "(row)", None, "new"))
             continue
-        for metric in ("valid", *get_version(version).result_columns):
+        for metric in _compared(version, old, row):
             before, after = old.get(metric), row.get(metric)
             if isinstance(before, float) and isinstance(after, float):
                 if not (abs(before - after) <= TOLERANCE or math.isnan(before) and math.isnan(after)):

@@ -141,6 +141,7 @@ def two_stage_tokens(
 
 def score_two_stage_part(
     split_dir: Path,
+    stages: TwoStageSplit,
     cache_dir: Path,
     seeds: Mapping[int | None, Predictions],
     version: str,
@@ -148,10 +149,11 @@ def score_two_stage_part(
     context: Sequence[str] = (),
 ) -> dict[int | None, list[TwoStageToken]]:
     """Return, per seed, the results of some `tokens` of a two-stage submission (every token's poses in `seeds`),
-    scored beside the `context` tokens their mapping pairs them with for two-frame comfort (not returned).
-    A part's results are those the whole submission gives its tokens: a token's traffic and scores depend on
-    no other token, its comfort on its partner alone."""
-    pairs = comfort_pairs(load_two_stage_split(split_dir))
+    scored beside the `context` tokens their mapping (`stages`, the split's) pairs them with for two-frame
+    comfort (not returned). A part's results are those the whole submission gives its tokens: a token's
+    traffic and scores depend on no other token, its comfort on its partner alone. `split_dir` need hold only
+    the scenes of the tokens scored."""
+    pairs = comfort_pairs(stages)
     requested = set(tokens)
     scored = score_rows(
         split_dir,

@@ -197,8 +197,10 @@ def read_two_stage_split(path: Path) -> TwoStageSplit:
     return parse_two_stage_split(document, str(path))
 
 
-def load_two_stage_split(split_dir: Path) -> TwoStageSplit:
-    """Return the stage mapping of the split at `split_dir`, every token of which must have a scene file.
+def load_two_stage_split(split_dir: Path, tokens: Iterable[str] | None = None) -> TwoStageSplit:
+    """Return the stage mapping of the split at `split_dir`, every token of which must be one of the split's:
+    its scene files, or `tokens` where the directory holds only some of them (a worker's copy of a split in an
+    object store, whose tokens its manifest lists, in token order).
 
     Where the mapping is null and the file lists no stage tokens, the split's scenes are staged as NAVSIM
     stages them, by token length: 17 characters are synthetic (stage two), the others logged (stage one).
@@ -207,7 +209,7 @@ def load_two_stage_split(split_dir: Path) -> TwoStageSplit:
     if not path.is_file():
         raise TwoStageSplitError(f"{split_dir}: no {MAPPING_FILE}: not a two-stage split")
     split = read_two_stage_split(path)
-    scenes = scene_paths(split_dir)
+    scenes = dict.fromkeys(scene_paths(split_dir) if tokens is None else tokens)
     unknown = [token for token in split.stage_one_tokens + split.stage_two_tokens if token not in scenes]
     if unknown:
         listed = ", ".join(unknown[:MAX_LISTED_PROBLEMS])

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from sqlalchemy import delete, select
@@ -170,21 +171,17 @@ def aggregate_submission(
                 values, valid, present = rows.of_tokens(tokens, picked)
                 per_seed.append((values, valid))
                 session.add(
-                    Result(
-                        submission_id=submission.id,
-                        metric_version=version,
-                        subset=subset,
-                        seed=seed,
+                    seed_result(
+                        submission,
+                        version,
+                        subset,
+                        seed,
                         tokens=len(tokens),
                         failed=int(np.count_nonzero(~valid)),
                         engine_version=engine_version,
-                        split_hash=submission.split.content_hash,
-                        workers=",".join(sorted(set(rows.workers[present].tolist()))),
+                        workers=set(rows.workers[present].tolist()),
                         duration_s=float(sum(rows.durations[np.sort(present)].tolist())),
-                        **{
-                            column: stored_value(defined_mean(values[:, at]))
-                            for at, column in enumerate(columns)
-                        },
+                        means={column: defined_mean(values[:, at]) for at, column in enumerate(columns)},
                     )
                 )
             per_version[version] = _by_column(per_seed, columns), [valid for _, valid in per_seed], columns
@@ -196,6 +193,38 @@ def aggregate_submission(
         ):
             session.add(_summary(submission.id, version, subset, by_column, validity, interval, columns))
     session.flush()
+
+
+def seed_result(
+    submission: Submission,
+    version: str,
+    subset: str,
+    seed: int,
+    *,
+    tokens: int,
+    failed: int,
+    engine_version: str,
+    workers: set[str],
+    duration_s: float,
+    means: Mapping[str, float | None],
+    two_stage: dict[str, Any] | None = None,
+) -> Result:
+    """Return the Result of one seed of an entry: what it was scored from (engine, split, workers, time) and
+    each column's value (`means`; undefined: null)."""
+    return Result(
+        submission_id=submission.id,
+        metric_version=version,
+        subset=subset,
+        seed=seed,
+        tokens=tokens,
+        failed=failed,
+        engine_version=engine_version,
+        split_hash=submission.split.content_hash,
+        workers=",".join(sorted(workers)),
+        duration_s=duration_s,
+        two_stage=two_stage,
+        **{column: stored_value(mean) for column, mean in means.items()},
+    )
 
 
 def _by_column(
@@ -225,20 +254,48 @@ def _summary(
     """
     tokens = len(validity[0])
     seed_scores = values["score"].mean(axis=1) if values["score"].size else np.full(len(validity), np.nan)
-    low, high = interval
     failed_anywhere = np.zeros(tokens, dtype=bool)
     for valid in validity:
         failed_anywhere |= ~valid
+    return seed_summary(
+        submission_id,
+        version,
+        subset,
+        seed_scores,
+        interval,
+        tokens=tokens,
+        failed=int(np.count_nonzero(failed_anywhere)),
+        means={column: defined_mean(values[column]) for column in columns},
+    )
+
+
+def seed_summary(
+    submission_id: int,
+    version: str,
+    subset: str,
+    seed_scores: np.ndarray,
+    interval: tuple[float, float],
+    *,
+    tokens: int,
+    failed: int,
+    means: Mapping[str, float],
+    two_stage: dict[str, Any] | None = None,
+) -> Summary:
+    """Return the Summary of an entry's seeds: `seed_scores` (one score per seed) give the seed count and the
+    spread (std and max), `interval` the bootstrap interval (over tokens, or a two-stage entry's groups),
+    `means` each column's mean over seeds (undefined: null)."""
+    low, high = interval
     return Summary(
         submission_id=submission_id,
         metric_version=version,
         subset=subset,
-        seeds=len(validity),
+        seeds=len(seed_scores),
         score_std=float(np.std(seed_scores)),
         score_max=float(np.max(seed_scores)),
         ci_low=low,
         ci_high=high,
         tokens=tokens,
-        failed=int(np.count_nonzero(failed_anywhere)),
-        **{column: stored_value(defined_mean(values[column])) for column in columns},
+        failed=failed,
+        two_stage=two_stage,
+        **{column: stored_value(mean) for column, mean in means.items()},
     )

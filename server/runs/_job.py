@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 
 from sqlalchemy.orm import Session
 
@@ -23,7 +22,7 @@ from server.object_store import ObjectStore
 from server.runs._chunks import ChunkStart, StartAction
 from server.runs._run import completed_tokens, run_versions
 from server.services.errors import NotFound
-from server.split_store import split_tokens
+from server.split_store import split_stages, split_tokens
 from server.storage import read_file, read_trajectories
 
 MAX_LISTED_PROBLEMS = 5
@@ -137,13 +136,13 @@ def trajectories(job: ScoringJob, store: ObjectStore) -> tuple[dict[str, FloatAr
     """
     # Imported here: the API imports this package, and loads the parser only when it checks an upload.
     from scorer.submission import coverage_problems
-    from scorer.two_stage.split import load_two_stage_split
     from server.services.errors import Invalid
     from server.services.validation import read_upload
 
     data = _stored_file(job, store)
-    # A two-stage split is a local directory (server.services.splits.register_split); its mapping lists its tokens.
-    stages = load_two_stage_split(Path(job.split_source)) if job.split_kind == SplitKind.two_stage else None
+    # A two-stage split's mapping lists its tokens.
+    two_stage = job.split_kind == SplitKind.two_stage
+    stages = split_stages(job.split_source, job.split_hash) if two_stage else None
     tokens = (
         [*stages.stage_one_tokens, *stages.stage_two_tokens]
         if stages

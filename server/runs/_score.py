@@ -4,7 +4,8 @@ trajectory simulated once), or, for a token that killed its workers, failed rows
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from time import perf_counter
@@ -14,10 +15,11 @@ from server.models import FailureKind, SplitKind
 from server.object_store import ObjectStore
 from server.runs._job import ChunkInputs, Rejected, trajectories
 from server.runs._two_stage import stage_rows
-from server.split_store import SplitStoreError, local_scenes
+from server.split_store import SplitStoreError, local_scenes, split_stages
 
 if TYPE_CHECKING:
     from scorer.evaluate import TokenResult
+    from scorer.two_stage.split import TwoStageSplit
 
 SPLIT_UNREADABLE = "the split's scenes cannot be read from the server's store; the organisers are told"
 POISONED_TOKEN = (
@@ -55,22 +57,24 @@ def score_chunk(
         ]
         note = f"token {', '.join(inputs.todo)}: written as failed, {POISONED_TOKEN}"
         if job.split_kind == SplitKind.two_stage:
-            failed = _stage_failed(failed, trajectories(job, store))
+            with _split_read():
+                failed = _stage_failed(failed, trajectories(job, store))
         return ScoredChunk(dict.fromkeys(job.versions, failed), 0.0, admin_note=note)
     if not inputs.todo:  # every row was written by an earlier holder: only the run's completion is left
         return ScoredChunk({}, 0.0)
     scored = {*inputs.todo, *inputs.context}
-    try:
+    with _split_read():
         seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
         split_dir = local_scenes(job.split_source, job.split_hash, scored)
-    except SplitStoreError as error:  # its manifest or a scene
-        raise Rejected(FailureKind.infrastructure, SPLIT_UNREADABLE, str(error)) from None
+        two_stage = job.split_kind == SplitKind.two_stage
+        stages = split_stages(job.split_source, job.split_hash) if two_stage else None
     scenes = {token: path for token, path in scene_paths(split_dir).items() if token in scored}
     unbuilt = fetch_caches(cache_store, cache_dir, scenes) if cache_store is not None else []
     started = perf_counter()
-    if job.split_kind == SplitKind.two_stage:
+    if stages is not None:
         rows = {
-            version: _two_stage_rows(split_dir, cache_dir, seeds, version, inputs) for version in job.versions
+            version: _two_stage_rows(split_dir, stages, cache_dir, seeds, version, inputs)
+            for version in job.versions
         }
     else:
         rows = score_seeds(split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
@@ -79,13 +83,28 @@ def score_chunk(
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))
 
 
+@contextmanager
+def _split_read() -> Iterator[None]:
+    """Turn a stored split that cannot be read (its manifest, stage mapping or a scene) into the run's
+    Rejected, naming the object for the organisers."""
+    try:
+        yield
+    except SplitStoreError as error:
+        raise Rejected(FailureKind.infrastructure, SPLIT_UNREADABLE, str(error)) from None
+
+
 def _two_stage_rows(
-    split_dir: Path, cache_dir: Path, seeds: Mapping[int | None, Any], version: str, inputs: ChunkInputs
+    split_dir: Path,
+    stages: TwoStageSplit,
+    cache_dir: Path,
+    seeds: Mapping[int | None, Any],
+    version: str,
+    inputs: ChunkInputs,
 ) -> list[TokenResult]:
     """Score a two-stage chunk's tokens beside their comfort partners (its context) under `version`."""
     from scorer.two_stage.score import score_two_stage_part
 
-    scored = score_two_stage_part(split_dir, cache_dir, seeds, version, inputs.todo, inputs.context)
+    scored = score_two_stage_part(split_dir, stages, cache_dir, seeds, version, inputs.todo, inputs.context)
     return stage_rows(scored, {seed: list(predictions) for seed, predictions in seeds.items()})
 
 

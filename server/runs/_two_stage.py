@@ -24,8 +24,8 @@ from sqlalchemy.orm import Session
 
 from scorer.metrics.aggregation import defined_mean
 from scorer.versions import get_version
-from server.models import Result, Submission, Summary, TokenResultRow
-from server.runs._aggregate import bootstrap_cis, stored_value
+from server.models import Submission, Summary, TokenResultRow
+from server.runs._aggregate import bootstrap_cis, seed_result, seed_summary, stored_value
 from server.services.splits import ALL_SUBSET, stage_mapping
 
 if TYPE_CHECKING:
@@ -194,19 +194,18 @@ def aggregate_two_stage_run(
             ],
         )
         session.add(
-            Result(
-                submission_id=submission.id,
-                metric_version=version,
-                subset=ALL_SUBSET,
-                seed=seed,
+            seed_result(
+                submission,
+                version,
+                ALL_SUBSET,
+                seed,
                 tokens=len(result.rows),
                 failed=len(failed),
                 engine_version=engine_version,
-                split_hash=submission.split.content_hash,
-                workers=",".join(sorted(workers[seed])),
+                workers=workers[seed],
                 duration_s=float(sum(durations[seed])),
+                means={column: result.combined.get(column) for column in columns},
                 two_stage=seed_two_stage(result, stages),
-                **{column: stored_value(result.combined.get(column)) for column in columns},
             )
         )
     session.add(_summary(submission, version, columns, per_seed, len(failed_anywhere), bootstrap_samples))
@@ -222,11 +221,10 @@ def _summary(
 ) -> Summary:
     """Combine the seeds of a two-stage entry: each column's mean over seeds (undefined seeds left out), the
     spread of the combined score, and its interval over groups."""
-    scores = np.array([result.score for result in per_seed])
     group_values = np.array([[group.combined["score"] for group in result.groups] for result in per_seed])
     averaged = group_values.mean(axis=0) if group_values.size else np.zeros(0)
     defined = averaged[~np.isnan(averaged)]
-    [(low, high)] = bootstrap_cis(defined[None, :], bootstrap_samples)
+    [interval] = bootstrap_cis(defined[None, :], bootstrap_samples)
     stage_means = {
         stage: {
             column: stored_value(defined_mean([getattr(result, stage)[column] for result in per_seed]))
@@ -234,17 +232,15 @@ def _summary(
         }
         for stage in ("stage_one", "stage_two")
     }
-    return Summary(
-        submission_id=submission.id,
-        metric_version=version,
-        subset=ALL_SUBSET,
-        seeds=len(per_seed),
-        score_std=float(np.std(scores)),
-        score_max=float(np.max(scores)),
-        ci_low=low,
-        ci_high=high,
+    return seed_summary(
+        submission.id,
+        version,
+        ALL_SUBSET,
+        np.array([result.score for result in per_seed]),
+        interval,
         tokens=submission.token_count,
         failed=failed,
+        means={column: defined_mean([result.combined[column] for result in per_seed]) for column in columns},
         two_stage=json_safe(
             {
                 **stage_means,
@@ -253,8 +249,4 @@ def _summary(
                 "official": all(result.official for result in per_seed),
             }
         ),
-        **{
-            column: stored_value(defined_mean([result.combined[column] for result in per_seed]))
-            for column in columns
-        },
     )

@@ -16,17 +16,29 @@ from typing import Literal
 
 from scorer.files import write_atomically
 from scorer.geometry import FloatArray
-from server.models import Status, Submission
+from server.models import Split, SplitKind, Status, Submission
 from server.services.errors import Conflict, Forbidden, NotFound
 from server.services.splits import ALL_SUBSET, visible_subsets
 from server.settings import Settings
 from server.storage import read_file, read_trajectories
 
 
+def picture_scenes(split: Split, token: str) -> Path:
+    """Return a local directory of the split holding what a picture of `token` reads: its scene and, for a
+    stage-one token of a two-stage split, the scenes of the synthetic starts it weighs (a stored split's copy
+    on this machine fetches only those)."""
+    from scorer.two_stage.starts import successors
+    from server.split_store import local_scenes, split_stages
+
+    weighed: tuple[str, ...] = ()
+    if split.kind == SplitKind.two_stage:  # its mapping, a stored split's kept in this machine's copy
+        weighed = successors(split_stages(split.directory, split.content_hash).groups or (), token)
+    return local_scenes(split.directory, split.content_hash, [token, *weighed])
+
+
 def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path:
     """Return the token's scene file if the caller may see this picture; raise why not otherwise."""
     from scorer.scene import scene_paths
-    from server.split_store import local_scenes
 
     split = submission.split
     if submission.status != Status.scored:
@@ -35,7 +47,7 @@ def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path
         raise NotFound(
             f"submission {submission.id} has {submission.seed_count} seed(s); seed {seed} does not exist"
         )
-    paths = scene_paths(local_scenes(split.directory, split.content_hash, [token]))
+    paths = scene_paths(picture_scenes(split, token))
     if token not in paths:
         raise NotFound(f"token {token} is not part of split {split.name!r}")
     if not admin:
@@ -91,9 +103,9 @@ def scene_picture(
     if not 0 <= seed < len(seeds) or token not in seeds[seed]:
         raise NotFound(f"submission {submission.id} has no prediction for token {token} (seed {seed})")
     try:
-        explanation = explain_split_token(
-            Path(submission.split.directory), settings.cache_dir, token, seeds[seed][token], version
-        )
+        # The scene's directory: the split's, or this machine's copy of a stored split (`picture_scenes`).
+        split_dir = scene.parent.parent
+        explanation = explain_split_token(split_dir, settings.cache_dir, token, seeds[seed][token], version)
     except TokenError:  # its text may name server paths: the team is told what, not where
         raise Conflict(f"the scene of token {token} cannot be drawn under {version}") from None
     picture = render(explanation, "png", layout)

@@ -35,8 +35,9 @@ def split_tokens(split: Split) -> tuple[str, ...]:
 
 
 def stage_mapping(split: Split) -> TwoStageSplit:
-    """Return a two-stage split's stage mapping and stage tokens (`scorer.two_stage.split`)."""
-    return load_two_stage_split(Path(split.directory))
+    """Return a two-stage split's stage mapping and stage tokens (`scorer.two_stage.split`), a stored split's
+    from this machine's copy of its `two_stage.json` (`server.split_store.split_stages`)."""
+    return split_store.split_stages(split.directory, split.content_hash)
 
 
 def upload_stages(split: Split) -> TwoStageSplit | None:
@@ -83,11 +84,6 @@ def register_split(
     local = Path(directory)
     try:
         if stored:
-            if MAPPING_FILE in split_store.open_store(source).keys(""):
-                # Its stage mapping is read from the split's directory wherever it is used (uploads, chunks).
-                raise Conflict(
-                    f"split {name!r}: a two-stage split is registered from a directory, not a store"
-                )
             local = split_store.fetch_whole_split(source)  # read once, to hash; its manifest published
         else:
             local = local.resolve()
