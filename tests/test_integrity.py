@@ -171,7 +171,7 @@ def test_an_unknown_split_is_a_404(world: World) -> None:
 def test_the_console_page_states_the_thresholds_and_holds_no_data(world: World) -> None:
     page = world.client.get("/admin/integrity")
     assert page.status_code == 200
-    assert f"under {LEAK_MEDIAN_ADE_M:g} m" in page.text and "within\n    1 cm" in page.text
+    assert f"under {LEAK_MEDIAN_ADE_M:g} m" in page.text and "agree within 1 cm" in page.text
     assert "integrity.js" in page.text and "console.js" in page.text
 
 

@@ -7,10 +7,11 @@ the admin API), after the request has been answered; never in a team's request. 
 submission of the split from its stored trajectories, every seed. Its flags, with their evidence, replace the split's previous ones. Flags are shown to organisers
 only, and act on nothing: the organiser decides (hide, disqualify) with the usual actions.
 
-Cost on a navtest-size split (12,146 tokens; `benchmarks/integrity.py` on a 2-core Xeon): the human futures take
-35 ms a scene to read the first time (7 min for navtest, then read from disk), the leaked-log check 15 ms an
-entry, the near-identical check 1.5 s for 100 entries (it grows with their square), probing 1.2 s for 20 teams
-of 5 uploads; reading each entry's stored trajectories comes on top.
+Cost on a navtest-size split (12,146 tokens, 3 seeds an entry; `benchmarks/integrity.py`, CPU time on a shared
+2-core EPYC): the human futures take 6-35 ms a scene to read the first time (up to 7 min for navtest, then read
+from disk), the leaked-log check 10-15 ms an entry, the near-identical check 5 s for 100 entries (it grows with
+their square and the seeds'), probing 4 s for 20 teams of 5 uploads; reading each entry's stored trajectories
+comes on top.
 """
 
 from __future__ import annotations
