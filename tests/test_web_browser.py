@@ -581,8 +581,10 @@ def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_e
     page.set_viewport_size({"width": width, "height": 768 if width == DESKTOP else 844})
     pictures: list[str] = []
     page.on("request", lambda request: pictures.append(request.url) if ".png?" in request.url else None)
-    entry = next(
-        s for s in _api(demo, "GET", "/submissions", demo.team_token).json() if s["status"] == "scored"
+    entry = next(  # the one-stage phase's: a two-stage entry is drawn by its groups
+        s
+        for s in _api(demo, "GET", "/submissions", demo.team_token).json()
+        if s["status"] == "scored" and s["phase"] == PHASE
     )
     token = _api(demo, "GET", f"/submissions/{entry['id']}/tokens", demo.team_token).json()[0]["token"]
     baseline = _baseline_id(demo)
@@ -600,6 +602,9 @@ def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_e
     assert page.evaluate("document.querySelector('#scene-image').naturalWidth") == (
         1100 if width == DESKTOP else 360
     )
+    # A phone's picture ends under its last legend: few infractions, a shorter picture, no blank tail.
+    height = page.evaluate("document.querySelector('#scene-image').naturalHeight")
+    assert (height == 660) if width == DESKTOP else (500 < height < 740), height
     expect(page.locator("#scene-caption")).to_contain_text("EPDMS v2.2")
     expect(page.locator("#version-tabs [aria-current=page]")).to_have_text("EPDMS v2.2")
     box = page.locator("#scene-image").bounding_box()
@@ -708,16 +713,24 @@ def _leaked_entry(demo: Demo, team: str) -> str:
 def test_an_organiser_reads_an_integrity_flag_with_its_evidence_and_decides(
     demo: Demo, browser: Browser, width: int
 ) -> None:
+    """Once the leaked entry is scored, the worker's check flags it by itself: the console's nav counts it as
+    new, the integrity page marks it new with its evidence, and nothing changes until the organiser decides."""
     team = f"oracle-{width}"
     team_token = _leaked_entry(demo, team)
     page = _admin(browser, demo, width)
-    page.get_by_role("link", name="Integrity checks").click()
+    link = page.locator("#integrity-link")
+    expect(link.locator(".badge.alert")).to_have_text(re.compile(r"^\d+ new$"), timeout=SCORING_TIMEOUT_MS)
+    assert "you have not opened yet" in (link.locator(".badge.alert").get_attribute("title") or "")
+    _fits(page)
+    page.locator("nav.tabs").scroll_into_view_if_needed()
+    _screenshot(page, f"admin-integrity-count-{width}", full_page=False)
+    link.click()
     page.wait_for_selector("#checks:not([hidden])")
-    page.select_option("#split", "demo")
-    page.get_by_role("button", name="Run the checks").click()
     row = page.locator("table.flags tbody tr", has_text=team).filter(has_text="Leaked log")
     expect(row).to_contain_text("Leaked log", timeout=60_000)
+    expect(row.locator(".badge.alert")).to_have_text("new")
     expect(row).to_contain_text("median displacement to the logged human future 0.0000 m")
+    expect(row).to_contain_text("(seed 0)")
     row.locator("summary", has_text="evidence").click()
     expect(row.locator("details dl")).to_contain_text("closest tokens")
     expect(row.locator("details dl")).to_contain_text("ade m 0")
@@ -739,10 +752,19 @@ def test_an_organiser_reads_an_integrity_flag_with_its_evidence_and_decides(
     assert admin_view()["disqualified"] is True
     _fits(page)
     _screenshot(page, f"integrity-decided-{width}")
+    # Opened once, the flag is no longer new in this browser; an organiser may still check at once.
+    seen = page.evaluate("JSON.parse(localStorage.getItem('navsim-lb-integrity-seen'))")
+    assert f"leaked_log:{submission_id}:" in seen
+    page.reload()
+    page.wait_for_selector("#checks:not([hidden])")
+    expect(row).to_contain_text("disqualified")
+    expect(row.locator(".badge")).to_have_count(0)
+    page.select_option("#split", "demo")
+    page.get_by_role("button", name="Run the checks now").click()
+    expect(page.locator("#message")).to_contain_text("Checking split demo")
+    expect(row).to_contain_text("disqualified", timeout=60_000)
     page.get_by_role("link", name="← Admin console").click()
-    expect(page.locator("#integrity-link")).to_contain_text(
-        "Integrity checks: "
-    )  # the console counts the flags
+    expect(page.locator("#integrity-link")).to_contain_text("Integrity checks")
     # The team sees the organiser's decision, never the flag.
     seen = _api(demo, "GET", f"/submissions/{submission_id}", team_token).json()
     assert seen["disqualified"] is True and "leaked" not in json.dumps(seen).lower()
@@ -805,6 +827,35 @@ def test_the_two_stage_tab_and_a_submissions_groups_are_readable(
     team.wait_for_selector("#group-table tbody tr")
     expect(team.locator("#group-table tbody tr")).to_have_count(6)  # 3 groups x their two frames
     expect(team.locator("#group-table .weight")).to_have_count(30)  # 5 synthetic successors per frame
-    expect(team.locator("#breakdown tbody")).to_contain_text("stage 2")
+    # The breakdown: the combined score, then each stage's rows under its name.
+    sections = team.locator("#breakdown tbody tr.section")
+    expect(sections).to_have_text(
+        ["Stage 1: the logged frames", "Stage 2: their synthetic successors, weighted"]
+    )
     _fits(team)
     _screenshot(team, f"two-stage-submission-{width}")
+
+    # The team's history: a table per phase with that phase's versions only, and each stage's score.
+    from server.numbers import percent
+
+    mine = _api(demo, "GET", f"/submissions/{entry['submission_id']}", demo.team_token).json()
+    combined = mine["results"]["v2.2-two-stage"]["all"]
+    team.goto(f"{demo.url}/team")
+    phase = team.locator("#history section.history-phase", has=team.locator("h3", has_text=TWO_STAGE_PHASE))
+    row = phase.locator(
+        "tbody tr", has=team.get_by_role("link", name=str(entry["submission_id"]), exact=True)
+    )
+    for name, key in (
+        ("EPDMS v2.2-two-stage", "score"),
+        ("Stage 1", "stage_one_score"),
+        ("Stage 2", "stage_two_score"),
+    ):
+        expect(row.locator(f'td[data-label="{name}"]')).to_have_text(percent(combined[key]))
+    expect(phase.locator('td[data-label="PDMS v1.1"]')).to_have_count(0)  # another phase's version
+    one_stage = team.locator(
+        "#history section.history-phase", has=team.locator("h3", has_text=re.compile(f"^Phase {PHASE} "))
+    )
+    expect(one_stage.locator('td[data-label="Stage 1"]')).to_have_count(0)
+    _fits(team)
+    phase.scroll_into_view_if_needed()
+    _screenshot(team, f"two-stage-history-{width}")
