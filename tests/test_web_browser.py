@@ -692,16 +692,79 @@ def test_the_rules_are_one_click_from_every_page_and_the_board_explains_its_head
     _screenshot(page, f"rules-{width}")
 
 
+def _new_team(demo: Demo, team: str) -> tuple[int, str]:
+    """Register an approved team as an organiser; return its id and a token of it."""
+    created = _api(demo, "POST", "/admin/teams", demo.admin_token, json={"name": team})
+    assert created.status_code == 201, created.text
+    team_id = created.json()["id"]
+    token = _api(demo, "POST", f"/admin/teams/{team_id}/tokens", demo.admin_token, json={"name": "t"})
+    return team_id, token.json()["token"]
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_a_team_reads_what_its_file_is_and_when_its_quota_resets_once(
+    demo: Demo, browser: Browser, width: int, tmp_path: Path
+) -> None:
+    """A text file named .pkl is named for what it is; a quota's reset time is stated once, in the list and in
+    the refusal; the history and the board write the entry's score alike (one rounding, one unit)."""
+    from server.numbers import percent
+
+    team = f"quota-{width}"
+    team_id, token = _new_team(demo, team)
+    limited = _api(
+        demo, "PUT", f"/admin/teams/{team_id}/quotas", demo.admin_token, json={"phase": PHASE, "per_day": 1}
+    )
+    assert limited.status_code == 200, limited.text
+    page = _team_page(browser, demo, width, token)
+    daily = page.locator("#quotas li", has_text=f"{PHASE}, per day")
+    expect(daily).to_contain_text("1 of 1 left")
+    assert daily.inner_text().count("resets") == 1
+
+    text = tmp_path / "entry.pkl"
+    text.write_text("hello, this is no pickle")
+    page.select_option("#phase", PHASE)
+    page.set_input_files("#upload input[type=file]", text)
+    page.click("#upload-button")
+    expect(page.locator("#problems")).to_contain_text("entry.pkl is text starting 'hello, this is no pickle'")
+    expect(page.locator("#upload-status")).to_contain_text("entry.pkl: 1 problem in the file")
+
+    entry = json.loads((demo.data_dir / "demo-submission.json").read_text()) | {"method": f"Quota {width}"}
+    valid = tmp_path / "valid.json"
+    valid.write_text(json.dumps(entry))
+    page.set_input_files("#upload input[type=file]", valid)
+    page.click("#upload-button")
+    page.wait_for_function(
+        "document.querySelector('#upload-status').textContent.includes('is scored')",
+        timeout=SCORING_TIMEOUT_MS,
+    )
+    again = tmp_path / "again.json"  # other bytes: the same file is refused as a repeat, before the quota
+    again.write_text(json.dumps(entry | {"method": f"Quota {width}, again"}))
+    page.set_input_files("#upload input[type=file]", again)
+    page.click("#upload-button")
+    refusal = page.locator("#upload-status")
+    expect(refusal).to_contain_text("quota exhausted: 1 submission per UTC day")
+    assert refusal.inner_text().count("resets") == 1, refusal.inner_text()
+    expect(daily).to_contain_text("0 of 1 left")  # the list follows the uploads
+    _fits(page)
+    _screenshot(page, f"team-quota-{width}")
+
+    # The same figure on the team's history, the board and the submission page.
+    mine = next(s for s in _api(demo, "GET", "/submissions", token).json() if s["status"] == "scored")
+    score = percent(mine["results"]["v1.1"]["all"]["score"])
+    history = page.locator("#history tbody tr", has_text=f"Quota {width}")
+    expect(history.locator('td[data-label="PDMS v1.1"]')).to_have_text(score)
+    page.goto(f"{demo.url}/?phase={PHASE}&version=v1.1")
+    expect(page.locator("#leaderboard tbody tr", has_text=team).locator("td.score")).to_have_text(score)
+    page.goto(f"{demo.url}/submissions/{mine['id']}?version=v1.1")
+    expect(page.locator("#breakdown tbody tr").first.locator(".meter").first).to_have_text(score)
+
+
 def _leaked_entry(demo: Demo, team: str) -> str:
     """Register a team as an organiser and upload, as it, the demo split's logged human future; return its token."""
     from scorer.baselines import baseline_submission
     from scorer.submission import dump_submission_json
 
-    created = _api(demo, "POST", "/admin/teams", demo.admin_token, json={"name": team})
-    assert created.status_code == 201, created.text
-    token = _api(
-        demo, "POST", f"/admin/teams/{created.json()['id']}/tokens", demo.admin_token, json={"name": "t"}
-    ).json()["token"]
+    _, token = _new_team(demo, team)
     split_dir = demo.data_dir / "splits" / "demo"
     leaked = dump_submission_json(baseline_submission(split_dir, "human", f"Oracle {team}"))
     uploaded = _api(demo, "POST", "/submissions", token, files={"file": ("oracle.json", leaked)})
@@ -789,16 +852,19 @@ def test_the_submission_page_spells_out_its_metrics_and_why_ec_is_undefined(
     )
 
 
-def test_a_board_row_with_a_page_opens_it_when_clicked_anywhere(demo: Demo, browser: Browser) -> None:
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_a_board_row_with_a_page_opens_it_when_clicked_anywhere(
+    demo: Demo, browser: Browser, width: int
+) -> None:
     """The server marks the rows of published entries with their page (tests/test_api_drilldown.py); the
     demo's phase is open, so this row is marked here as the server marks it once the phase has closed."""
-    page = _page(browser, DESKTOP)
+    page = _page(browser, width)
     page.goto(demo.url)
     row = page.locator("table.board tbody tr").first
     target = f"/submissions/{_latest_id(demo)}"
     row.evaluate("(row, target) => { row.dataset.href = target; }", target)
     assert row.evaluate("(row) => getComputedStyle(row).cursor") == "pointer"
-    row.locator("td.num").last.click()
+    row.locator("td.score").click()  # a cell a phone shows too
     page.wait_for_url(f"**{target}")
 
 

@@ -89,7 +89,7 @@ async function fillWorkers() {
   for (const s of state.submissions.filter((s) => s.status === "running" && s.worker)) {
     holding.set(s.worker, [...(holding.get(s.worker) || []), s.id]);
   }
-  for (const [worker, ids] of holding) items.push(`${worker} is scoring submission(s) ${ids.join(", ")}.`);
+  for (const [worker, ids] of holding) items.push(`${worker} is scoring ${ids.length === 1 ? "submission" : "submissions"} ${ids.join(", ")}.`);
   if (!holding.size) items.push("No worker holds a run at the moment.");
   list.replaceChildren(...items.map((text) => Object.assign(document.createElement("li"), { textContent: text })));
 }

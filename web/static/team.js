@@ -11,22 +11,29 @@ const scoreOf = (submission, version) => {
 
 // --- signing in and out -------------------------------------------------------------------------------
 
-async function showTeam() {
-  const me = await api("GET", "/me");
-  if (me.scope !== "team") throw new ApiError(403, { detail: "This is not a team token." });
-  $("#team-name").textContent = me.team;
-  $("#approval").textContent = me.approval;
-  $("#approval").title = me.approval === "approved" ? "" : "an organiser approves teams before their first upload";
+function showQuotas(list) {
   const quotas = $("#quotas");
   quotas.replaceChildren();
-  for (const quota of me.quotas) {
+  for (const quota of list) {
     const item = document.createElement("li");
     const left = quota.limit === null ? "no limit" : `${Math.max(0, quota.limit - quota.used)} of ${quota.limit} left`;
     item.textContent = `${quota.phase}, ${quota.quota.replace("_", " ")}: ${left}` +
       (quota.resets_at ? ` (resets ${when(quota.resets_at)} UTC)` : "");
     quotas.append(item);
   }
-  if (!me.quotas.length) quotas.append(Object.assign(document.createElement("li"), { textContent: "No open phase." }));
+  if (!list.length) quotas.append(Object.assign(document.createElement("li"), { textContent: "No open phase." }));
+}
+
+// After an upload (accepted or refused), what is left of each quota.
+const refreshQuotas = () => api("GET", "/me").then((me) => showQuotas(me.quotas)).catch(() => {});
+
+async function showTeam() {
+  const me = await api("GET", "/me");
+  if (me.scope !== "team") throw new ApiError(403, { detail: "This is not a team token." });
+  $("#team-name").textContent = me.team;
+  $("#approval").textContent = me.approval;
+  $("#approval").title = me.approval === "approved" ? "" : "an organiser approves teams before their first upload";
+  showQuotas(me.quotas);
   $("#signed-out").hidden = true;
   $("#signed-in").hidden = false;
   const [open] = await Promise.all([loadPhases(), loadHistory()]);
@@ -154,6 +161,7 @@ $("#upload").addEventListener("submit", async (event) => {
     say("The file is valid. Submitting…");
     const accepted = await api("POST", "/submissions", { form });
     say(`Submission ${accepted.id} is queued.`);
+    refreshQuotas();
     await follow(accepted.id);
   } catch (error) {
     if (error instanceof ApiError && Array.isArray(error.body.problems)) {
@@ -164,6 +172,7 @@ $("#upload").addEventListener("submit", async (event) => {
     }
   } finally {
     $("#upload-button").disabled = false;
+    refreshQuotas();
   }
 });
 
