@@ -209,6 +209,7 @@ def validate(
     """Check a submission against a split locally, with the server's own checks; nothing is sent."""
     from scorer.scene import SceneFormatError, scene_paths
     from scorer.two_stage.split import MAPPING_FILE, TwoStageSplitError, load_two_stage_split
+    from server.numbers import counted
     from server.services.errors import Invalid
     from server.services.validation import validate_upload
 
@@ -224,7 +225,7 @@ def validate(
     except Invalid as error:
         raise fail("\n".join([error.message, *problem_lines(error.problems)])) from None
     console.print(
-        f"[green]valid[/green]: {upload.seed_count} seed(s) x {upload.token_count} tokens of {split}, "
+        f"[green]valid[/green]: {counted(upload.seed_count, 'seed')} x {counted(upload.token_count, 'token')} of {split}, "
         f"sha256 {upload.sha256[:12]}…; the server would accept it"
     )
 

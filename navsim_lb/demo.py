@@ -187,6 +187,7 @@ def _states(factory: sessionmaker[Session]) -> dict[int, tuple[str, str, str | N
 
     from scorer.versions import TWO_STAGE_VERSIONS, get_version
     from server.models import Submission, Summary
+    from server.numbers import percent
 
     with factory() as session:
         rows = session.execute(
@@ -205,7 +206,7 @@ def _states(factory: sessionmaker[Session]) -> dict[int, tuple[str, str, str | N
             row.status,
             None
             if row.score is None
-            else f"{get_version(row.metric_version).score_label} ({row.metric_version}) {row.score:.4f}",
+            else f"{get_version(row.metric_version).score_label} ({row.metric_version}) {percent(row.score)} %",
         )
         for row in rows
     }

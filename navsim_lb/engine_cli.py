@@ -259,7 +259,9 @@ def plot(
 
     seeds = _read(submission, lambda content, name: predictions_per_seed(content, name, version))
     if not 0 <= seed < len(seeds):
-        raise fail(f"{submission} has {len(seeds)} seed(s); --seed {seed} does not exist")
+        from server.numbers import counted
+
+        raise fail(f"{submission} has {counted(len(seeds), 'seed')}; --seed {seed} does not exist")
     if token not in seeds[seed]:
         raise fail(f"{submission} has no prediction for token {token}")
     warn_about_kernels()

@@ -9,8 +9,9 @@ as the simulator tracks them; the ego box at the first infraction of each kind, 
 colour, with the object or light involved; on a two-stage split's stage-one token, the synthetic starts of
 its stage two with their weights. Every mark drawn has a legend entry.
 
-Two layouts: "wide" (1100 x 660 px, the legend beside the map) fits a 1366 x 768 window; "narrow" (360 x 700
-px, the legend under a map cropped around the ego's path) fits a phone. Equal inputs give equal bytes (no
+Two layouts: "wide" (1100 x 660 px, the legend beside the map) fits a 1366 x 768 window; "narrow" (360 px wide,
+at most 740 tall: the infractions, then the legend, under a map cropped around the ego's path, and the picture
+cut under them) fits a phone. Equal inputs give equal bytes (no
 date in an SVG, fixed SVG ids), so that rendered pictures can be cached and compared.
 
 matplotlib is the engine's optional extra (`[plot]`): it is imported when a picture is drawn, never with the
@@ -38,6 +39,7 @@ if TYPE_CHECKING:
     from matplotlib.artist import Artist
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
+    from matplotlib.transforms import Bbox
 
 LayoutName = Literal["wide", "narrow"]
 DPI = 100
@@ -92,6 +94,7 @@ LAYOUTS: dict[str, Layout] = {
     ),
 }
 GAP = 0.015  # between the title and what follows it, in figure fractions
+BOTTOM_PAD_PX = 8  # under the last legend of a cropped (stacked) picture
 
 # Drivable layers (DAC counts a corner inside one of them): filled. Lanes: outlined over them.
 MAP_STYLE = {  # layer -> (legend label, face, edge, line width, z order)
@@ -156,12 +159,27 @@ def render(explanation: Explanation, image_format: str = "png", layout: LayoutNa
             _draw_infraction(axes, explanation, infraction, number, origin)
             for number, infraction in enumerate(explanation.infractions, 1)
         ]
-        _frame(axes, legend_axes, explanation, origin, shape, entries, infractions)
+        content_bottom = _frame(axes, legend_axes, explanation, origin, shape, entries, infractions)
         buffer = io.BytesIO()
         figure.savefig(
-            buffer, format=image_format, metadata={"Date": None} if image_format == "svg" else None
+            buffer,
+            format=image_format,
+            metadata={"Date": None} if image_format == "svg" else None,
+            bbox_inches=_cropped(shape, content_bottom),
         )
     return buffer.getvalue()
+
+
+def _cropped(shape: Layout, content_bottom: float) -> Bbox | None:
+    """Return the part of a stacked figure to save: its whole width, down to its content (a phone's picture
+    with few infractions has no blank tail to scroll past), or None (all of it) for the wide layout."""
+    from matplotlib.transforms import Bbox
+
+    if not shape.stacked:
+        return None
+    width, height = shape.size_in
+    bottom = max(0.0, math.floor(content_bottom - BOTTOM_PAD_PX)) / DPI  # whole pixels: byte-stable
+    return Bbox([[0.0, bottom], [width, height]])
 
 
 def _place(figure: Figure, explanation: Explanation, shape: Layout) -> tuple[Axes, Axes]:
@@ -463,9 +481,10 @@ def _frame(
     shape: Layout,
     entries: list[Artist],
     infractions: list[Artist],
-) -> None:
-    """Set the view, the axis labels and the legend: what is drawn, then the infractions, numbered as on the
-    map (or that there is none)."""
+) -> float:
+    """Set the view, the axis labels and the legends: what is drawn and the infractions, numbered as on the
+    map (or that there is none); on a phone the infractions first. Return where the last legend ends (pixels
+    from the figure's bottom)."""
     from matplotlib.patches import Patch
 
     x_low, x_high, y_low, y_high = _extent(explanation, origin, shape)
@@ -477,6 +496,7 @@ def _frame(
     axes.tick_params(labelsize="small", pad=1.5)
     legend_axes.axis("off")
     off_map = Patch(facecolor=OFF_MAP_COLOR, edgecolor="#9aa2b1", label="not drivable (white)")
+    none = Patch(facecolor="none", edgecolor="none", label="none")
     style: dict[str, Any] = {
         "frameon": False,
         "handlelength": 1.6,
@@ -484,26 +504,27 @@ def _frame(
         "alignment": "left",
         "title_fontproperties": {"weight": "bold"},
     }
-    drawn = legend_axes.legend(
-        handles=[*entries, off_map],
-        loc="upper left",
-        ncols=shape.legend_columns,
-        columnspacing=0.8,
-        title="Drawn",
-        **style,
-    )
-    legend_axes.add_artist(drawn)
-    # The infractions' list starts under the first legend, wherever its last row ends.
-    box = drawn.get_window_extent(legend_axes.figure.canvas.get_renderer())  # type: ignore[attr-defined]
-    below = legend_axes.transAxes.inverted().transform((0, box.y0))[1]
-    none = Patch(facecolor="none", edgecolor="none", label="none")
-    legend_axes.legend(
-        handles=infractions or [none],
-        loc="upper left",
-        bbox_to_anchor=(0.0, below - 0.02),
-        title="Infractions: the first of each kind",
-        **style,
-    )
+    drawn = {
+        "handles": [*entries, off_map],
+        "ncols": shape.legend_columns,
+        "columnspacing": 0.8,
+        "title": "Drawn",
+    }
+    listed: dict[str, Any] = {
+        "handles": infractions or [none],
+        "title": "Infractions: the first of each kind",
+    }
+    # On a phone, what went wrong comes right under the map, before the key to the marks.
+    legends = [listed, drawn] if shape.stacked else [drawn, listed]
+    renderer = legend_axes.figure.canvas.get_renderer()  # type: ignore[attr-defined]
+    top = 1.0
+    for options in legends:
+        # Each list starts under the one before, wherever its last row ends.
+        legend = legend_axes.legend(loc="upper left", bbox_to_anchor=(0.0, top), **options, **style)
+        legend_axes.add_artist(legend)
+        bottom_px = legend.get_window_extent(renderer).y0
+        top = legend_axes.transAxes.inverted().transform((0, bottom_px))[1] - 0.02
+    return float(bottom_px)
 
 
 def _extent(explanation: Explanation, origin: FloatArray, shape: Layout) -> tuple[float, float, float, float]:

@@ -271,6 +271,7 @@ class PhaseOut(BaseModel):
     split: str
     opens_at: datetime
     closes_at: datetime | None
+    versions: list[VersionName] = Field(description="the versions the phase's split is scored under")
     open: bool
     per_day: int | None
     total: int | None

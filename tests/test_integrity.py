@@ -4,6 +4,8 @@ team probing the hidden set are flagged with their evidence; honest entries are 
 from __future__ import annotations
 
 import json
+import logging
+from datetime import timedelta
 from functools import cache
 from pathlib import Path
 
@@ -19,7 +21,10 @@ from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionMetadata, dump_submission_json
 from server.cli import register
 from server.db import transaction
-from server.models import Submission
+from server.models import IntegrityCheck, Status, Submission, utc_now
+from server.runs import check_integrity_after_run
+from server.services import integrity
+from server.services.integrity import AFTER_COMMIT, integrity_report
 from server.services.integrity_checks import LEAK_MEDIAN_ADE_M, MOVING_M, displacements
 from server.services.splits import split_tokens
 from server.services.submissions import create_submission
@@ -38,11 +43,12 @@ def _baseline(kind: str) -> Seed:
     return dict(_baseline_seed(kind))
 
 
-def _submit(world: World, team_id: int, seed: Seed, method: str) -> int:
+def _submit(world: World, team_id: int, seeds: Seed | tuple[Seed, ...], method: str) -> int:
     """Store an entry of `team_id` as an upload would (its file and the trajectories its check parsed)."""
     with transaction(world.factory) as session:
         split = phase_row(session, world.phase).split
-        predictions = Predictions(SubmissionMetadata(team_name=method, method=method), (seed,))
+        per_seed = seeds if isinstance(seeds, tuple) else (seeds,)
+        predictions = Predictions(SubmissionMetadata(team_name=method, method=method), per_seed)
         upload = validate_upload(
             dump_submission_json(predictions), f"{method}.json", split_tokens(split), {"method": method}
         )
@@ -165,7 +171,7 @@ def test_an_unknown_split_is_a_404(world: World) -> None:
 def test_the_console_page_states_the_thresholds_and_holds_no_data(world: World) -> None:
     page = world.client.get("/admin/integrity")
     assert page.status_code == 200
-    assert f"under {LEAK_MEDIAN_ADE_M:g} m" in page.text and "within\n    1 cm" in page.text
+    assert f"under {LEAK_MEDIAN_ADE_M:g} m" in page.text and "agree within 1 cm" in page.text
     assert "integrity.js" in page.text and "console.js" in page.text
 
 
@@ -190,3 +196,102 @@ def test_the_command_line_checks_a_split_and_prints_each_flag(
     flag = json.loads(line)
     assert (flag["kind"], flag["submission_id"]) == ("leaked_log", leak_id)
     assert "1 entry read; 1 flag" in result.stderr
+
+
+def test_copies_and_probes_are_found_in_any_seed_and_the_evidence_names_the_seeds(world: World) -> None:
+    human = _baseline("human")
+    honest, _ = add_team(world.factory, "honest")
+    original = _noisy(human, 0.4, 1)
+    original_id = _submit(world, honest, (_noisy(human, 0.6, 4), original), "original")
+    copier, _ = add_team(world.factory, "copier")
+    # The copy hides in the copier's seed 2, behind two seeds of its own.
+    copy_id = _submit(world, copier, (_noisy(human, 0.5, 5), _noisy(human, 0.7, 6), original), "copy")
+    prober, _ = add_team(world.factory, "prober")
+    base, cover = _noisy(human, 0.5, 3), _noisy(human, 0.8, 8)
+    tokens = sorted(base)
+    probes = []
+    for step in range(4):  # seed 0 the same cover each time; the probes move one more token in seed 1
+        changed = dict(base) | {tokens[i]: base[tokens[i]] + 2.0 for i in range(step)}
+        probes.append(_submit(world, prober, (cover, changed), f"probe {step}"))
+
+    by_kind: dict[str, list[dict]] = {}
+    for flag in _check(world)["flags"]:
+        by_kind.setdefault(flag["kind"], []).append(flag)
+    (copy,) = by_kind["near_duplicate"]
+    assert (copy["submission_id"], copy["other_submission_id"]) == (copy_id, original_id)
+    assert copy["evidence"]["seeds"] == {"this": 2, "other": 1} and copy["evidence"]["seeds_compared"] == 6
+    assert copy["evidence"]["matching_seed_pairs"] == [{"this": 2, "other": 1}]
+    assert copy["evidence"]["fraction_within_1cm"] == 1.0
+    assert "its seed 2 and their seed 1" in copy["summary"]
+    (probe,) = by_kind["probing"]
+    assert probe["team"] == "prober" and probe["evidence"]["submissions"] == probes
+    pairs = {tuple(pair["submissions"]): pair for pair in probe["evidence"]["pairs"]}
+    assert pairs[(probes[0], probes[3])]["seeds"] == [1, 1]
+    assert pairs[(probes[0], probes[3])]["differing_tokens"] == 3
+
+
+def _scored(world: World, submission_id: int, finished_ago: timedelta = timedelta(0)) -> None:
+    """Mark a stored entry scored, as its run's last chunk does (the checks read only its trajectories)."""
+    with transaction(world.factory) as session:
+        submission = session.get(Submission, submission_id)
+        assert submission is not None
+        submission.status, submission.finished_at = Status.scored, utc_now() - finished_ago
+
+
+def test_a_scored_run_is_followed_by_a_check_once_and_a_failed_check_is_logged_not_raised(
+    world: World, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    leaker, _ = add_team(world.factory, "leaker")
+    leak_id = _submit(world, leaker, (_noisy(_baseline("human"), 0.5, 9), _baseline("human")), "oracle")
+    # Not scored yet (queued): nothing to check.
+    assert check_integrity_after_run(world.factory, world.settings, leak_id) is None
+    _scored(world, leak_id, finished_ago=2 * AFTER_COMMIT)
+    first = check_integrity_after_run(world.factory, world.settings, leak_id)
+    assert first is not None
+    with transaction(world.factory) as session:
+        (check,) = integrity_report(session)["checks"]
+    assert check["id"] == first and check["finished_at"] is not None
+    (flag,) = check["flags"]
+    assert (flag["kind"], flag["submission_id"], flag["evidence"]["seed"]) == ("leaked_log", leak_id, 1)
+    # Delivered again: the check that read this run is done, so nothing runs twice.
+    assert check_integrity_after_run(world.factory, world.settings, leak_id) is None
+    # A baseline's run asks for nothing; no organiser's action is recorded for the automatic checks.
+    with transaction(world.factory) as session:
+        baseline = session.get(Submission, leak_id)
+        assert baseline is not None
+        baseline.is_baseline = True
+    assert check_integrity_after_run(world.factory, world.settings, leak_id) is None
+    audit = world.client.get("/api/v1/admin/audit", headers=world.admin_headers()).json()
+    assert "integrity_check" not in [entry["action"] for entry in audit]
+
+    # A check that fails records why for the console and logs it; the caller (the worker's task) goes on.
+    other, _ = add_team(world.factory, "other")
+    other_id = _submit(world, other, _noisy(_baseline("human"), 0.5, 10), "other")
+    _scored(world, other_id)
+
+    def broken(*_: object) -> None:
+        raise RuntimeError("scenes unreadable")
+
+    monkeypatch.setattr(integrity, "human_futures", broken)
+    with caplog.at_level(logging.ERROR, logger="server.services.integrity"):
+        failed = check_integrity_after_run(world.factory, world.settings, other_id)
+    assert failed is not None and "scenes unreadable" in caplog.text
+    with transaction(world.factory) as session:
+        checks = {c["id"]: c for c in integrity_report(session)["checks"]}
+    assert checks[failed]["error"] == "RuntimeError: scenes unreadable"
+    assert checks[first]["flags"]  # the last good flags stay until a check succeeds
+
+
+def test_of_two_overlapping_checks_the_newer_one_s_flags_remain(world: World) -> None:
+    leaker, _ = add_team(world.factory, "leaker")
+    _submit(world, leaker, _baseline("human"), "oracle")
+    with transaction(world.factory) as session:
+        split = phase_row(session, world.phase).split
+        older = integrity.start_check(session, None, split).id
+        newer = integrity.start_check(session, None, split).id
+    integrity.run_check(world.factory, world.settings, newer)
+    integrity.run_check(world.factory, world.settings, older)  # finishes last: it gives way
+    with transaction(world.factory) as session:
+        assert [check.id for check in session.query(IntegrityCheck)] == [newer]
+        (check,) = integrity_report(session)["checks"]
+    assert check["id"] == newer and len(check["flags"]) == 1

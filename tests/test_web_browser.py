@@ -581,8 +581,10 @@ def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_e
     page.set_viewport_size({"width": width, "height": 768 if width == DESKTOP else 844})
     pictures: list[str] = []
     page.on("request", lambda request: pictures.append(request.url) if ".png?" in request.url else None)
-    entry = next(
-        s for s in _api(demo, "GET", "/submissions", demo.team_token).json() if s["status"] == "scored"
+    entry = next(  # the one-stage phase's: a two-stage entry is drawn by its groups
+        s
+        for s in _api(demo, "GET", "/submissions", demo.team_token).json()
+        if s["status"] == "scored" and s["phase"] == PHASE
     )
     token = _api(demo, "GET", f"/submissions/{entry['id']}/tokens", demo.team_token).json()[0]["token"]
     baseline = _baseline_id(demo)
@@ -600,6 +602,9 @@ def test_the_drill_down_fits_the_window_follows_the_version_and_the_diff_lists_e
     assert page.evaluate("document.querySelector('#scene-image').naturalWidth") == (
         1100 if width == DESKTOP else 360
     )
+    # A phone's picture ends under its last legend: few infractions, a shorter picture, no blank tail.
+    height = page.evaluate("document.querySelector('#scene-image').naturalHeight")
+    assert (height == 660) if width == DESKTOP else (500 < height < 740), height
     expect(page.locator("#scene-caption")).to_contain_text("EPDMS v2.2")
     expect(page.locator("#version-tabs [aria-current=page]")).to_have_text("EPDMS v2.2")
     box = page.locator("#scene-image").bounding_box()
@@ -687,16 +692,79 @@ def test_the_rules_are_one_click_from_every_page_and_the_board_explains_its_head
     _screenshot(page, f"rules-{width}")
 
 
+def _new_team(demo: Demo, team: str) -> tuple[int, str]:
+    """Register an approved team as an organiser; return its id and a token of it."""
+    created = _api(demo, "POST", "/admin/teams", demo.admin_token, json={"name": team})
+    assert created.status_code == 201, created.text
+    team_id = created.json()["id"]
+    token = _api(demo, "POST", f"/admin/teams/{team_id}/tokens", demo.admin_token, json={"name": "t"})
+    return team_id, token.json()["token"]
+
+
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_a_team_reads_what_its_file_is_and_when_its_quota_resets_once(
+    demo: Demo, browser: Browser, width: int, tmp_path: Path
+) -> None:
+    """A text file named .pkl is named for what it is; a quota's reset time is stated once, in the list and in
+    the refusal; the history and the board write the entry's score alike (one rounding, one unit)."""
+    from server.numbers import percent
+
+    team = f"quota-{width}"
+    team_id, token = _new_team(demo, team)
+    limited = _api(
+        demo, "PUT", f"/admin/teams/{team_id}/quotas", demo.admin_token, json={"phase": PHASE, "per_day": 1}
+    )
+    assert limited.status_code == 200, limited.text
+    page = _team_page(browser, demo, width, token)
+    daily = page.locator("#quotas li", has_text=f"{PHASE}, per day")
+    expect(daily).to_contain_text("1 of 1 left")
+    assert daily.inner_text().count("resets") == 1
+
+    text = tmp_path / "entry.pkl"
+    text.write_text("hello, this is no pickle")
+    page.select_option("#phase", PHASE)
+    page.set_input_files("#upload input[type=file]", text)
+    page.click("#upload-button")
+    expect(page.locator("#problems")).to_contain_text("entry.pkl is text starting 'hello, this is no pickle'")
+    expect(page.locator("#upload-status")).to_contain_text("entry.pkl: 1 problem in the file")
+
+    entry = json.loads((demo.data_dir / "demo-submission.json").read_text()) | {"method": f"Quota {width}"}
+    valid = tmp_path / "valid.json"
+    valid.write_text(json.dumps(entry))
+    page.set_input_files("#upload input[type=file]", valid)
+    page.click("#upload-button")
+    page.wait_for_function(
+        "document.querySelector('#upload-status').textContent.includes('is scored')",
+        timeout=SCORING_TIMEOUT_MS,
+    )
+    again = tmp_path / "again.json"  # other bytes: the same file is refused as a repeat, before the quota
+    again.write_text(json.dumps(entry | {"method": f"Quota {width}, again"}))
+    page.set_input_files("#upload input[type=file]", again)
+    page.click("#upload-button")
+    refusal = page.locator("#upload-status")
+    expect(refusal).to_contain_text("quota exhausted: 1 submission per UTC day")
+    assert refusal.inner_text().count("resets") == 1, refusal.inner_text()
+    expect(daily).to_contain_text("0 of 1 left")  # the list follows the uploads
+    _fits(page)
+    _screenshot(page, f"team-quota-{width}")
+
+    # The same figure on the team's history, the board and the submission page.
+    mine = next(s for s in _api(demo, "GET", "/submissions", token).json() if s["status"] == "scored")
+    score = percent(mine["results"]["v1.1"]["all"]["score"])
+    history = page.locator("#history tbody tr", has_text=f"Quota {width}")
+    expect(history.locator('td[data-label="PDMS v1.1"]')).to_have_text(score)
+    page.goto(f"{demo.url}/?phase={PHASE}&version=v1.1")
+    expect(page.locator("#leaderboard tbody tr", has_text=team).locator("td.score")).to_have_text(score)
+    page.goto(f"{demo.url}/submissions/{mine['id']}?version=v1.1")
+    expect(page.locator("#breakdown tbody tr").first.locator(".meter").first).to_have_text(score)
+
+
 def _leaked_entry(demo: Demo, team: str) -> str:
     """Register a team as an organiser and upload, as it, the demo split's logged human future; return its token."""
     from scorer.baselines import baseline_submission
     from scorer.submission import dump_submission_json
 
-    created = _api(demo, "POST", "/admin/teams", demo.admin_token, json={"name": team})
-    assert created.status_code == 201, created.text
-    token = _api(
-        demo, "POST", f"/admin/teams/{created.json()['id']}/tokens", demo.admin_token, json={"name": "t"}
-    ).json()["token"]
+    _, token = _new_team(demo, team)
     split_dir = demo.data_dir / "splits" / "demo"
     leaked = dump_submission_json(baseline_submission(split_dir, "human", f"Oracle {team}"))
     uploaded = _api(demo, "POST", "/submissions", token, files={"file": ("oracle.json", leaked)})
@@ -708,16 +776,24 @@ def _leaked_entry(demo: Demo, team: str) -> str:
 def test_an_organiser_reads_an_integrity_flag_with_its_evidence_and_decides(
     demo: Demo, browser: Browser, width: int
 ) -> None:
+    """Once the leaked entry is scored, the worker's check flags it by itself: the console's nav counts it as
+    new, the integrity page marks it new with its evidence, and nothing changes until the organiser decides."""
     team = f"oracle-{width}"
     team_token = _leaked_entry(demo, team)
     page = _admin(browser, demo, width)
-    page.get_by_role("link", name="Integrity checks").click()
+    link = page.locator("#integrity-link")
+    expect(link.locator(".badge.alert")).to_have_text(re.compile(r"^\d+ new$"), timeout=SCORING_TIMEOUT_MS)
+    assert "you have not opened yet" in (link.locator(".badge.alert").get_attribute("title") or "")
+    _fits(page)
+    page.locator("nav.tabs").scroll_into_view_if_needed()
+    _screenshot(page, f"admin-integrity-count-{width}", full_page=False)
+    link.click()
     page.wait_for_selector("#checks:not([hidden])")
-    page.select_option("#split", "demo")
-    page.get_by_role("button", name="Run the checks").click()
     row = page.locator("table.flags tbody tr", has_text=team).filter(has_text="Leaked log")
     expect(row).to_contain_text("Leaked log", timeout=60_000)
+    expect(row.locator(".badge.alert")).to_have_text("new")
     expect(row).to_contain_text("median displacement to the logged human future 0.0000 m")
+    expect(row).to_contain_text("(seed 0)")
     row.locator("summary", has_text="evidence").click()
     expect(row.locator("details dl")).to_contain_text("closest tokens")
     expect(row.locator("details dl")).to_contain_text("ade m 0")
@@ -739,10 +815,19 @@ def test_an_organiser_reads_an_integrity_flag_with_its_evidence_and_decides(
     assert admin_view()["disqualified"] is True
     _fits(page)
     _screenshot(page, f"integrity-decided-{width}")
+    # Opened once, the flag is no longer new in this browser; an organiser may still check at once.
+    seen = page.evaluate("JSON.parse(localStorage.getItem('navsim-lb-integrity-seen'))")
+    assert f"leaked_log:{submission_id}:" in seen
+    page.reload()
+    page.wait_for_selector("#checks:not([hidden])")
+    expect(row).to_contain_text("disqualified")
+    expect(row.locator(".badge")).to_have_count(0)
+    page.select_option("#split", "demo")
+    page.get_by_role("button", name="Run the checks now").click()
+    expect(page.locator("#message")).to_contain_text("Checking split demo")
+    expect(row).to_contain_text("disqualified", timeout=60_000)
     page.get_by_role("link", name="← Admin console").click()
-    expect(page.locator("#integrity-link")).to_contain_text(
-        "Integrity checks: "
-    )  # the console counts the flags
+    expect(page.locator("#integrity-link")).to_contain_text("Integrity checks")
     # The team sees the organiser's decision, never the flag.
     seen = _api(demo, "GET", f"/submissions/{submission_id}", team_token).json()
     assert seen["disqualified"] is True and "leaked" not in json.dumps(seen).lower()
@@ -767,16 +852,19 @@ def test_the_submission_page_spells_out_its_metrics_and_why_ec_is_undefined(
     )
 
 
-def test_a_board_row_with_a_page_opens_it_when_clicked_anywhere(demo: Demo, browser: Browser) -> None:
+@pytest.mark.parametrize("width", [DESKTOP, PHONE])
+def test_a_board_row_with_a_page_opens_it_when_clicked_anywhere(
+    demo: Demo, browser: Browser, width: int
+) -> None:
     """The server marks the rows of published entries with their page (tests/test_api_drilldown.py); the
     demo's phase is open, so this row is marked here as the server marks it once the phase has closed."""
-    page = _page(browser, DESKTOP)
+    page = _page(browser, width)
     page.goto(demo.url)
     row = page.locator("table.board tbody tr").first
     target = f"/submissions/{_latest_id(demo)}"
     row.evaluate("(row, target) => { row.dataset.href = target; }", target)
     assert row.evaluate("(row) => getComputedStyle(row).cursor") == "pointer"
-    row.locator("td.num").last.click()
+    row.locator("td.score").click()  # a cell a phone shows too
     page.wait_for_url(f"**{target}")
 
 
@@ -805,6 +893,35 @@ def test_the_two_stage_tab_and_a_submissions_groups_are_readable(
     team.wait_for_selector("#group-table tbody tr")
     expect(team.locator("#group-table tbody tr")).to_have_count(6)  # 3 groups x their two frames
     expect(team.locator("#group-table .weight")).to_have_count(30)  # 5 synthetic successors per frame
-    expect(team.locator("#breakdown tbody")).to_contain_text("stage 2")
+    # The breakdown: the combined score, then each stage's rows under its name.
+    sections = team.locator("#breakdown tbody tr.section")
+    expect(sections).to_have_text(
+        ["Stage 1: the logged frames", "Stage 2: their synthetic successors, weighted"]
+    )
     _fits(team)
     _screenshot(team, f"two-stage-submission-{width}")
+
+    # The team's history: a table per phase with that phase's versions only, and each stage's score.
+    from server.numbers import percent
+
+    mine = _api(demo, "GET", f"/submissions/{entry['submission_id']}", demo.team_token).json()
+    combined = mine["results"]["v2.2-two-stage"]["all"]
+    team.goto(f"{demo.url}/team")
+    phase = team.locator("#history section.history-phase", has=team.locator("h3", has_text=TWO_STAGE_PHASE))
+    row = phase.locator(
+        "tbody tr", has=team.get_by_role("link", name=str(entry["submission_id"]), exact=True)
+    )
+    for name, key in (
+        ("EPDMS v2.2-two-stage", "score"),
+        ("Stage 1", "stage_one_score"),
+        ("Stage 2", "stage_two_score"),
+    ):
+        expect(row.locator(f'td[data-label="{name}"]')).to_have_text(percent(combined[key]))
+    expect(phase.locator('td[data-label="PDMS v1.1"]')).to_have_count(0)  # another phase's version
+    one_stage = team.locator(
+        "#history section.history-phase", has=team.locator("h3", has_text=re.compile(f"^Phase {PHASE} "))
+    )
+    expect(one_stage.locator('td[data-label="Stage 1"]')).to_have_count(0)
+    _fits(team)
+    phase.scroll_into_view_if_needed()
+    _screenshot(team, f"two-stage-history-{width}")

@@ -17,6 +17,7 @@ import sys
 from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -33,9 +34,11 @@ from worker_testing import (
     write_submission,
 )
 
+from scorer.baselines import baseline_submission
 from scorer.blas import engine_provenance
 from scorer.evaluate import score_tokens
-from scorer.submission import dump_submission_json, load_submission
+from scorer.submission import Submission as Predictions
+from scorer.submission import SubmissionMetadata, dump_submission_json, load_submission
 from scorer.versions import LOG_REPLAY_VERSIONS as VERSIONS
 from server.db import transaction
 from server.models import FailureKind, Result, SplitKind, Status, Submission, utc_now
@@ -44,11 +47,12 @@ from server.queue import SCORE_TASK, celery_client, enqueue_submission
 from server.runs import Rejected, ScoringJob, claim_submission
 from server.runs._job import trajectories
 from server.runs._plan import plan_chunks
+from server.services.integrity import integrity_report
 from server.services.leaderboard import subscore_columns
 from server.services.splits import create_phase, register_split
 from server.settings import get_settings
 from server.storage import store_file, store_trajectories
-from worker.app import CHUNK_TASK, SOFT_LIMIT_MARGIN_S, app
+from worker.app import CHUNK_TASK, INTEGRITY_TASK, SOFT_LIMIT_MARGIN_S, app
 from worker.tasks import ENGINE_FAILURE
 
 PROBES = Path(__file__).parent / "fixtures" / "epdms" / "probes"
@@ -89,6 +93,9 @@ def test_only_scoring_a_chunk_has_a_soft_time_limit() -> None:
     # supervisor keeps it from what the consumer reports (worker.supervised).
     assert app.conf.task_time_limit == limit
     assert all(task.time_limit in (None, limit) for task in (chunk, planner))
+    # A split's integrity check after a run may read every entry: twice as long, no soft limit.
+    check = app.tasks[INTEGRITY_TASK]
+    assert (check.time_limit, check.soft_time_limit) == (2 * limit, None)
 
 
 def _chunks_ended(service: Service, submission_id: int) -> int:
@@ -328,6 +335,33 @@ def test_a_process_reads_the_file_of_a_run_once_and_of_a_new_run_again(
     copied = trajectories(dataclasses.replace(job, run=3), store)
     assert len(copied) == 1 and list(copied[0]) == list(parsed[0])  # the copy's one seed, not the file's two
     assert all(np.array_equal(copied[0][t], parsed[0][t]) for t in parsed[0])
+
+
+def test_a_scored_run_is_followed_by_its_split_s_integrity_check(
+    service: Service, synthetic_split: SplitFixture
+) -> None:
+    """A worker's task checks the split once the run is scored: the log itself in seed 1 is flagged there."""
+    honest = predictions(synthetic_split.directory, seeds=1, noise=0.5, method="honest seed")
+    human = baseline_submission(synthetic_split.directory, "human", "log").seeds[0]
+    entry = Predictions(SubmissionMetadata(method="the log in seed 1"), (honest.seeds[0], human))
+    submission_id = service.upload(entry)
+    assert service.final(submission_id).status == Status.scored
+
+    def flagged() -> list[dict[str, Any]]:
+        with service.factory() as session:
+            return [
+                flag
+                for check in integrity_report(session)["checks"]
+                for flag in check["flags"]
+                if flag["submission_id"] == submission_id and check["finished_at"] is not None
+            ]
+
+    (flag,) = wait_for(flagged, "the integrity check after the run")  # type: ignore[misc]
+    assert (flag["kind"], flag["evidence"]["seed"]) == ("leaked_log", 1)
+    assert re.search(
+        rf"check_integrity\[[^\]]+\] succeeded in [^:]+: 'submission {submission_id}: integrity",
+        service.worker_log(),
+    )
 
 
 def test_health_reports_database_broker_and_the_running_worker(service: Service) -> None:

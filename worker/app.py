@@ -22,6 +22,7 @@ from worker.logs import LOG_FORMAT, TASK_LOG_FORMAT
 from worker.supervised import become_supervised, report_busy, report_idle
 
 CHUNK_TASK = "worker.tasks.score_chunk"
+INTEGRITY_TASK = "worker.tasks.check_integrity"
 SOFT_LIMIT_MARGIN_S = 30.0
 EMBEDDED_POLL_S = 0.1
 
@@ -75,7 +76,12 @@ def create_celery(settings: Settings) -> Celery:
         # Only scoring a chunk has a soft limit. It arrives as an exception raised wherever the task is: in
         # planning, that is inside a broker write, which can leave the embedded broker's file locked by the
         # process for every other one. The hard limit kills the process, which frees it.
-        task_annotations={CHUNK_TASK: {"soft_time_limit": chunk_soft_time_limit(settings)}},
+        # A split's integrity check reads every entry, and the first one its scenes' human futures too (minutes
+        # on navtest): twice a chunk's hard limit, still under the broker's redelivery timeout (server.queue).
+        task_annotations={
+            CHUNK_TASK: {"soft_time_limit": chunk_soft_time_limit(settings)},
+            INTEGRITY_TASK: {"time_limit": 2 * settings.task_time_limit},
+        },
         task_ignore_result=True,
         worker_log_format=LOG_FORMAT,
         worker_task_log_format=TASK_LOG_FORMAT,

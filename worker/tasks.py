@@ -38,7 +38,7 @@ from server.object_store import StoreUnavailable
 from server.queue import SCORE_TASK, prune_embedded_broker, waiting_tasks
 from server.services.errors import NotFound
 from server.settings import get_settings
-from worker.app import CHUNK_TASK, app, chunk_soft_time_limit
+from worker.app import CHUNK_TASK, INTEGRITY_TASK, app, chunk_soft_time_limit
 from worker.heartbeat import beating
 
 log = get_task_logger(__name__)
@@ -147,6 +147,8 @@ def score_submission(self: Task, submission_id: int) -> str:
                 settings.bootstrap_samples,
             )
         if plan.dropped or plan.finished:
+            if plan.finished:
+                _send_integrity_check(submission_id)
             return "dropped" if plan.dropped else "finished"
         for chunk_id in plan.chunks:  # a chunk recorded but never sent is re-sent by the reaper
             score_chunk.delay(submission_id, run, chunk_id)
@@ -190,9 +192,31 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
                     session, inputs, scored, worker, engine_provenance(), settings.bootstrap_samples
                 )
 
-        return _through_outages(write, DATABASE_OUTAGES, "database")
+        written = _through_outages(write, DATABASE_OUTAGES, "database")
+        if written == "scored":  # committed: the split's integrity check may read it
+            _send_integrity_check(submission_id)
+        return written
 
     return f"submission {submission_id} run {run}: {_guarded(submission_id, run, score)}"
+
+
+def _send_integrity_check(submission_id: int) -> None:
+    """Ask for the integrity check of a scored entry's split; the run is scored whatever happens to it."""
+    try:
+        check_integrity.delay(submission_id)
+    except Exception:  # the broker away: the next run's check, or an organiser's, reads this entry too
+        log.exception("submission %s: the integrity check after its run could not be sent", submission_id)
+
+
+@app.task(name=INTEGRITY_TASK, **RETRY)
+def check_integrity(submission_id: int) -> str:
+    """Check the split of a submission whose run was just scored (server.services.integrity): its flags wait
+    for organisers in the admin console; a failed check is recorded there and logged, never failing the run."""
+    settings = get_settings()
+    check_id = runs.check_integrity_after_run(_sessions(settings.database_url), settings, submission_id)
+    if check_id is None:
+        return f"submission {submission_id}: nothing to check"
+    return f"submission {submission_id}: integrity check {check_id}"
 
 
 def reap_lost_work() -> dict[str, list[int]]:

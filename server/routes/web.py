@@ -21,6 +21,7 @@ from scorer.versions import (
     DEFAULT_VERSION,
     METRIC_LABELS,
     OFFICIAL_REPOSITORY,
+    TWO_STAGE_VERSIONS,
     VERSIONS,
     VersionName,
 )
@@ -159,6 +160,7 @@ def team_page(request: Request) -> HTMLResponse:
     """Sign in or register; upload with live progress, history, metadata and final-entry choice (team API)."""
     page = {
         "versions": list(BOARD_VERSIONS),
+        "two_stage_versions": list(TWO_STAGE_VERSIONS),  # shown with each stage's score
         "score_labels": SCORE_LABELS,
         "default_version": DEFAULT_VERSION,
     }

@@ -1,15 +1,17 @@
 """Integrity checks for organisers: flag entries that copy the hidden logged future, copy another team's
 entry, or probe the hidden set (`integrity_checks` has the arithmetic and its thresholds).
 
-An organiser starts a check of a split (the admin console, the admin API); it runs after the request has been
-answered, never in a team's request, and reads every non-baseline submission of the split from its stored
-trajectories. Its flags, with their evidence, replace the split's previous ones. Flags are shown to organisers
+A check of a split runs after each run of one of its entries is scored (a worker's task sent once the run is
+committed: the run never waits on it nor fails with it), and when an organiser starts one (the admin console,
+the admin API), after the request has been answered; never in a team's request. It reads every non-baseline
+submission of the split from its stored trajectories, every seed. Its flags, with their evidence, replace the split's previous ones. Flags are shown to organisers
 only, and act on nothing: the organiser decides (hide, disqualify) with the usual actions.
 
-Cost on a navtest-size split (12,146 tokens; `benchmarks/integrity.py` on a 2-core Xeon): the human futures take
-35 ms a scene to read the first time (7 min for navtest, then read from disk), the leaked-log check 15 ms an
-entry, the near-identical check 1.5 s for 100 entries (it grows with their square), probing 1.2 s for 20 teams
-of 5 uploads; reading each entry's stored trajectories comes on top.
+Cost on a navtest-size split (12,146 tokens, 3 seeds an entry; `benchmarks/integrity.py`, CPU time on a shared
+2-core EPYC): the human futures take 6-35 ms a scene to read the first time (up to 7 min for navtest, then read
+from disk), the leaked-log check 10-15 ms an entry, the near-identical check 5 s for 100 entries (it grows with
+their square and the seeds'), probing 4 s for 20 teams of 5 uploads; reading each entry's stored trajectories
+comes on top.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import io
 import logging
 from collections import defaultdict
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +30,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from scorer.files import write_atomically
 from scorer.geometry import FloatArray
 from server.db import transaction
-from server.models import ApiToken, IntegrityCheck, IntegrityFlag, Split, Submission, utc_now
+from server.models import ApiToken, IntegrityCheck, IntegrityFlag, Split, Status, Submission, utc_now
 from server.services.admin import audit
 from server.services.integrity_checks import Entry, Finding, leaked_log, near_duplicates, probing
 from server.services.splits import split_tokens
@@ -36,6 +39,7 @@ from server.storage import submission_trajectories
 
 log = logging.getLogger(__name__)
 POSES = 8
+AFTER_COMMIT = timedelta(seconds=5)  # a run's end time to its commit, at most
 
 
 def human_futures(split: Split, data_dir: Path) -> dict[str, FloatArray]:
@@ -73,15 +77,44 @@ def _aligned(predictions: dict[str, FloatArray], tokens: list[str]) -> FloatArra
 
 def start_check(session: Session, actor: ApiToken | None, split: Split) -> IntegrityCheck:
     """Record an organiser's check of a split, to be run by `run_check` once the caller has committed."""
-    check = IntegrityCheck(split_id=split.id, skipped=[])
-    session.add(check)
-    session.flush()
+    check = _record_check(session, split)
     audit(session, actor, "integrity_check", "split", split.id, split=split.name, check=check.id)
     return check
 
 
+def _record_check(session: Session, split: Split) -> IntegrityCheck:
+    check = IntegrityCheck(split_id=split.id, skipped=[])
+    session.add(check)
+    session.flush()
+    return check
+
+
+def start_check_after_run(session: Session, submission_id: int) -> IntegrityCheck | None:
+    """Record the check of a split after one of its entries was scored (a worker's task, once the run is
+    committed), or None where nothing is to check: a baseline, a run not scored (cancelled or re-run since),
+    or a check of the split started after this run ended and finished, which read this entry too.
+
+    Idempotent: the task may be delivered twice, and runs that end together share the first check to start
+    after them (a run that ends while a check runs gets its own: two may overlap, `complete_check` keeps the
+    newer). The margin covers the moment between a run's end
+    time and its commit, when a check could not yet see it. A check killed midway stays unfinished, and the
+    next one to finish deletes it."""
+    submission = session.get(Submission, submission_id)
+    if submission is None or submission.is_baseline or submission.status != Status.scored:
+        return None
+    assert submission.finished_at is not None  # set with the status
+    newer = select(IntegrityCheck.id).where(
+        IntegrityCheck.split_id == submission.split_id,
+        IntegrityCheck.started_at > submission.finished_at + AFTER_COMMIT,
+        IntegrityCheck.finished_at.is_not(None),
+    )
+    if session.scalars(newer).first() is not None:
+        return None
+    return _record_check(session, submission.split)
+
+
 def run_check(session_factory: sessionmaker[Session], settings: Settings, check_id: int) -> None:
-    """Run a recorded check in a transaction of its own (the API's, once its answer is sent)."""
+    """Run a recorded check in a transaction of its own (the API's once its answer is sent, or a worker's)."""
     with transaction(session_factory) as session:
         check = session.get(IntegrityCheck, check_id)
         if check is not None:
@@ -89,16 +122,26 @@ def run_check(session_factory: sessionmaker[Session], settings: Settings, check_
 
 
 def complete_check(session: Session, settings: Settings, check: IntegrityCheck) -> None:
-    """Read the check's split's entries, store the flags, and drop the split's older checks and their flags;
-    a check that fails records why."""
+    """Read the check's split's entries, store the flags, and drop the split's older checks and their flags
+    (or this one, where a newer check finished first: checks after runs may overlap); a check that fails
+    records why, and logs it for the admins' log."""
     try:
         findings, entries, skipped = _findings(session, settings, check.split)
     except Exception as error:  # an organiser's tool: say what failed, keep the service up
         log.exception("integrity check %s failed", check.id)
         check.error, check.finished_at = f"{type(error).__name__}: {error}", utc_now()
         return
+    # Only older checks are deleted here, so two overlapping checks never wait on each other's rows.
+    newer_finished = select(IntegrityCheck.id).where(
+        IntegrityCheck.split_id == check.split_id,
+        IntegrityCheck.id > check.id,
+        IntegrityCheck.finished_at.is_not(None),
+    )
+    if session.scalars(newer_finished).first() is not None:
+        session.delete(check)
+        return
     session.execute(
-        delete(IntegrityCheck).where(IntegrityCheck.split_id == check.split_id, IntegrityCheck.id != check.id)
+        delete(IntegrityCheck).where(IntegrityCheck.split_id == check.split_id, IntegrityCheck.id < check.id)
     )
     for finding in findings:
         session.add(
@@ -144,7 +187,7 @@ def _findings(
         if leak is not None:
             findings.append(leak)
         entries[submission.team.name].append(
-            Entry(submission.id, submission.team.name, submission.sha256, aligned[0])
+            Entry(submission.id, submission.team.name, submission.sha256, tuple(aligned))
         )
     every = sorted((e for team in entries.values() for e in team), key=lambda e: e.submission_id)
     findings += near_duplicates(every, tokens)

@@ -14,12 +14,13 @@ Thresholds, and why (figures: `benchmarks/integrity.py`, on the reference and sy
   where its median ADE over the tokens on which the human moves is below LEAK_MEDIAN_ADE_M (5 cm, ten times
   under the best honest figure) over at least LEAK_MIN_TOKENS tokens. Tokens where the human stands still are
   left out: every sensible planner stands still there too.
-- Near-identical entries of different teams: the same bytes (sha256), or at least NEAR_COPY_FRACTION of
-  their common tokens within SAME_POSE_M (1 cm) at every pose. Independent methods never agree to a
-  centimetre on most tokens; re-uploading another team's file does.
+- Near-identical entries of different teams: the same bytes (sha256), or some seed of one and some seed of
+  the other (every seed is compared with every seed) with at least NEAR_COPY_FRACTION of their common tokens
+  within SAME_POSE_M (1 cm) at every pose. Independent methods never agree to a centimetre on most tokens;
+  re-uploading another team's file does, whichever seed it is put in.
 - Probing the hidden set: a team's uploads that differ from another of its uploads in at most
-  PROBE_MAX_TOKENS tokens (or PROBE_MAX_FRACTION of them, whichever is larger), at least PROBE_MIN_PAIRS
-  such pairs. Changing a handful of tokens between uploads and reading the score is how one learns the
+  PROBE_MAX_TOKENS tokens (or PROBE_MAX_FRACTION of them, whichever is larger) in the two seeds that differ
+  least (every seed of one compared with every seed of the other), at least PROBE_MIN_PAIRS such pairs. Changing a handful of tokens between uploads and reading the score is how one learns the
   hidden answers token by token; improving a method changes most tokens.
 """
 
@@ -135,35 +136,73 @@ def differing_tokens(first: FloatArray, second: FloatArray) -> tuple[BoolArray, 
 
 @dataclass(frozen=True)
 class Entry:
-    """A submission as the checks see it: its team, when it came, its bytes' hash and its seed-0 positions."""
+    """A submission as the checks see it: its team, its bytes' hash and each seed's positions."""
 
     submission_id: int
     team: str
     sha256: str
-    poses: FloatArray  # (tokens, 8, 2), NaN where missing
+    seeds: tuple[FloatArray, ...]  # each (tokens, 8, 2), NaN where missing
+
+
+@dataclass(frozen=True)
+class SeedPair:
+    """How one seed of an entry compares with one seed of another: the tokens both have, those that differ."""
+
+    seeds: tuple[int, int]
+    common: int
+    differs: BoolArray
+
+    @property
+    def same_fraction(self) -> float:
+        return float(1 - self.differs.sum() / self.common) if self.common else 0.0
+
+
+def seed_pairs(first: Entry, second: Entry) -> list[SeedPair]:
+    """Compare every seed of `first` with every seed of `second`: a copy or a probe may sit in any seed."""
+    pairs = []
+    for i, poses in enumerate(first.seeds):
+        for j, other in enumerate(second.seeds):
+            common, differs = differing_tokens(poses, other)
+            pairs.append(SeedPair((i, j), int(common.sum()), differs))
+    return pairs
 
 
 def near_duplicates(entries: list[Entry], tokens: list[str]) -> list[Finding]:
-    """Return a finding per pair of entries of different teams that are the same file or agree within 1 cm on
-    at least NEAR_COPY_FRACTION of their common tokens (the later entry flagged, the earlier named).
-    The tokens' last poses screen the pairs first: a pair that differs there on most tokens is no copy."""
-    ends = np.stack([entry.poses[:, -1] for entry in entries]) if entries else np.zeros((0, len(tokens), 2))
+    """Return a finding per pair of entries of different teams that are the same file, or of which some seed
+    of one agrees within 1 cm with some seed of the other on at least NEAR_COPY_FRACTION of their common
+    tokens (the later entry flagged, the earlier named, the seeds given).
+    The tokens' last poses screen the seed pairs first: a pair that differs there on most tokens is no copy."""
+    rows = [
+        (index, entry.seeds[seed][:, -1])
+        for index, entry in enumerate(entries)
+        for seed in range(len(entry.seeds))
+    ]
+    owner = np.array([index for index, _ in rows], dtype=np.int64)
+    ends = np.stack([end for _, end in rows]) if rows else np.zeros((0, len(tokens), 2))
     findings = []
-    for later in range(len(entries)):
-        # Per earlier entry at once: the fraction of tokens whose last poses are within SAME_POSE_M.
-        gaps = ends[:later] - ends[later]
-        close_ends = (np.einsum("etk,etk->et", gaps, gaps) <= SAME_POSE_M**2).mean(axis=1)
+    for later, second in enumerate(entries):
+        # Every earlier seed against each seed of this entry: the fraction of tokens whose last poses are
+        # within SAME_POSE_M, at best over this entry's seeds, then at best per earlier entry.
+        earlier_rows = owner < later
+        close_ends = np.zeros(int(earlier_rows.sum()))
+        for end in ends[owner == later]:
+            gaps = ends[earlier_rows] - end
+            close_ends = np.maximum(
+                close_ends, (np.einsum("etk,etk->et", gaps, gaps) <= SAME_POSE_M**2).mean(axis=1)
+            )
+        best_close = np.zeros(later)
+        np.maximum.at(best_close, owner[earlier_rows], close_ends)
         for earlier in range(later):
-            first, second = entries[earlier], entries[later]
+            first = entries[earlier]
             if first.team == second.team:
                 continue
             same_file = first.sha256 == second.sha256
-            if not same_file and close_ends[earlier] < NEAR_COPY_FRACTION:
+            if not same_file and best_close[earlier] < NEAR_COPY_FRACTION:
                 continue
-            common, differs = differing_tokens(first.poses, second.poses)
-            shared = int(common.sum())
-            same = float(1 - differs.sum() / shared) if shared else 0.0
-            if not same_file and same < NEAR_COPY_FRACTION:
+            pairs = seed_pairs(first, second)
+            best = max(pairs, key=lambda pair: pair.same_fraction)
+            matching = [list(pair.seeds) for pair in pairs if pair.same_fraction >= NEAR_COPY_FRACTION]
+            if not same_file and not matching:
                 continue
             findings.append(
                 Finding(
@@ -172,15 +211,19 @@ def near_duplicates(entries: list[Entry], tokens: list[str]) -> list[Finding]:
                     other_submission_id=first.submission_id,
                     summary=(
                         f"{'the same file as' if same_file else 'near-identical to'} submission "
-                        f"{first.submission_id} of team {first.team}: {same:.1%} of {shared} common tokens "
-                        f"within {SAME_POSE_M * 100:g} cm"
+                        f"{first.submission_id} of team {first.team}: its seed {best.seeds[1]} and their "
+                        f"seed {best.seeds[0]} agree within {SAME_POSE_M * 100:g} cm on "
+                        f"{best.same_fraction:.1%} of {best.common} common tokens"
                     ),
                     evidence={
                         "same_sha256": same_file,
                         "other_team": first.team,
-                        "common_tokens": shared,
-                        "fraction_within_1cm": round(same, 4),
-                        "differing_tokens": [tokens[i] for i in np.flatnonzero(differs)[:PAIRS_LISTED]],
+                        "seeds": {"this": best.seeds[1], "other": best.seeds[0]},
+                        "seeds_compared": len(pairs),
+                        "matching_seed_pairs": [{"this": j, "other": i} for i, j in matching],
+                        "common_tokens": best.common,
+                        "fraction_within_1cm": round(best.same_fraction, 4),
+                        "differing_tokens": [tokens[i] for i in np.flatnonzero(best.differs)[:PAIRS_LISTED]],
                     },
                 )
             )
@@ -188,22 +231,29 @@ def near_duplicates(entries: list[Entry], tokens: list[str]) -> list[Finding]:
 
 
 def probing(entries: list[Entry], tokens: list[str]) -> Finding | None:
-    """Return a finding where at least PROBE_MIN_PAIRS pairs of one team's entries (oldest first) differ in
-    a few tokens only (at least one): the pairs, their differing-token counts and some of those tokens."""
+    """Return a finding where at least PROBE_MIN_PAIRS pairs of one team's uploads (oldest first) differ in a
+    few tokens only (at least one) in the seeds that differ least, every seed compared with every seed: the
+    pairs, those seeds, their differing-token counts and some of those tokens."""
     limit = max(PROBE_MAX_TOKENS, int(PROBE_MAX_FRACTION * len(tokens)))
     pairs: list[dict[str, Any]] = []
     for later in range(len(entries)):
         for earlier in range(later):
-            common, differs = differing_tokens(entries[earlier].poses, entries[later].poses)
-            count = int(differs.sum())
-            if 0 < count <= limit and common.any():
-                pairs.append(
-                    {
-                        "submissions": [entries[earlier].submission_id, entries[later].submission_id],
-                        "differing_tokens": count,
-                        "tokens": [tokens[i] for i in np.flatnonzero(differs)[:PAIRS_LISTED]],
-                    }
-                )
+            close = [
+                pair
+                for pair in seed_pairs(entries[earlier], entries[later])
+                if pair.common and 0 < int(pair.differs.sum()) <= limit
+            ]
+            if not close:
+                continue
+            pair = min(close, key=lambda pair: int(pair.differs.sum()))
+            pairs.append(
+                {
+                    "submissions": [entries[earlier].submission_id, entries[later].submission_id],
+                    "seeds": list(pair.seeds),
+                    "differing_tokens": int(pair.differs.sum()),
+                    "tokens": [tokens[i] for i in np.flatnonzero(pair.differs)[:PAIRS_LISTED]],
+                }
+            )
     if len(pairs) < PROBE_MIN_PAIRS:
         return None
     involved: list[int] = sorted({i for pair in pairs for i in pair["submissions"]})
@@ -211,8 +261,8 @@ def probing(entries: list[Entry], tokens: list[str]) -> Finding | None:
         kind="probing",
         submission_id=involved[-1],
         summary=(
-            f"team {entries[0].team}: {len(pairs)} pairs of its {len(entries)} uploads differ in at most "
-            f"{limit} of {len(tokens)} tokens ({len(involved)} uploads involved)"
+            f"team {entries[0].team}: {len(pairs)} pairs of its {len(entries)} uploads (every seed compared) "
+            f"differ in at most {limit} of {len(tokens)} tokens ({len(involved)} uploads involved)"
         ),
         evidence={
             "team": entries[0].team,

@@ -17,6 +17,7 @@ from typing import Literal
 from scorer.files import write_atomically
 from scorer.geometry import FloatArray
 from server.models import Split, SplitKind, Status, Submission
+from server.numbers import counted
 from server.services.errors import Conflict, Forbidden, NotFound
 from server.services.splits import ALL_SUBSET, visible_subsets
 from server.settings import Settings
@@ -45,7 +46,7 @@ def _checked(submission: Submission, token: str, seed: int, admin: bool) -> Path
         raise Conflict(f"submission {submission.id} is {submission.status}: pictures exist once it is scored")
     if not 0 <= seed < submission.seed_count:
         raise NotFound(
-            f"submission {submission.id} has {submission.seed_count} seed(s); seed {seed} does not exist"
+            f"submission {submission.id} has {counted(submission.seed_count, 'seed')}; seed {seed} does not exist"
         )
     paths = scene_paths(picture_scenes(split, token))
     if token not in paths:

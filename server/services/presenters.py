@@ -169,6 +169,7 @@ def phase_view(phase: Phase) -> PhaseOut:
         split=phase.split.name,
         opens_at=phase.opens_at,
         closes_at=phase.closes_at,
+        versions=list(run_versions(phase.split)),
         open=is_open(phase),
         per_day=phase.per_day,
         total=phase.total,

@@ -15,6 +15,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from server.models import ACTIVE_STATUSES, Phase, Submission, Team, TeamQuota, utc_now
+from server.numbers import counted
 from server.services.errors import QuotaExceeded
 
 
@@ -78,9 +79,9 @@ def check_quota(session: Session, team_id: int, phase: Phase, now: datetime) -> 
 
 def _message(usage: QuotaUsage, phase: Phase) -> str:
     what = {
-        "total": f"{usage.limit} submissions in phase {phase.name!r}",
-        "per_day": f"{usage.limit} submissions per UTC day in phase {phase.name!r}",
-        "in_flight": f"{usage.limit} submissions queued or running at once",
+        "total": f"{counted(usage.limit or 0, 'submission')} in phase {phase.name!r}",
+        "per_day": f"{counted(usage.limit or 0, 'submission')} per UTC day in phase {phase.name!r}",
+        "in_flight": f"{counted(usage.limit or 0, 'submission')} queued or running at once",
     }[usage.name]
     when = {
         "total": "it does not reset",

@@ -9,6 +9,7 @@ from pathlib import PurePath
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
+from server.numbers import counted
 from server.services.errors import Invalid
 
 if TYPE_CHECKING:
@@ -126,7 +127,7 @@ def read_upload(
                 error.seed_tokens, error.second_stage_tokens, stages.stage_one_tokens, stages.stage_two_tokens
             )
         problems = [_problem(p) for p in error.problems + coverage]
-        raise Invalid(f"{filename}: {len(problems)} problem(s) in the file", problems) from None
+        raise Invalid(f"{filename}: {counted(len(problems), 'problem')} in the file", problems) from None
     if isinstance(submission, TwoStageSubmission):
         from scorer.two_stage.score import submitted_rows  # the engine: only for a two-stage file
 
@@ -161,7 +162,7 @@ def validate_upload(
     submission, seeds = read_upload(data, filename, split_tokens, stages)
     problems = _split_problems(submission, split_tokens, stages)
     if problems:
-        raise Invalid(f"{filename}: {len(problems)} problem(s) against the split", problems)
+        raise Invalid(f"{filename}: {counted(len(problems), 'problem')} against the split", problems)
     metadata = _file_metadata(submission)
     metadata.update(
         {k: v.strip() for k, v in (form_metadata or {}).items() if k in METADATA_FIELDS and v and v.strip()}
@@ -173,7 +174,7 @@ def validate_upload(
         if field in metadata and not _is_web_address(metadata[field])
     ]
     if problems:
-        raise Invalid(f"{filename}: {len(problems)} problem(s) in the metadata", problems)
+        raise Invalid(f"{filename}: {counted(len(problems), 'problem')} in the metadata", problems)
     return ValidUpload(
         data=data,
         filename=filename,

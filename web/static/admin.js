@@ -89,7 +89,7 @@ async function fillWorkers() {
   for (const s of state.submissions.filter((s) => s.status === "running" && s.worker)) {
     holding.set(s.worker, [...(holding.get(s.worker) || []), s.id]);
   }
-  for (const [worker, ids] of holding) items.push(`${worker} is scoring submission(s) ${ids.join(", ")}.`);
+  for (const [worker, ids] of holding) items.push(`${worker} is scoring ${ids.length === 1 ? "submission" : "submissions"} ${ids.join(", ")}.`);
   if (!holding.size) items.push("No worker holds a run at the moment.");
   list.replaceChildren(...items.map((text) => Object.assign(document.createElement("li"), { textContent: text })));
 }
@@ -100,8 +100,10 @@ function fillSubmissions() {
   const failedOnly = $("#failed-only").checked;
   for (const s of state.submissions.filter((s) => !failedOnly || s.status === "failed")) {
     const row = body.insertRow();
-    const v11 = s.results["v1.1"] || {};
-    const best = v11.public || v11.all;
+    // The score under v1.1, or under the split's own version (a two-stage split has only its two-stage one).
+    const version = "v1.1" in s.results ? "v1.1" : Object.keys(s.results)[0];
+    const results = s.results[version] || {};
+    const best = results.public || results.all;
     const flags = [s.baseline && "baseline", s.hidden && "hidden by team", s.admin_hidden && "hidden",
       s.disqualified && `disqualified: ${s.disqualified_reason}`, s.selected && "final"].filter(Boolean).join(" · ");
     const status = group(Object.assign(document.createElement("span"), { className: `status ${s.status}`, textContent: s.status }));
@@ -117,7 +119,7 @@ function fillSubmissions() {
     [s.team, s.method].forEach((v) => cell(row, v));
     cell(row, status);
     cell(row, `${s.progress}%`, "num");
-    cell(row, best ? pct(best.score) : "–", "num");
+    cell(row, best ? group(pct(best.score), Object.assign(document.createElement("small"), { className: "version", textContent: version })) : "–", "num");
     cell(row, flags);
     cell(row, when(s.submitted_at));
     const active = ACTIVE.includes(s.status);
@@ -223,7 +225,10 @@ function fillAudit() {
 
 // An audit entry's details as lines a person reads ("reason: …"), wrapping where a value is long.
 async function refreshLive() {
-  state.submissions = await api("GET", `${ADMIN}/submissions?limit=300`);
+  let integrity;
+  // The checks run after every scored run: new flags show up in the nav while the console is open.
+  [state.submissions, integrity] = await Promise.all([api("GET", `${ADMIN}/submissions?limit=300`), api("GET", `${ADMIN}/integrity`)]);
+  integrityLink($("#integrity-link"), integrity.checks);
   fillQueue();
   fillSubmissions();
   await fillWorkers();
@@ -231,12 +236,9 @@ async function refreshLive() {
 }
 
 async function refresh() {
-  let integrity;
-  [state.teams, state.audit, state.phases, integrity] = await Promise.all([
-    api("GET", `${ADMIN}/teams`), api("GET", `${ADMIN}/audit?limit=300`), api("GET", "/phases"), api("GET", `${ADMIN}/integrity`),
+  [state.teams, state.audit, state.phases] = await Promise.all([
+    api("GET", `${ADMIN}/teams`), api("GET", `${ADMIN}/audit?limit=300`), api("GET", "/phases"),
   ]);
-  const flags = integrity.checks.reduce((sum, check) => sum + check.flags.length, 0);
-  $("#integrity-link").textContent = flags ? `Integrity checks: ${counted(flags, "flag")}` : "Integrity checks";
   fillTeams();
   fillAudit();
   await refreshLive();

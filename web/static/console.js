@@ -88,3 +88,33 @@ function detailList(details) {
   }
   return list;
 }
+
+// Integrity flags an organiser has not seen yet on the integrity page, in this browser (localStorage: it
+// outlives the tab), whose entry is still on the board: the count the console's nav shows. A flag is the same
+// flag from one check to the next while it names the same kind and submissions.
+const SEEN_FLAGS_KEY = "navsim-lb-integrity-seen";
+const flagKey = (flag) => `${flag.kind}:${flag.submission_id}:${flag.other_submission_id ?? ""}`;
+function seenFlags() {
+  try { return new Set(JSON.parse(localStorage.getItem(SEEN_FLAGS_KEY) || "[]")); } catch { return new Set(); }
+}
+const newFlags = (checks, seen = seenFlags()) => checks.flatMap((check) => check.flags)
+  .filter((flag) => !seen.has(flagKey(flag)) && !flag.admin_hidden && !flag.disqualified);
+// What is seen is what the page shows: flags gone from every check are forgotten.
+function markFlagsSeen(checks) {
+  localStorage.setItem(SEEN_FLAGS_KEY, JSON.stringify(checks.flatMap((check) => check.flags).map(flagKey)));
+}
+
+function badge(text, title, kind = "") {
+  return Object.assign(document.createElement("span"), { className: `badge ${kind}`.trim(), textContent: text, title });
+}
+
+// The nav link to the integrity page: how many flags are new, and whether a split's last check failed.
+function integrityLink(link, checks) {
+  const fresh = newFlags(checks).length;
+  const failed = checks.filter((check) => check.error).length;
+  const all = checks.reduce((sum, check) => sum + check.flags.length, 0);
+  link.replaceChildren("Integrity checks");
+  if (fresh) link.append(" ", badge(`${fresh} new`, `${counted(fresh, "flag")} you have not opened yet, of ${all}`, "alert"));
+  else if (all) link.append(" ", badge(`${all}`, `${counted(all, "flag")}, all seen`));
+  if (failed) link.append(" ", badge("check failed", `the last check of ${counted(failed, "split")} failed: open it to read why`, "alert"));
+}

@@ -5,6 +5,7 @@
 const FOLLOW_EVERY_MS = 2000;
 const KINDS = { leaked_log: "Leaked log", near_duplicate: "Near-identical entries", probing: "Probing the hidden set" };
 let following = null;
+let fresh = null;  // the keys of the flags new to this organiser since this page was opened
 
 function evidence(flag) {
   const details = document.createElement("details");
@@ -42,7 +43,12 @@ function report(check) {
   const body = table.createTBody();
   for (const flag of check.flags) {
     const row = body.insertRow();
-    cell(row, KINDS[flag.kind] || flag.kind, "kind");
+    const kind = group(KINDS[flag.kind] || flag.kind);
+    if (fresh.has(flagKey(flag))) {
+      row.classList.add("fresh");
+      kind.append(" ", badge("new", "not seen before in this browser", "alert"));
+    }
+    cell(row, kind, "kind");
     const ids = group(submissionLink(flag.submission_id));
     if (flag.other_submission_id) ids.append(" copies ", submissionLink(flag.other_submission_id));
     cell(row, ids);
@@ -61,6 +67,8 @@ function report(check) {
 
 async function refresh() {
   const { checks } = await api("GET", `${ADMIN}/integrity`);
+  fresh = new Set([...(fresh || []), ...newFlags(checks).map(flagKey)]);
+  markFlagsSeen(checks);
   $("#reports").replaceChildren(...checks.map(report));
   if (!checks.length) $("#reports").textContent = "No check has run yet.";
   $("#checks").hidden = false;

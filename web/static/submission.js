@@ -195,9 +195,10 @@ async function render() {
     ? "Each stage's summary row and the combined score (means over groups), in %, next to the baselines of the same phase"
     : BREAKDOWN_CAPTION;
   const lines = twoStage
-    ? [["score", `${label("score")} (combined)`, (entry) => entry.score],
-      ...["stage_one", "stage_two"].flatMap((stage, index) => ["score", ...columns].map((column) =>
-        [column, `${column === "score" ? label("score") : label(column)}, stage ${index + 1}`, (entry) => (entry[stage] || {})[column]]))]
+    ? [["score", `${label("score")}, combined`, (entry) => entry.score],
+      ...[["stage_one", "Stage 1: the logged frames"], ["stage_two", "Stage 2: their synthetic successors, weighted"]]
+        .flatMap(([stage, title]) => [[null, title], ...["score", ...columns].map((column) =>
+          [column, label(column), (entry) => (entry[stage] || {})[column]])])]
     : ["score", ...columns].map((column) => [column,
       column === "driving_direction_compliance" ? `${label(column)} (${PAGE.ddc_roles[state.version]})` : label(column),
       (entry) => entry[column]]);
@@ -214,6 +215,11 @@ async function render() {
   body.replaceChildren();
   for (const [column, text, value] of lines) {
     const row = body.insertRow();
+    if (column === null) {  // a stage's rows follow under its name
+      row.className = "section";
+      row.append(Object.assign(document.createElement("th"), { scope: "rowgroup", colSpan: 2 + reference.length, textContent: text }));
+      continue;
+    }
     const name = document.createElement("th");
     name.scope = "row";
     name.textContent = text;
@@ -443,7 +449,7 @@ async function load() {
   $("#submission").hidden = false;
   $("#title").textContent = `${submission.method} (submission ${submission.id})`;
   $("#facts").textContent = `${submission.team} · phase ${submission.phase ?? "–"} · split ${submission.split} · ` +
-    `${submission.status} · ${submission.seed_count} seed(s), ${submission.token_count} tokens · submitted ${when(submission.submitted_at)} UTC`;
+    `${submission.status} · ${counted(submission.seed_count, "seed")}, ${counted(submission.token_count, "token")} · submitted ${when(submission.submitted_at)} UTC`;
   const sanctions = [
     submission.disqualified && `Disqualified by an organiser${submission.disqualified_reason ? `: ${submission.disqualified_reason}` : ""}.`,
     submission.admin_hidden && "Hidden from the leaderboard by an organiser.",

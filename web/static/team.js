@@ -4,7 +4,6 @@
 
 const FINAL = ["scored", "failed", "cancelled"];
 const PAGE = JSON.parse($("#page-data").textContent);
-const HISTORY_VERSIONS = [...PAGE.versions].reverse(); // newest metric first
 const scoreOf = (submission, version) => {
   const results = submission.results?.[version] || {};
   return (results.all || results.public || {}).score;
@@ -12,22 +11,29 @@ const scoreOf = (submission, version) => {
 
 // --- signing in and out -------------------------------------------------------------------------------
 
-async function showTeam() {
-  const me = await api("GET", "/me");
-  if (me.scope !== "team") throw new ApiError(403, { detail: "This is not a team token." });
-  $("#team-name").textContent = me.team;
-  $("#approval").textContent = me.approval;
-  $("#approval").title = me.approval === "approved" ? "" : "an organiser approves teams before their first upload";
+function showQuotas(list) {
   const quotas = $("#quotas");
   quotas.replaceChildren();
-  for (const quota of me.quotas) {
+  for (const quota of list) {
     const item = document.createElement("li");
     const left = quota.limit === null ? "no limit" : `${Math.max(0, quota.limit - quota.used)} of ${quota.limit} left`;
     item.textContent = `${quota.phase}, ${quota.quota.replace("_", " ")}: ${left}` +
       (quota.resets_at ? ` (resets ${when(quota.resets_at)} UTC)` : "");
     quotas.append(item);
   }
-  if (!me.quotas.length) quotas.append(Object.assign(document.createElement("li"), { textContent: "No open phase." }));
+  if (!list.length) quotas.append(Object.assign(document.createElement("li"), { textContent: "No open phase." }));
+}
+
+// After an upload (accepted or refused), what is left of each quota.
+const refreshQuotas = () => api("GET", "/me").then((me) => showQuotas(me.quotas)).catch(() => {});
+
+async function showTeam() {
+  const me = await api("GET", "/me");
+  if (me.scope !== "team") throw new ApiError(403, { detail: "This is not a team token." });
+  $("#team-name").textContent = me.team;
+  $("#approval").textContent = me.approval;
+  $("#approval").title = me.approval === "approved" ? "" : "an organiser approves teams before their first upload";
+  showQuotas(me.quotas);
   $("#signed-out").hidden = true;
   $("#signed-in").hidden = false;
   const [open] = await Promise.all([loadPhases(), loadHistory()]);
@@ -128,7 +134,7 @@ async function follow(id) {
       link.textContent = "see its results";
       $("#upload-status").replaceChildren(
         submission.status === "scored"
-          ? `Submission ${id} is scored: ${HISTORY_VERSIONS.map((v) => `${PAGE.score_labels[v]} ${v} ${pct(scoreOf(submission, v))}`).join(", ")}. `
+          ? `Submission ${id} is scored: ${[...PAGE.versions].reverse().filter((v) => v in submission.results).map((v) => `${PAGE.score_labels[v]} ${v} ${pct(scoreOf(submission, v))}`).join(", ")}. `
           : `Submission ${id} ${submission.status}: ${submission.error || "no detail"}. `,
         link,
       );
@@ -155,6 +161,7 @@ $("#upload").addEventListener("submit", async (event) => {
     say("The file is valid. Submitting…");
     const accepted = await api("POST", "/submissions", { form });
     say(`Submission ${accepted.id} is queued.`);
+    refreshQuotas();
     await follow(accepted.id);
   } catch (error) {
     if (error instanceof ApiError && Array.isArray(error.body.problems)) {
@@ -165,6 +172,7 @@ $("#upload").addEventListener("submit", async (event) => {
     }
   } finally {
     $("#upload-button").disabled = false;
+    refreshQuotas();
   }
 });
 
@@ -219,11 +227,11 @@ function standing(submission) {
 }
 
 // Whether the board shows it (the API answers with the board's own choice), and the way to make it final.
-function onBoard(submission) {
+function onBoard(submission, versions) {
   const shown = submission.on_leaderboard;
   const element = document.createElement("span");
   const why = submission.selected ? "your final entry" : "your best";
-  if (shown.length === PAGE.versions.length) element.append(`✓ shown, ${why}`);
+  if (shown.length === versions.length) element.append(`✓ shown, ${why}`);
   else if (shown.length) element.append(`✓ shown under ${shown.map((v) => `${PAGE.score_labels[v]} ${v}`).join(", ")}, ${why} there`);
   else if (submission.selected) element.append(Object.assign(document.createElement("span"), {
     className: "sanction", textContent: "final, but not shown: the board shows your best other entry",
@@ -238,10 +246,38 @@ function onBoard(submission) {
   return element;
 }
 
-async function loadHistory() {
-  const submissions = await api("GET", "/submissions");
-  const body = $("#history").tBodies[0];
-  body.replaceChildren();
+// The score columns of a phase: its versions, newest first, each two-stage one followed by its two stages.
+function scoreColumns(versions) {
+  return [...versions].reverse().flatMap((version) => {
+    const name = `${PAGE.score_labels[version]} ${version}`;
+    const score = { title: name, value: (s) => scoreOf(s, version) };
+    if (!PAGE.two_stage_versions.includes(version)) return [score];
+    const stage = (key) => (s) => (s.results?.[version]?.all || {})[key];
+    return [
+      score,
+      { title: "Stage 1", value: stage("stage_one_score"), hint: `${name}, stage one: the logged frames, mean over groups` },
+      { title: "Stage 2", value: stage("stage_two_score"), hint: `${name}, stage two: the synthetic successors, weighted` },
+    ];
+  });
+}
+
+function historyTable(phase, versions, submissions) {
+  const section = document.createElement("section");
+  section.className = "history-phase";
+  const split = submissions[0].split;
+  const title = Object.assign(document.createElement("h3"), { textContent: `Phase ${phase ?? "none"}` });
+  title.append(Object.assign(document.createElement("small"), {
+    textContent: ` split ${split}${versions.some((v) => PAGE.two_stage_versions.includes(v)) ? ", two stages" : ""} · ${counted(submissions.length, "entry", "entries")}`,
+  }));
+  const table = document.createElement("table");
+  table.className = "board stack history";
+  const columns = scoreColumns(versions);
+  const head = table.createTHead().insertRow();
+  for (const [name, hint] of [["Id"], ["Method"], ["Status"], ...columns.map((c) => [c.title, c.hint]), ["Submitted (UTC)"], ["On the leaderboard"], ["Actions"]]) {
+    head.append(Object.assign(document.createElement("th"), { scope: "col", textContent: name, title: hint || "" }));
+  }
+  for (const th of [...head.cells].slice(3, 3 + columns.length)) th.className = "num";
+  const body = table.createTBody();
   for (const submission of submissions) {
     const row = body.insertRow();
     const link = document.createElement("a");
@@ -250,9 +286,9 @@ async function loadHistory() {
     cell(row, link);
     cell(row, submission.method);
     cell(row, standing(submission));
-    for (const version of HISTORY_VERSIONS) cell(row, pct(scoreOf(submission, version)), "num");
+    for (const column of columns) cell(row, pct(column.value(submission)), "num");
     cell(row, when(submission.submitted_at));
-    cell(row, onBoard(submission));
+    cell(row, onBoard(submission, versions));
     const actions = document.createElement("span");
     actions.append(
       button("edit", () => openEditor(submission), "edit the method name, authors and links"),
@@ -261,11 +297,23 @@ async function loadHistory() {
     );
     cell(row, actions);
   }
-  if (!submissions.length) {
-    const row = body.insertRow();
-    const td = cell(row, "No submission yet.", "empty");
-    td.colSpan = 6 + HISTORY_VERSIONS.length;
+  const scroll = Object.assign(document.createElement("div"), { className: "scroll" });
+  scroll.append(table);
+  section.append(title, scroll);
+  return section;
+}
+
+// One table per phase, the phase of the newest upload first, each with its own versions as columns.
+async function loadHistory() {
+  const [submissions, phases] = await Promise.all([api("GET", "/submissions"), api("GET", "/phases")]);
+  const versionsOf = Object.fromEntries(phases.map((phase) => [phase.name, phase.versions]));
+  const byPhase = new Map();
+  for (const submission of submissions) {
+    if (!byPhase.has(submission.phase)) byPhase.set(submission.phase, []);
+    byPhase.get(submission.phase).push(submission);
   }
+  $("#history").replaceChildren(...[...byPhase].map(([phase, rows]) => historyTable(phase, versionsOf[phase] || PAGE.versions, rows)));
+  if (!submissions.length) $("#history").append(Object.assign(document.createElement("p"), { className: "empty", textContent: "No submission yet." }));
 }
 
 if (token()) showTeam().catch(() => sessionStorage.removeItem(TOKEN_KEY));
