@@ -883,6 +883,10 @@ def test_the_two_stage_tab_and_a_submissions_groups_are_readable(
     expect(page.locator("#leaderboard tbody tr")).to_have_count(3)
     expect(page.locator("#leaderboard thead")).to_contain_text("Stage 1")
     expect(page.locator("nav[aria-label='Metric version'] a")).to_have_text(["EPDMS v2.2-two-stage"])
+    # Every header shown heads a cell shown: a phone hides the stage columns, headers and cells alike.
+    shown = "elements => elements.filter((element) => element.offsetParent !== null).length"
+    headers = page.locator("#leaderboard thead th").evaluate_all(shown)
+    assert headers == page.locator("#leaderboard tbody tr").first.locator("td").evaluate_all(shown)
     _fits(page)
     _screenshot(page, f"two-stage-board-{width}")
 

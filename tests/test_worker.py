@@ -353,11 +353,14 @@ def test_a_scored_run_is_followed_by_its_split_s_integrity_check(
                 flag
                 for check in integrity_report(session)["checks"]
                 for flag in check["flags"]
-                if flag["submission_id"] == submission_id and check["finished_at"] is not None
+                if flag["submission_id"] == submission_id
+                and flag["kind"] == "leaked_log"
+                and check["finished_at"] is not None
             ]
 
+    # Other flags may name it too: the module's other entries are the same team's near-copies (probing).
     (flag,) = wait_for(flagged, "the integrity check after the run")  # type: ignore[misc]
-    assert (flag["kind"], flag["evidence"]["seed"]) == ("leaked_log", 1)
+    assert flag["evidence"]["seed"] == 1
     assert re.search(
         rf"check_integrity\[[^\]]+\] succeeded in [^:]+: 'submission {submission_id}: integrity",
         service.worker_log(),
