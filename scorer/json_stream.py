@@ -9,8 +9,9 @@ same scanner, so the same floats, bit for bit, and the same NaN and Infinity), t
 build them; the bytes are decoded as `json.loads` decodes bytes (its detection of UTF-8, -16 or -32, and
 'surrogatepass'), a chunk at a time.
 
-A value read whole may take at most `max_value_chars` characters: past that the file is refused (a valid
-submission's values other than the streamed fields are a few hundred characters of metadata).
+A value read whole that runs past the chunk it starts in may take at most `max_value_chars` characters: past
+that the file is refused (a valid submission's values other than the streamed fields are a few hundred
+characters of metadata), so what is held stays bounded whatever a file holds.
 """
 
 from __future__ import annotations

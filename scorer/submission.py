@@ -201,7 +201,7 @@ def _check_poses(values: Any, token: str, field: str, problems: _Problems) -> Fl
     if poses.shape != (NUM_POSES, 3):
         problems.add(token, field, f"expected {NUM_POSES} poses of [x, y, heading], got shape {poses.shape}")
         return None
-    poses = poses.astype(np.float64)
+    poses = poses.astype(np.float64, copy=False)  # read as float64 already: kept, not copied
     if not np.isfinite(poses).all():
         row, column = (int(i) for i in np.argwhere(~np.isfinite(poses))[0])
         problems.add(token, f"{field}[{row}][{column}]", "values must be finite (no NaN or infinity)")

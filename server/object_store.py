@@ -272,7 +272,7 @@ class _S3Staged:
                 Key=self.temporary,
                 UploadId=self.upload_id,
                 PartNumber=number,
-                Body=bytes(self.buffer),
+                Body=self.buffer,
             )
         self.parts.append({"PartNumber": number, "ETag": sent["ETag"]})
         self.buffer.clear()

@@ -33,6 +33,7 @@ class UploadForm:
         if kind != b"multipart/form-data" or not boundary:
             raise _refusal("the upload must be a multipart/form-data body with a `file` field")
         self.fields: dict[str, str] = {}
+        self.after_file: set[str] = set()  # the fields that came after the file
         self.filename: str | None = None
         self._body, self._ended = body, False
         self._name: str | None = None
@@ -83,6 +84,8 @@ class UploadForm:
             self._in_file, self._file_done = False, True
         elif self._name:
             self.fields[self._name] = self._value.decode("utf-8", "replace")
+            if self._file_done:
+                self.after_file.add(self._name)
 
     def _feed(self) -> bool:
         """Parse the body's next chunk; return False at its end."""

@@ -80,7 +80,7 @@ def _checked_upload(request: Request, session: Session, staged: Staged | None) -
         upload_stages(split),
         staged=staged,
     )
-    if form.fields.get("phase") != phase:
+    if "phase" in form.after_file:
         message = "the phase field must come before the file in the form"
         raise Invalid(message, [{"token": None, "field": "phase", "message": message}])
     return phase_row, upload
