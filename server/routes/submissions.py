@@ -80,8 +80,10 @@ def _checked_upload(request: Request, session: Session, staged: Staged | None) -
         upload_stages(split),
         staged=staged,
     )
-    if "phase" in form.after_file:
-        message = "the phase field must come before the file in the form"
+    if "phase" in form.after_file and resolve_phase(session, form.fields["phase"]).id != phase_row.id:
+        message = (
+            "the phase field must come before the file in the form (it says which split the file covers)"
+        )
         raise Invalid(message, [{"token": None, "field": "phase", "message": message}])
     return phase_row, upload
 
