@@ -70,15 +70,11 @@ def _checked_upload(request: Request, session: Session, staged: Staged | None) -
         limit,
         lambda: HTTPException(status_code=413, detail=upload_too_large(limit)),
     )
-    split = phase_row.split
+    tokens, stages = split_tokens(phase_row.split), upload_stages(phase_row.split)
+    session.commit()  # no database connection is held while the file streams in, however slowly
     # The form's fields, the ones after the file included once it is read, give its metadata.
     upload = validate_stream(
-        received,
-        form.filename or "submission",
-        split_tokens(split),
-        form.fields,
-        upload_stages(split),
-        staged=staged,
+        received, form.filename or "submission", tokens, form.fields, stages, staged=staged
     )
     if "phase" in form.after_file and resolve_phase(session, form.fields["phase"]).id != phase_row.id:
         message = (
