@@ -114,6 +114,7 @@ SPLIT_SEED = 11
 CONNECTIONS = 64  # concurrent clients of the leaderboard load
 REQUEST_TIMEOUT_S = 30.0
 SERVICE_TARGET = 1.25  # POST to leaderboard row against the engine alone
+STORE_TARGET = 1.1  # upload to row on the object store (cold worker caches) against the local directory (#28)
 # How often the client asks whether its upload is scored: each answer costs the API a few ms of the CPU the
 # workers score on, so asking 20 times a second would slow what it measures by several percent.
 STATUS_POLL_S = 0.25
@@ -256,19 +257,22 @@ def backend(kind: str, root: Path) -> Iterator[dict[str, str]]:
 
 
 @contextmanager
-def storage(kind: str, root: Path, split: Path, cache: Path) -> Iterator[tuple[dict[str, str], str]]:
-    """Yield the variables of a storage `kind` under `root`, and where the split registers from: the local
+def storage(
+    kind: str, root: Path, split: Path, cache: Path
+) -> Iterator[tuple[dict[str, str], str, int | None]]:
+    """Yield the variables of a storage `kind` under `root`, where the split registers from (the local
     directory with its cache built, or an S3 store holding the split's scenes and its published caches, each
-    worker's own caches empty."""
+    worker's own caches empty) and the pid of the S3 server started here (None for another's)."""
     if kind == "local":
-        yield {"CACHE_DIR": str(cache)}, str(split)
+        yield {"CACHE_DIR": str(cache)}, str(split), None
         return
     with ExitStack() as stack:
-        own_port = None  # of the moto server started here, when no endpoint is given
-        if "AWS_ENDPOINT_URL" not in os.environ:
+        own_port = own_pid = None  # of the moto server started here, when no endpoint is given
+        if "AWS_ENDPOINT_URL" not in os.environ or os.environ.get("NAVSIM_LB_BENCH_OWN_S3"):
             own_port = port = free_port()
             command = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)]
-            stack.enter_context(child_process(command, dict(os.environ), root / "moto.log"))
+            own_pid = stack.enter_context(child_process(command, dict(os.environ), root / "moto.log")).pid
+            os.environ["NAVSIM_LB_BENCH_OWN_S3"] = "1"  # the next configuration starts its own again
             os.environ |= {"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "bench"}
             os.environ |= {"AWS_SECRET_ACCESS_KEY": "bench", "AWS_DEFAULT_REGION": "us-east-1"}
         # The tests' helpers, imported once the endpoint is set (they default it to CI's server otherwise).
@@ -288,6 +292,7 @@ def storage(kind: str, root: Path, split: Path, cache: Path) -> Iterator[tuple[d
         yield (
             variables | {"STORAGE_URL": location, "CACHE_DIR": str(root / "cold-cache")},
             f"{location}/split",
+            own_pid,
         )
 
 
@@ -552,6 +557,11 @@ class Running:
     worker_pid: int
     api_pid: int
     index_s: float  # what the split's index of log frames took at set-up (a first run on the split pays it)
+    store_pid: int | None  # the S3 server's started here, which runs on the same cores
+
+    def store_cpu_seconds(self) -> float:
+        """Return the CPU seconds the S3 server started here has used (0 without one)."""
+        return session_cpu_seconds(self.store_pid) if self.store_pid else 0.0
 
     def cpu_seconds(self) -> float:
         """Return the CPU seconds its worker's and API's processes have used (the database's are apart)."""
@@ -565,7 +575,7 @@ def running(
     """Run API and worker (its consumers `nice` below it) on a fresh backend and storage for the block."""
     with tempfile.TemporaryDirectory(prefix="navsim-lb-bench-") as tmp, ExitStack() as stack:
         root = Path(tmp)
-        files, location = stack.enter_context(storage(stored, root, split, cache))
+        files, location, store_pid = stack.enter_context(storage(stored, root, split, cache))
         variables = stack.enter_context(backend(kind, root)) | files
         env = {**os.environ, **variables}
         database_url = Settings(**variables).database_url  # type: ignore[arg-type]  # keys are the aliases
@@ -582,7 +592,7 @@ def running(
         )
         wait_until(lambda: answers(client), timeout=60)
         wait_until(lambda: "ready." in worker_log.read_text(errors="replace"), timeout=60)
-        yield Running(root, url, token, client, database_url, worker.pid, api.pid, index_s)
+        yield Running(root, url, token, client, database_url, worker.pid, api.pid, index_s, store_pid)
 
 
 @dataclass(frozen=True)
@@ -590,6 +600,7 @@ class Measured:
     scored: float  # seconds from POST to its scored status
     on_board: float  # and to its leaderboard row
     cpu: float  # CPU seconds the worker and the API used meanwhile
+    store_cpu: float  # and the S3 server started here, on the same cores
     index_s: float  # Running's
     latency: Latencies | None  # of the leaderboard, if asked
     peaks: tuple[float, list[float]] | None  # worker_peak_rss's
@@ -609,15 +620,16 @@ def measure(
     """Run one configuration on a fresh backend and storage: POST-to-row times of `entry` (its rows on the
     boards of `versions`) and the CPU they took, then leaderboard latency if asked, and the worker's peak RSS."""
     with running(kind, workers, split, cache, nice, stored) as service:
-        cpu = service.cpu_seconds()
+        cpu, store_cpu = service.cpu_seconds(), service.store_cpu_seconds()
         scored, on_board = post_to_row(service.client, entry, versions)
-        cpu = service.cpu_seconds() - cpu
+        cpu, store_cpu = service.cpu_seconds() - cpu, service.store_cpu_seconds() - store_cpu
         latency = None
         if latency_load:
             rate, seconds = latency_load
             board = board_streams(rate)[0]
             latency = asyncio.run(route_latencies(service.url, service.token, [board], seconds))[board.route]
-        return Measured(scored, on_board, cpu, service.index_s, latency, worker_peak_rss(service.worker_pid))
+        peaks = worker_peak_rss(service.worker_pid)
+        return Measured(scored, on_board, cpu, store_cpu, service.index_s, latency, peaks)
 
 
 def scored_once(database_url: str, submission_ids: list[int], tokens: int, seeds: int) -> list[str]:
@@ -751,14 +763,16 @@ def main() -> None:
         f"{args.tokens} tokens x {args.seeds} seeds, the board's metric versions ({', '.join(LOG_REPLAY_VERSIONS)}): seconds from"
         " POST to its scored status and to its leaderboard row, against the engine alone on as many processes"
         f" (target: at most {SERVICE_TARGET}x); CPU seconds of the worker and the API meanwhile, against the"
-        " engine's (what a host shared with other work still measures); the split's index of log frames, which"
-        " the first run on a split builds:"
+        " engine's (what a host shared with other work still measures), and of the S3 server started here (moto,"
+        " on the same cores: a store of its own host costs the workers none); the split's index of log frames,"
+        " which the first run on a split builds:"
     )
     print(
         f"{'backend':10} {'storage':>7} {'workers':>7} {'scored':>8} {'on board':>9} {'engine':>7} {'ratio':>6}"
-        f" {'CPU':>7} {'engine':>7} {'ratio':>6} {'index':>6}  worker peak RSS (MiB)"
+        f" {'CPU':>7} {'engine':>7} {'ratio':>6} {'store':>6} {'index':>6}  worker peak RSS (MiB)"
     )
     latencies = {}
+    on_board: dict[tuple[str, int, str], float] = {}
     for kind, stored, workers in itertools.product(args.backends.split(","), args.storage.split(","), sizes):
         # Leaderboard latency once per backend, with the largest worker idle beside the API.
         load = (args.rate, args.seconds) if workers == max(sizes) and stored == "local" else None
@@ -767,11 +781,19 @@ def main() -> None:
         print(
             f"{kind:10} {stored:>7} {workers:>7} {measured.scored:>8.1f} {measured.on_board:>9.1f} {seconds:>7.1f}"
             f" {measured.on_board / seconds:>5.2f}x {measured.cpu:>7.1f} {cpu:>7.1f}"
-            f" {measured.cpu / cpu:>5.2f}x {measured.index_s:>6.1f}  {peak_rss_text(measured.peaks)}",
+            f" {measured.cpu / cpu:>5.2f}x {measured.store_cpu:>6.1f} {measured.index_s:>6.1f}"
+            f"  {peak_rss_text(measured.peaks)}",
             flush=True,
         )
         if measured.latency is not None:
             latencies[kind] = measured.latency
+        on_board[kind, workers, stored] = measured.on_board
+    for (kind, workers, stored), seconds in on_board.items():
+        if stored == "s3" and (kind, workers, "local") in on_board:
+            print(
+                f"{kind}, {workers} workers: upload-to-row on the S3 store (cold worker caches) / on the local"
+                f" directory: {seconds / on_board[kind, workers, 'local']:.2f}x (target {STORE_TARGET}x)"
+            )
     for kind, latency in latencies.items():
         print(f"GET /leaderboard {kind}: {args.rate:.0f}/s for {args.seconds:.0f} s: {latency.text()}")
 

@@ -16,11 +16,10 @@ import lzma
 import math
 import pickle
 import re
-import tempfile
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields
-from typing import Any, NamedTuple, cast
+from typing import IO, Any, NamedTuple, Protocol, cast
 
 import numpy as np
 
@@ -127,6 +126,13 @@ class TwoStageSubmission:
     second_stage: tuple[dict[str, FloatArray], ...]
 
 
+class ByteSource(Protocol):
+    """Where a file's bytes are read from, as they arrive: `read(size)` returns at most `size` of them (all the
+    rest for -1), b'' at the end."""
+
+    def read(self, size: int = -1, /) -> bytes: ...
+
+
 Seeds = tuple[tuple[dict[str, FloatArray], ...], list[list[str]]]  # readable poses, every token, per seed
 
 
@@ -195,7 +201,7 @@ def _check_poses(values: Any, token: str, field: str, problems: _Problems) -> Fl
     if poses.shape != (NUM_POSES, 3):
         problems.add(token, field, f"expected {NUM_POSES} poses of [x, y, heading], got shape {poses.shape}")
         return None
-    poses = poses.astype(np.float64)
+    poses = poses.astype(np.float64, copy=False)  # read as float64 already: kept, not copied
     if not np.isfinite(poses).all():
         row, column = (int(i) for i in np.argwhere(~np.isfinite(poses))[0])
         problems.add(token, f"{field}[{row}][{column}]", "values must be finite (no NaN or infinity)")
@@ -267,10 +273,24 @@ JSON_HEADER_FIELDS = {
 }
 
 
-def _json_document(data: bytes) -> dict[str, Any]:
+def _small_leaf(value: Any) -> Any:
+    """Keep a token's poses as read from JSON small: as an array when numpy reads them as numbers (what
+    `_check_poses` makes of them first, so it finds the same), else as they are (it names what is wrong)."""
+    try:
+        poses = np.asarray(value)
+    except Exception:  # noqa: BLE001 - `_check_poses` meets the same value and says what is wrong with it
+        return value
+    return poses if poses.dtype.kind in "fiu" else value
+
+
+def _json_document(content: ByteSource) -> dict[str, Any]:
+    from scorer.json_stream import read_json
+
     try:
         # NaN and Infinity (which Python's json writes) are read, then reported per token as non-finite.
-        document = json.loads(data, object_pairs_hook=_object_pairs)
+        document = read_json(
+            content, {"predictions", *STAGE_FIELDS}, _small_leaf, _object_pairs, HEADER_BYTES_BOUND
+        )
     except (UnicodeDecodeError, ValueError) as error:
         raise SubmissionError([Problem(None, None, f"not valid JSON: {error}")]) from None
     except RecursionError:
@@ -473,28 +493,94 @@ UNPICKLING_ERRORS = (
 )
 
 
-def _check_opcodes(data: bytes) -> None:
-    """Walk the opcodes before unpickling: a damaged stream can declare an argument longer than the file or a
-    memo index far beyond its size, which the C unpickler would allocate memory for before failing
-    (pickletools only reads the bytes that are there). A pickler numbers its memo entries in sequence."""
-    import pickletools  # only pickles need it: JSON submissions and the scoring path start without it
+class _CheckedPickle:
+    """The bytes of a pickle, handed to the unpickler only once their opcodes were walked (pickletools reads
+    only the bytes that are there): a damaged stream can declare an argument longer than the file or a memo
+    index far beyond its size, which the C unpickler would allocate memory for before failing. A pickler
+    numbers its memo entries in sequence. Read as the unpickler asks: nothing past the opcode it needs."""
 
-    memo_size = 0
-    for opcode, argument, _ in pickletools.genops(data):
+    def __init__(self, content: ByteSource) -> None:
+        import pickletools  # only pickles need it: JSON submissions and the scoring path start without it
+
+        self._content, self._ahead, self._walked = content, bytearray(), bytearray()
+        self._opcodes = pickletools.genops(cast(IO[bytes], _Recorder(self)))
+        self._memo_size = 0
+
+    def _fetch(self) -> bool:
+        data = self._content.read(_INPUT_BYTES)
+        self._ahead += data
+        return bool(data)
+
+    def _step(self) -> bool:
+        """Walk one opcode (with its argument); return False once the pickle has ended."""
+        step = next(self._opcodes, None)
+        if step is None:
+            return False
+        opcode, argument, _ = step
         if opcode.name == "MEMOIZE":
-            memo_size += 1
+            self._memo_size += 1
         elif opcode.name in ("PUT", "BINPUT", "LONG_BINPUT"):
             index = cast(int, argument)  # these opcodes carry an integer
-            if index > memo_size:
-                raise pickle.UnpicklingError(f"memo index {index} out of sequence")
-            memo_size = max(memo_size, index + 1)
+            if index > self._memo_size:
+                # Not an UnpicklingError, which the C unpickler reports as "Ran out of input".
+                raise ValueError(f"memo index {index} out of sequence")
+            self._memo_size = max(self._memo_size, index + 1)
+        return True
+
+    def _give(self, size: int) -> bytes:
+        data = bytes(self._walked[:size])
+        del self._walked[:size]
+        return data
+
+    def read(self, size: int = -1) -> bytes:
+        while (size < 0 or len(self._walked) < size) and self._step():
+            pass
+        return self._give(len(self._walked) if size < 0 else size)
+
+    def readinto(self, buffer: Any) -> int:
+        data = self.read(len(buffer))
+        buffer[: len(data)] = data
+        return len(data)
+
+    def readline(self) -> bytes:
+        while b"\n" not in self._walked and self._step():
+            pass
+        return self._give(self._walked.find(b"\n") + 1 or len(self._walked))
 
 
-def _unpickle(data: bytes) -> Any:
+class _Recorder:
+    """What pickletools reads of a _CheckedPickle's content: each byte read is kept for the unpickler."""
+
+    def __init__(self, pickle_: _CheckedPickle) -> None:
+        self._of = pickle_
+
+    def _take(self, size: int) -> bytes:
+        of = self._of
+        data = bytes(of._ahead[:size])
+        del of._ahead[:size]
+        of._walked += data
+        return data
+
+    def read(self, size: int) -> bytes:
+        ahead = self._of._ahead
+        while len(ahead) < size and len(ahead) <= HEADER_BYTES_BOUND and self._of._fetch():
+            pass
+        if len(ahead) < size and len(ahead) > HEADER_BYTES_BOUND:
+            # A NAVSIM submission's largest argument is a token, a metadata text or an array's bytes.
+            raise ValueError(f"an argument of {size:,} bytes, more than a NAVSIM submission's pickle holds")
+        return self._take(size)
+
+    def readline(self) -> bytes:
+        while b"\n" not in self._of._ahead and self._of._fetch():
+            pass
+        end = self._of._ahead.find(b"\n") + 1 or len(self._of._ahead)
+        return self._take(end)
+
+
+def _unpickle(content: ByteSource) -> Any:
     try:
-        _check_opcodes(data)
-        return _RestrictedUnpickler(io.BytesIO(data)).load()
-    # With sizes bounded by `_check_opcodes`, the C unpickler still reports some damaged frames as MemoryError.
+        return _RestrictedUnpickler(_CheckedPickle(content)).load()
+    # With sizes bounded by `_CheckedPickle`, the C unpickler still reports some damaged frames as MemoryError.
     except (*UNPICKLING_ERRORS, MemoryError) as error:
         # Any failure inside the stream is the file's fault: report it, never execute around it.
         raise SubmissionError(
@@ -527,8 +613,8 @@ def _pickle_trajectory(value: Any, token: Any, field: str, problems: _Problems) 
     return _check_poses(poses, token, f"{field}.poses", problems)
 
 
-def _pickle_document(data: bytes) -> dict[Any, Any]:
-    document = _unpickle(data)
+def _pickle_document(content: ByteSource) -> dict[Any, Any]:
+    document = _unpickle(content)
     if not isinstance(document, dict):
         raise SubmissionError(
             [Problem(None, None, f"the pickle must hold a dict, got {type(document).__name__}")]
@@ -590,7 +676,7 @@ def _pickle_predictions(predictions: Any, problems: _Problems, field_name: str) 
 class _Form(NamedTuple):
     """How one file form (JSON or pickle) gives its document, its metadata and one predictions field."""
 
-    document: Callable[[bytes], dict[Any, Any]]
+    document: Callable[[ByteSource], dict[Any, Any]]
     metadata: Callable[[dict[Any, Any], str, Sequence[str], _Problems], SubmissionMetadata]
     predictions: Callable[[Any, _Problems, str], Seeds]
 
@@ -599,8 +685,16 @@ _JSON = _Form(_json_document, _json_header, _json_predictions)
 _PICKLE = _Form(_pickle_document, _pickle_metadata, _pickle_predictions)
 
 
-def _read(content: bytes, form: _Form) -> Submission:
-    document = form.document(content)
+class SubmissionFile(NamedTuple):
+    """A submission file's document, read in its form (JSON or pickle), before its fields are checked."""
+
+    document: dict[Any, Any]
+    form: _Form
+
+
+def one_stage(read: SubmissionFile) -> Submission:
+    """Return the one-stage submission a file's document holds; raises SubmissionError listing every problem."""
+    document, form = read
     problems = _Problems()
     metadata = form.metadata(document, FORMAT, ["predictions"], problems)
     seeds, seed_tokens = form.predictions(document.get("predictions"), problems, "predictions")
@@ -608,9 +702,10 @@ def _read(content: bytes, form: _Form) -> Submission:
     return Submission(metadata, seeds)
 
 
-def _read_two_stage(content: bytes, form: _Form) -> TwoStageSubmission:
-    """Return the two stages' seeds as one submission: seed i is the i-th dict of each stage's list."""
-    document = form.document(content)
+def two_stage(read: SubmissionFile) -> TwoStageSubmission:
+    """Return the two stages' seeds a file's document holds as one submission: seed i is the i-th dict of each
+    stage's list. Raises SubmissionError listing every problem."""
+    document, form = read
     problems = _Problems()
     metadata = form.metadata(document, TWO_STAGE_FORMAT, STAGE_FIELDS, problems)
     (first, first_tokens), (second, second_tokens) = (
@@ -671,7 +766,6 @@ _WIDE_BOMS = (b"\xff\xfe", b"\xfe\xff", b"\x00\x00\xfe\xff")
 _HEAD_BYTES = 64  # enough of a file's start to name its kind
 _INPUT_BYTES = 1 << 16  # compressed bytes fed to a decompressor at a time
 _OUTPUT_BYTES = 1 << 20  # and the most it gives back at a time
-_SPOOL_BYTES = 1 << 20  # inflated content kept in memory while it inflates; the rest waits on disk
 _READS = "the server reads navsim-lb JSON or a NAVSIM submission pickle, either one optionally gzip- or xz-compressed"
 
 
@@ -711,12 +805,11 @@ def _too_large(filename: str, verb: str, limit: ContentLimit) -> SubmissionError
     return SubmissionError([Problem(None, None, message)])
 
 
-def _gunzip(data: bytes) -> Iterator[bytes]:
+def _gunzip(pieces: Iterable[bytes]) -> Iterator[bytes]:
     """Yield what a gzip stream inflates to, at most _OUTPUT_BYTES at a time."""
     decompressor = zlib.decompressobj(wbits=31)
-    view = memoryview(data)
-    for start in range(0, len(data), _INPUT_BYTES):
-        pending: bytes | memoryview = view[start : start + _INPUT_BYTES]
+    for piece in pieces:
+        pending: bytes = piece
         while not decompressor.eof:
             inflated = decompressor.decompress(pending, _OUTPUT_BYTES)
             pending = decompressor.unconsumed_tail
@@ -729,12 +822,11 @@ def _gunzip(data: bytes) -> Iterator[bytes]:
     raise zlib.error("the stream ends early: the file was cut short")
 
 
-def _unxz(data: bytes) -> Iterator[bytes]:
+def _unxz(pieces: Iterable[bytes]) -> Iterator[bytes]:
     """Yield what an xz stream inflates to, at most _OUTPUT_BYTES at a time."""
     decompressor = lzma.LZMADecompressor()
-    view = memoryview(data)
-    for start in range(0, len(data), _INPUT_BYTES):
-        pending: bytes | memoryview = view[start : start + _INPUT_BYTES]
+    for piece in pieces:
+        pending = piece
         while not decompressor.eof:
             yield decompressor.decompress(pending, _OUTPUT_BYTES)
             pending = b""
@@ -745,30 +837,83 @@ def _unxz(data: bytes) -> Iterator[bytes]:
     raise lzma.LZMAError("the stream ends early: the file was cut short")
 
 
-_INFLATERS: dict[str, Callable[[bytes], Iterator[bytes]]] = {"gzip": _gunzip, "xz": _unxz}
+_INFLATERS: dict[str, Callable[[Iterable[bytes]], Iterator[bytes]]] = {"gzip": _gunzip, "xz": _unxz}
 
 
-def _inflate(data: bytes, kind: str, filename: str, limit: ContentLimit) -> bytes:
-    """Return what a gzip or xz file inflates to, refused as it inflates: past `limit`, or as soon as its first
-    bytes show that it holds neither JSON nor a pickle (compressed again, say). What inflates past _SPOOL_BYTES
-    waits on disk until the end, so a bomb costs the API no more memory than that, whatever the split's limit."""
-    head = b""
-    size = 0
-    try:
-        with tempfile.SpooledTemporaryFile(max_size=_SPOOL_BYTES) as inflated:
-            for chunk in _INFLATERS[kind](data):
-                size += len(chunk)
-                if size > limit.bytes:
-                    raise _too_large(filename, f"({kind}) decompresses to", limit)
-                inflated.write(chunk)
-                if len(head) < _HEAD_BYTES:
-                    head += chunk[: _HEAD_BYTES - len(head)]
-                    if len(head) == _HEAD_BYTES:  # once; a blank start is looked past at the end
-                        _check_content_kind(head, filename, kind)
-            inflated.seek(0)
-            return inflated.read()
-    except (lzma.LZMAError, zlib.error) as error:
-        raise SubmissionError([Problem(None, None, f"corrupt {kind} file: {error}")]) from None
+def _pieces(start: bytes, source: ByteSource) -> Iterator[bytes]:
+    """Yield `start`, then what `source` reads, _INPUT_BYTES at a time."""
+    yield start
+    while piece := source.read(_INPUT_BYTES):
+        yield piece
+
+
+class _Content:
+    """A submission file's content (inflated when it is gzip or xz), read as the file streams in: refused
+    once it passes what a valid submission of the split can take (`limit`), or, from its first bytes, when it
+    holds neither JSON nor a pickle (compressed again, say). Holds at most one inflated piece at a time."""
+
+    def __init__(self, source: ByteSource, filename: str, limit: ContentLimit) -> None:
+        start = b""
+        while len(start) < _HEAD_BYTES and (piece := source.read(_HEAD_BYTES - len(start))):
+            start += piece
+        if not start:
+            raise SubmissionError([Problem(None, None, f"{filename} is empty")])
+        self.compression = next(
+            (kind for magic, kind in _COMPRESSED.items() if start.startswith(magic)), None
+        )
+        pieces = _pieces(start, source)
+        self._pieces = pieces if self.compression is None else _INFLATERS[self.compression](pieces)
+        self._filename, self._limit, self._size, self._buffer = filename, limit, 0, b""
+        self.is_pickle = self._check_kind()
+
+    def _next(self) -> bytes:
+        """Return the next piece of content (b'' at its end)."""
+        try:
+            piece = next(self._pieces, b"")
+        except (lzma.LZMAError, zlib.error) as error:
+            raise SubmissionError(
+                [Problem(None, None, f"corrupt {self.compression} file: {error}")]
+            ) from None
+        self._size += len(piece)
+        if self._size > self._limit.bytes:
+            verb = "is" if self.compression is None else f"({self.compression}) decompresses to"
+            raise _too_large(self._filename, verb, self._limit)
+        return piece
+
+    def _check_kind(self) -> bool:
+        """Refuse content that is neither JSON nor a pickle; return whether it is a pickle. Blank content is
+        looked past (JSON may follow), and not held: a bomb of blanks costs one piece."""
+        head, blank_start = b"", False
+        while True:
+            first = _NON_BLANK.search(head)
+            if first is not None and len(head) - first.start() >= _HEAD_BYTES:
+                break
+            piece = self._next()
+            if not piece:
+                break
+            if first is None and head:  # all blank so far: only what follows tells the kind
+                blank_start, head = True, b""
+            head += piece
+        self._buffer = head
+        _check_content_kind(head, self._filename, self.compression)
+        return not blank_start and _is_pickle(head)
+
+    def read(self, size: int = -1) -> bytes:
+        """Return at most `size` bytes of content (all that is left for -1); b'' at its end."""
+        if size < 0:
+            rest = [self._buffer, *iter(self._next, b"")]
+            self._buffer = b""
+            return b"".join(rest)
+        if not self._buffer:
+            self._buffer = self._next()
+        data, self._buffer = self._buffer[:size], self._buffer[size:]
+        return data
+
+    def drain(self) -> None:
+        """Read the rest (a pickle ends at its STOP): a file is accepted only whole and within its limit."""
+        self._buffer = b""
+        while self._next():
+            pass
 
 
 def _check_content_kind(content: bytes, filename: str, compression: str | None) -> None:
@@ -786,19 +931,22 @@ def _check_content_kind(content: bytes, filename: str, compression: str | None) 
     raise _not_a_submission(filename, f"{compression} holding {kind}{again}")
 
 
-def _content(data: bytes, filename: str, limit: ContentLimit) -> tuple[bytes, bool]:
-    """Return the decompressed bytes of a submission file and whether they are a pickle."""
-    if not data:
-        raise SubmissionError([Problem(None, None, f"{filename} is empty")])
-    compression = next((kind for magic, kind in _COMPRESSED.items() if data.startswith(magic)), None)
-    if compression is None:
-        if len(data) > limit.bytes:
-            raise _too_large(filename, "is", limit)
-        content = data
-    else:
-        content = _inflate(data, compression, filename, limit)
-    _check_content_kind(content, filename, compression)
-    return content, _is_pickle(content)
+def read_submission_file(
+    source: ByteSource, filename: str = "submission", limit: ContentLimit = UNSPLIT_LIMIT
+) -> SubmissionFile:
+    """Read a submission file (JSON or NAVSIM pickle, optionally xz- or gzip-compressed) as it streams from
+    `source`, to its document: one pass, holding one piece of the file and the document (the poses as arrays)
+    in memory. Read `one_stage` or `two_stage` from it. Raises SubmissionError; `filename` only labels
+    messages. Content past `limit` (decompressed) is refused as it inflates."""
+    content = _Content(source, filename, limit)
+    form = _PICKLE if content.is_pickle else _JSON
+    try:
+        document = form.document(content)
+    except SubmissionError:
+        content.drain()  # a file past its limit (a bomb) is refused as such, whatever its first bytes hold
+        raise
+    content.drain()
+    return SubmissionFile(document, form)
 
 
 def load_submission(
@@ -809,8 +957,7 @@ def load_submission(
     Raises SubmissionError listing every problem; `filename` only labels messages. Content past `limit`
     (decompressed) is refused as it inflates.
     """
-    content, is_pickle = _content(data, filename, limit)
-    return _read(content, _PICKLE if is_pickle else _JSON)
+    return one_stage(read_submission_file(io.BytesIO(data), filename, limit))
 
 
 def load_two_stage_submission(
@@ -822,8 +969,7 @@ def load_two_stage_submission(
     Several seeds are allowed (the official script refuses them): seed i is the i-th dict of both lists.
     Raises SubmissionError listing every problem; content past `limit` (decompressed) is refused as it inflates.
     """
-    content, is_pickle = _content(data, filename, limit)
-    return _read_two_stage(content, _PICKLE if is_pickle else _JSON)
+    return two_stage(read_submission_file(io.BytesIO(data), filename, limit))
 
 
 def coverage_problems(

@@ -14,12 +14,14 @@ missing object raises `MissingObject`, a FileNotFoundError as a missing file wou
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import tempfile
+import uuid
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -28,7 +30,10 @@ from urllib.parse import urlsplit
 
 from scorer.files import write_atomically
 
+log = logging.getLogger(__name__)
 S3_SCHEME = "s3"
+# Where a store's uploads are written until they are named (by their sha256, known at their end).
+INCOMING_PREFIX = ".incoming"
 # An upload goes to S3 in parts of this size: the most of it held in memory at once (S3's least part is 5 MiB).
 PART_BYTES = 8 * 1024 * 1024
 # Objects read at once by get_many (the S3 client is thread-safe; its pool holds as many connections).
@@ -72,6 +77,20 @@ class ObjectStore(Protocol):
 
     def keys(self, prefix: str) -> list[str]:
         """Return the keys under `prefix`, sorted."""
+
+    def staging(self) -> AbstractContextManager[Staged]:
+        """Return a context in which an object is written as it arrives and named only at the end (an upload,
+        by its sha256): whatever leaves it uncommitted, an error included, removes what was written."""
+
+
+class Staged(Protocol):
+    """An object being written, under no key until `commit`."""
+
+    def write(self, data: bytes) -> None:
+        """Append `data` (at most one part is held in memory)."""
+
+    def commit(self, key: str) -> None:
+        """Store what was written under `key` (whole, or not at all)."""
 
 
 @dataclass(frozen=True)
@@ -117,6 +136,11 @@ class LocalStore:
     def download(self, key: str, path: Path) -> None:
         write_atomically(Path(path), self.get(key), durable=False)
 
+    @contextmanager
+    def staging(self) -> Iterator[Staged]:
+        with _temporary_beside(self.root / "incoming") as (handle, temporary):
+            yield _LocalStaged(self, handle, temporary)
+
     def keys(self, prefix: str) -> list[str]:
         base = self._path(prefix)
         if not base.is_dir():
@@ -126,6 +150,25 @@ class LocalStore:
             for path in base.rglob("*")
             if path.is_file() and not path.name.startswith(".")
         )
+
+
+@dataclass(frozen=True)
+class _LocalStaged:
+    """An object written to a hidden temporary file in the store's directory, renamed into place."""
+
+    store: LocalStore
+    handle: IO[bytes]
+    temporary: str
+
+    def write(self, data: bytes) -> None:
+        self.handle.write(data)
+
+    def commit(self, key: str) -> None:
+        self.handle.flush()
+        os.fsync(self.handle.fileno())  # uploads cannot be made again
+        path = self.store._path(key)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(self.temporary, path)
 
 
 @contextmanager
@@ -188,6 +231,14 @@ class S3Store:
     def download(self, key: str, path: Path) -> None:
         write_atomically(Path(path), self.get(key), durable=False)
 
+    @contextmanager
+    def staging(self) -> Iterator[Staged]:
+        staged = _S3Staged(self, f"{INCOMING_PREFIX}/{uuid.uuid4().hex}")
+        try:
+            yield staged
+        finally:
+            staged.discard()
+
     def keys(self, prefix: str) -> list[str]:
         full = self._key(prefix)
         found: list[str] = []
@@ -196,6 +247,80 @@ class S3Store:
                 found += [item["Key"] for item in page.get("Contents", [])]
         start = len(self.prefix) + 1 if self.prefix else 0
         return sorted(name[start:] for name in found)
+
+
+class _S3Staged:
+    """An object sent in PART_BYTES parts of a multipart upload under a temporary key, copied to its key at
+    the end (S3 names an upload when it starts); a file of one part is sent whole to its key at the end."""
+
+    def __init__(self, store: S3Store, temporary: str) -> None:
+        self.store, self.temporary = store, store._key(temporary)
+        self.buffer = bytearray()
+        self.upload_id: str | None = None
+        self.parts: list[dict[str, Any]] = []
+        self.completed = False
+
+    def _send_part(self) -> None:
+        client, store = _client(), self.store
+        with _reaching(store):
+            if self.upload_id is None:
+                started = client.create_multipart_upload(Bucket=store.bucket, Key=self.temporary)
+                self.upload_id = started["UploadId"]
+            number = len(self.parts) + 1
+            sent = client.upload_part(
+                Bucket=store.bucket,
+                Key=self.temporary,
+                UploadId=self.upload_id,
+                PartNumber=number,
+                Body=self.buffer,
+            )
+        self.parts.append({"PartNumber": number, "ETag": sent["ETag"]})
+        self.buffer.clear()
+
+    def write(self, data: bytes) -> None:
+        self.buffer += data
+        if len(self.buffer) >= PART_BYTES:
+            self._send_part()
+
+    def commit(self, key: str) -> None:
+        from boto3.s3.transfer import TransferConfig
+
+        store, client = self.store, _client()
+        if self.upload_id is None:
+            store.put_bytes(key, bytes(self.buffer))
+            self.buffer.clear()
+            return
+        if self.buffer:
+            self._send_part()
+        with _reaching(store):
+            client.complete_multipart_upload(
+                Bucket=store.bucket,
+                Key=self.temporary,
+                UploadId=self.upload_id,
+                MultipartUpload={"Parts": self.parts},
+            )
+            self.completed = True
+            source = {"Bucket": store.bucket, "Key": self.temporary}
+            # A managed copy: CopyObject, or a multipart copy above its limit, part by part on the store itself.
+            client.copy(source, store.bucket, store._key(key), Config=TransferConfig(use_threads=False))
+
+    def discard(self) -> None:
+        """Remove the temporary upload or object (best effort: a store that is down keeps an incomplete
+        upload, which S3 never shows as an object; a bucket's lifecycle rule removes it)."""
+        from botocore.exceptions import BotoCoreError, ClientError
+
+        store, client = self.store, _client()
+        try:
+            if self.completed:
+                client.delete_object(Bucket=store.bucket, Key=self.temporary)
+            elif self.upload_id is not None:
+                client.abort_multipart_upload(
+                    Bucket=store.bucket, Key=self.temporary, UploadId=self.upload_id
+                )
+        except (BotoCoreError, ClientError) as error:
+            log.warning(
+                "could not remove the temporary upload %s from %s: %s", self.temporary, store.url, error
+            )
 
 
 def get_many(store: ObjectStore, keys: Iterable[str]) -> dict[str, bytes | None]:

@@ -21,15 +21,15 @@ from navsim_lb.processes import child_process
 class Gate:
     """Forwards connections from its own loopback port to `target_port` while open."""
 
-    def __init__(self, target_port: int) -> None:
-        self.port, self.target_port = free_port(), target_port
-        self.url = f"http://127.0.0.1:{self.port}"
+    def __init__(self, target_port: int, host: str = "127.0.0.1") -> None:
+        self.port, self.target_port, self.host = free_port(), target_port, host
+        self.url = f"http://{host}:{self.port}"
         self._listener: socket.socket | None = None
         self._open: set[socket.socket] = set()
         self._lock = threading.Lock()
 
     def open(self) -> None:
-        self._listener = socket.create_server(("127.0.0.1", self.port))
+        self._listener = socket.create_server((self.host, self.port))
         threading.Thread(target=self._accept, args=(self._listener,), daemon=True).start()
 
     def close(self) -> None:
@@ -73,14 +73,15 @@ def with_shutdown(connection: socket.socket) -> None:
 
 
 @contextmanager
-def own_s3(directory: Path) -> Iterator[Gate]:
-    """Run a moto S3 server for the block; yield the open gate in front of it (its `url` is the endpoint)."""
+def own_s3(directory: Path, host: str = "127.0.0.1") -> Iterator[Gate]:
+    """Run a moto S3 server for the block; yield the open gate in front of it, listening on `host` (its `url`
+    is the endpoint)."""
     directory.mkdir(parents=True, exist_ok=True)
     port = free_port()
     command = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)]
     with child_process(command, dict(os.environ), directory / "moto.log"):
         wait_for(lambda: port_answers(port), f"moto on port {port}")
-        gate = Gate(port)
+        gate = Gate(port, host)
         gate.open()
         try:
             yield gate

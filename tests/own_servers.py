@@ -26,9 +26,9 @@ POSTGRES_USER = "postgres"  # PostgreSQL refuses to run as root
 class OwnRedis:
     """A Redis server (no persistence, as the machine's) that the test can restart on the same port."""
 
-    def __init__(self, directory: Path) -> None:
-        self.port, self.directory = free_port(), directory
-        self.url = f"redis://127.0.0.1:{self.port}/0"
+    def __init__(self, directory: Path, host: str = "127.0.0.1") -> None:
+        self.port, self.directory, self.host = free_port(), directory, host
+        self.url = f"redis://{host}:{self.port}/0"
         self._process = ExitStack()
         self.process: subprocess.Popen[bytes] | None = None
 
@@ -36,7 +36,16 @@ class OwnRedis:
         return redis.Redis(port=self.port)
 
     def start(self) -> None:
-        command = ["redis-server", "--port", str(self.port), "--bind", "127.0.0.1", "--save", ""]
+        command = [
+            "redis-server",
+            "--port",
+            str(self.port),
+            "--bind",
+            *dict.fromkeys(["127.0.0.1", self.host]),
+        ]
+        command += ["--save", ""]
+        if self.host != "127.0.0.1":  # bound to a veth pair's host side only: no password needed there either
+            command += ["--protected-mode", "no"]
         command += ["--appendonly", "no", "--dir", str(self.directory)]
         log = self.directory / "redis.log"
         self.process = self._process.enter_context(child_process(command, dict(os.environ), log))
@@ -67,9 +76,10 @@ class OwnRedis:
 
 
 @contextmanager
-def own_redis(directory: Path) -> Iterator[OwnRedis]:
+def own_redis(directory: Path, host: str = "127.0.0.1") -> Iterator[OwnRedis]:
+    """Yield a running Redis server listening on loopback and on `host` (the host side of a veth pair, say)."""
     directory.mkdir()
-    server = OwnRedis(directory)
+    server = OwnRedis(directory, host)
     server.start()
     try:
         yield server
@@ -86,9 +96,9 @@ def _postgres_bin(program: str) -> str:
 class OwnPostgres:
     """A PostgreSQL cluster in a temporary directory, run by the postgres user, that the test stops and starts."""
 
-    def __init__(self, directory: Path) -> None:
-        self.directory, self.port = directory, free_port()
-        self.url = f"postgresql://{POSTGRES_USER}@127.0.0.1:{self.port}/postgres"
+    def __init__(self, directory: Path, host: str = "127.0.0.1") -> None:
+        self.directory, self.port, self.host = directory, free_port(), host
+        self.url = f"postgresql://{POSTGRES_USER}@{host}:{self.port}/postgres"
 
     def _as_postgres(self, *command: str) -> None:
         subprocess.run(["runuser", "-u", POSTGRES_USER, "--", *command], check=True, capture_output=True)
@@ -97,9 +107,13 @@ class OwnPostgres:
         self._as_postgres(
             _postgres_bin("initdb"), "-D", str(self.directory / "data"), "-A", "trust", "-U", "postgres"
         )
+        if self.host != "127.0.0.1":  # clients on the host's side of veth pairs (tests/netns.py)
+            with (self.directory / "data" / "pg_hba.conf").open("a") as rules:
+                rules.write(f"host all all {self.host.rsplit('.', 2)[0]}.0.0/16 trust\n")
 
     def start(self) -> None:
-        options = f"-p {self.port} -k {self.directory} -c listen_addresses=127.0.0.1"
+        listen = ",".join(dict.fromkeys(["127.0.0.1", self.host]))
+        options = f"-p {self.port} -k {self.directory} -c listen_addresses={listen}"
         log = str(self.directory / "postgres.log")
         self._as_postgres(
             _postgres_bin("pg_ctl"),
@@ -175,13 +189,14 @@ def paused(pids: list[int]) -> Iterator[None]:
 
 
 @contextmanager
-def own_postgres() -> Iterator[OwnPostgres]:
-    """Yield a running cluster of the test's own; removed afterwards (its directory must be the postgres user's)."""
+def own_postgres(host: str = "127.0.0.1") -> Iterator[OwnPostgres]:
+    """Yield a running cluster of the test's own, listening on loopback and on `host`; removed afterwards (its
+    directory must be the postgres user's)."""
     directory = Path(tempfile.mkdtemp(prefix="navsim-lb-postgres-"))
     try:
         directory.chmod(0o755)
         shutil.chown(directory, POSTGRES_USER, POSTGRES_USER)
-        server = OwnPostgres(directory)
+        server = OwnPostgres(directory, host)
         server.initialise()
         server.start()
         try:

@@ -63,6 +63,7 @@ def upload_of(payload: bytes, seeds: int = 1, method: str = "m") -> ValidUpload:
         seed_count=seeds,
         token_count=len(reference_tokens()),
         metadata={"method": method},
+        size_bytes=len(payload),
     )
 
 

@@ -85,3 +85,38 @@ def test_an_s3_endpoint_that_does_not_answer_is_unavailable(monkeypatch: pytest.
             call()
     with pytest.raises(StoreUnavailable):
         store.put("big", io.BytesIO(b"x" * 10))
+
+
+def _leftovers(store: ObjectStore) -> list[str]:
+    """What a store holds besides its objects: hidden temporary files, or unfinished multipart uploads."""
+    if isinstance(store, LocalStore):
+        return sorted(path.name for path in store.root.rglob("*")) if store.root.exists() else []
+    import boto3
+
+    assert isinstance(store, S3Store)
+    listed = boto3.client("s3").list_multipart_uploads(Bucket=store.bucket, Prefix=f"{store.prefix}/")
+    return [upload["Key"] for upload in listed.get("Uploads", [])]
+
+
+def test_a_staged_object_appears_under_its_key_only_when_committed(store: ObjectStore) -> None:
+    data = os.urandom(2 * PART_BYTES + 12345)  # three parts of a multipart upload
+    with store.staging() as staged:
+        for start in range(0, len(data), 1 << 20):
+            staged.write(data[start : start + (1 << 20)])
+        assert store.keys("") == []
+        staged.commit("ab/file")
+    assert store.get("ab/file") == data and store.keys("") == ["ab/file"]
+    with store.staging() as staged:  # one part: sent whole at the end
+        staged.write(b"small")
+        staged.commit("ab/small")
+    assert store.get("ab/small") == b"small" and store.keys("") == ["ab/file", "ab/small"]
+    assert _leftovers(store) == ([] if isinstance(store, S3Store) else ["ab", "file", "small"])
+
+
+def test_a_staged_object_left_uncommitted_leaves_nothing(store: ObjectStore) -> None:
+    with pytest.raises(RuntimeError), store.staging() as staged:
+        staged.write(os.urandom(PART_BYTES + 1))  # one part sent
+        raise RuntimeError("the upload was refused")
+    with store.staging() as staged:
+        staged.write(b"never named")
+    assert store.keys("") == [] and _leftovers(store) == []

@@ -3,8 +3,9 @@ split's scenes, the uploads and the metric caches in an S3 store (moto, on ports
 and the rows in Redis and PostgreSQL. And the store down for twenty seconds while chunks run: the chunks wait
 and go on, nothing is lost or doubled, uploads are refused with a 503 saying so, the board is still served.
 
-(Separate data directories only: running the workers in network namespaces of their own would need the
-database, the broker and the store to listen beyond loopback.)"""
+Each worker runs in a network namespace of its own (tests/netns.py: skipped, saying so, only where the
+machine refuses `ip netns add`), reaching PostgreSQL, Redis and the store of the test's own on the host side
+of a veth pair, with a data directory of its own."""
 
 from __future__ import annotations
 
@@ -13,10 +14,10 @@ import time
 from pathlib import Path
 
 import pytest
+from netns import namespaces
 from object_stores import BUCKET, make_bucket
 from own_s3 import Gate, own_s3
-from scratch import scratch_redis_queue
-from server_testing import fresh_postgres_database
+from own_servers import own_postgres, own_redis
 from sqlalchemy import func, select
 from worker_testing import (
     Service,
@@ -74,41 +75,59 @@ def _scenes_on_disk(data_dir: Path) -> set[str]:
 def test_two_workers_sharing_no_disk_score_every_row_once(
     tmp_path: Path, synthetic_split: SplitFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    with (
-        own_s3(tmp_path / "s3") as s3,
-        fresh_postgres_database() as database_url,
-        scratch_redis_queue(REDIS_URL, "navsim-lb-store") as queue,
-    ):
-        split_url, storage_url = _stored_split(s3, synthetic_split, monkeypatch, tmp_path)
-        network = {"DATABASE_URL": database_url, "BROKER_URL": REDIS_URL, "QUEUE_NAME": queue}
-        shared = network | {"STORAGE_URL": storage_url, "AWS_ENDPOINT_URL": s3.url, "CHUNK_SIZE": "2"}
-        api_dir, second_dir = tmp_path / "api-and-first-worker", tmp_path / "second-worker"
-        api_dir.mkdir()
-        second_dir.mkdir()
-        own = {"CACHE_DIR": str(api_dir / "cache")}
-        with running_service(
-            api_dir, synthetic_split, shared | own, concurrency=1, split_location=split_url
-        ) as service:
-            second_env = service.env | {"DATA_DIR": str(second_dir), "CACHE_DIR": str(second_dir / "cache")}
-            with child_process(
-                worker_command(1, reaper=False, name="second"), second_env, second_dir / "worker.log"
-            ):
-                wait_for(
-                    lambda: "ready." in (second_dir / "worker.log").read_text(errors="replace"), "worker 2"
-                )
-                entry = predictions(synthetic_split.directory, seeds=2, noise=0.3, method="no shared disk")
-                submission_id = service.upload(entry)
-                service.final(submission_id)
-                assert_scored_once(service, synthetic_split, submission_id, entry)
-                workers = {
-                    chunk.worker.split("/")[0] for chunk in _chunks(service, submission_id) if chunk.worker
+    with namespaces(2) as (first_net, second_net):
+        servers = first_net.host  # every server listens there (and on loopback): each namespace routes to it
+        with (
+            own_s3(tmp_path / "s3", servers) as s3,
+            own_postgres(servers) as database,
+            own_redis(tmp_path / "redis", servers) as broker,
+        ):
+            split_url, storage_url = _stored_split(s3, synthetic_split, monkeypatch, tmp_path)
+            network = {"DATABASE_URL": database.url, "BROKER_URL": broker.url, "QUEUE_NAME": "store-workers"}
+            shared = network | {"STORAGE_URL": storage_url, "AWS_ENDPOINT_URL": s3.url, "CHUNK_SIZE": "2"}
+            api_dir, second_dir = tmp_path / "api-and-first-worker", tmp_path / "second-worker"
+            api_dir.mkdir()
+            second_dir.mkdir()
+            own = {"CACHE_DIR": str(api_dir / "cache")}
+            with running_service(
+                api_dir,
+                synthetic_split,
+                shared | own,
+                concurrency=1,
+                split_location=split_url,
+                worker_prefix=first_net.command([]),
+            ) as service:
+                second_env = service.env | {
+                    "DATA_DIR": str(second_dir),
+                    "CACHE_DIR": str(second_dir / "cache"),
                 }
-        first, second = _scenes_on_disk(api_dir), _scenes_on_disk(second_dir)
-        assert len(workers) == 2 and first and second  # both scored, each from the scenes it fetched
-        assert not (api_dir / "submissions").exists() and not (second_dir / "submissions").exists()
-        for data_dir in (api_dir, second_dir):  # each read the caches of the scenes it scored from the store
-            cached = {path.name.removesuffix(".nlc") for path in (data_dir / "cache").iterdir()}
-            assert cached == {name.split(".")[0] for name in _scenes_on_disk(data_dir)}
+                second_command = second_net.command(worker_command(1, reaper=False, name="second"))
+                with child_process(second_command, second_env, second_dir / "worker.log") as second_worker:
+                    wait_for(
+                        lambda: "ready." in (second_dir / "worker.log").read_text(errors="replace"),
+                        "worker 2",
+                    )
+                    entry = predictions(
+                        synthetic_split.directory, seeds=2, noise=0.3, method="no shared disk"
+                    )
+                    submission_id = service.upload(entry)
+                    service.final(submission_id)
+                    assert_scored_once(service, synthetic_split, submission_id, entry)
+                    chunks = _chunks(service, submission_id)
+                    workers = {chunk.worker.split("/")[0] for chunk in chunks if chunk.worker}
+                    # Each worker in a network namespace of its own: it sees its veth and loopback only.
+                    spaces = {_network_namespace(pid) for pid in (service.worker.pid, second_worker.pid)}
+                    assert len(spaces) == 2 and _network_namespace(os.getpid()) not in spaces
+    first, second = _scenes_on_disk(api_dir), _scenes_on_disk(second_dir)
+    assert len(workers) == 2 and first and second  # both scored, each from the scenes it fetched
+    assert not (api_dir / "submissions").exists() and not (second_dir / "submissions").exists()
+    for data_dir in (api_dir, second_dir):  # each read the caches of the scenes it scored from the store
+        cached = {path.name.removesuffix(".nlc") for path in (data_dir / "cache").iterdir()}
+        assert cached == {name.split(".")[0] for name in _scenes_on_disk(data_dir)}
+
+
+def _network_namespace(pid: int) -> str:
+    return os.readlink(f"/proc/{pid}/ns/net")
 
 
 def test_the_store_down_for_twenty_seconds_while_chunks_run(

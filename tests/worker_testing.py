@@ -8,7 +8,7 @@ import socket
 import subprocess
 import time
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from datetime import timedelta
@@ -274,11 +274,13 @@ def running_service(
     concurrency: int = 2,
     faults: bool = False,
     split_location: str | None = None,
+    worker_prefix: Sequence[str] = (),
 ) -> Iterator[Service]:
     """Start worker (with the reaper) and API on a fresh database under `root`, configured by the environment.
 
     With `faults`, the worker runs tests/fault_worker.py's app, which injects the faults `overrides` name.
     `split_location` registers the split from there (an object store's prefix) instead of its directory.
+    The worker's command is run after `worker_prefix` (`ip netns exec NAME`: tests/netns.py).
     """
     variables = _variables(root, split, overrides or {})
     if faults:
@@ -305,9 +307,14 @@ def running_service(
         with ExitStack() as stack:
             worker = stack.enter_context(
                 child_process(
-                    fault_worker_command(concurrency, True, "first")
-                    if faults
-                    else worker_command(concurrency, reaper=True),
+                    [
+                        *worker_prefix,
+                        *(
+                            fault_worker_command(concurrency, True, "first")
+                            if faults
+                            else worker_command(concurrency, reaper=True)
+                        ),
+                    ],
                     env,
                     logs / "worker.log",
                 )

@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import logging
-from typing import Annotated
+from collections.abc import Iterator
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Query, Request, UploadFile
+import anyio
+from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from scorer.versions import DEFAULT_VERSION, VersionName
 from server.auth import ApprovedTeamDep, SessionDep, TeamDep, approved_team_of, counted_upload, current_token
 from server.body_limit import upload_too_large
-from server.models import Phase, Status
+from server.models import Phase, Status, Team
+from server.object_store import Staged
 from server.params import PNG_RESPONSE, Offset, PictureLayout, RowId, SceneToken, SeedIndex
 from server.schemas import (
     ComparableOut,
@@ -24,46 +28,68 @@ from server.schemas import (
     ValidationReport,
 )
 from server.services.comparisons import comparable_entries, comparison_rows
+from server.services.errors import Invalid
 from server.services.pictures import scene_picture
 from server.services.presenters import stage_group_views, submission_views, token_result_views
 from server.services.splits import resolve_phase, split_tokens, upload_stages
 from server.services.submissions import create_submission, edit_submission, get_submission, list_submissions
-from server.services.validation import ValidUpload, validate_upload
+from server.services.validation import FORM_METADATA_FIELDS, Received, ValidUpload, validate_stream
+from server.upload_form import UploadForm
 from server.upload_gate import Check
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["submissions"])
-UPLOAD_READ_BYTES = 1 << 20
 SUBMIT_PATH, VALIDATE_PATH = "/submissions", "/submissions:validate"
 # What each upload route requires of its token, checked from the headers before the body is read
 # (server.upload_gate); the routes' dependencies check the same again.
 UPLOAD_CHECKS: dict[str, Check] = {SUBMIT_PATH: approved_team_of, VALIDATE_PATH: current_token}
 
 
-def _read_upload(file: UploadFile, limit: int) -> bytes:
-    """Return the uploaded bytes, or 413 beyond `limit`."""
-    chunks, size = [], 0
-    while chunk := file.file.read(UPLOAD_READ_BYTES):
-        size += len(chunk)
-        if size > limit:
-            raise HTTPException(status_code=413, detail=upload_too_large(limit))
-        chunks.append(chunk)
-    return b"".join(chunks)
+def _body_chunks(request: Request) -> Iterator[bytes]:
+    """Yield the request body's chunks as they arrive, to a route's code running in a worker thread."""
+    stream = request.stream()
+
+    async def next_chunk() -> bytes | None:
+        return await anext(stream, None)
+
+    while (chunk := anyio.from_thread.run(next_chunk)) is not None:
+        yield chunk
 
 
-def _checked_upload(
-    request: Request, session: Session, file: UploadFile, phase: str | None, form: dict[str, str]
-) -> tuple[Phase, ValidUpload]:
-    """Return the phase and the checked file; raises Invalid (422) listing every problem."""
+def _checked_upload(request: Request, session: Session, staged: Staged | None) -> tuple[Phase, ValidUpload]:
+    """Return the phase and the checked file, read in one pass as the body arrives (hashed, and written to
+    `staged` on the way); raises Invalid (422) listing every problem, 413 past the upload limit."""
+    form = UploadForm(_body_chunks(request), request.headers.get("content-type", ""))
+    form.start_file()  # the fields before the file: its phase bounds what the file may inflate to
+    phase = form.fields.get("phase")
     phase_row = resolve_phase(session, phase)
-    data = _read_upload(file, request.app.state.settings.max_upload_bytes)
-    split = phase_row.split
-    return phase_row, validate_upload(
-        data, file.filename or "submission", split_tokens(split), form, upload_stages(split)
+    limit = request.app.state.settings.max_upload_bytes
+    received = Received(
+        form,
+        staged.write if staged is not None else None,
+        limit,
+        lambda: HTTPException(status_code=413, detail=upload_too_large(limit)),
     )
+    tokens, stages = split_tokens(phase_row.split), upload_stages(phase_row.split)
+    session.commit()  # no database connection is held while the file streams in, however slowly
+    # The form's fields, the ones after the file included once it is read, give its metadata.
+    upload = validate_stream(
+        received, form.filename or "submission", tokens, form.fields, stages, staged=staged
+    )
+    if "phase" in form.after_file and resolve_phase(session, form.fields["phase"]).id != phase_row.id:
+        message = (
+            "the phase field must come before the file in the form (it says which split the file covers)"
+        )
+        raise Invalid(message, [{"token": None, "field": "phase", "message": message}])
+    return phase_row, upload
 
 
-FormField = Annotated[str | None, Form()]
+# The routes read their body themselves (server.upload_form): the form they take, for the API's description.
+def _form_body(*fields: str) -> dict[str, Any]:
+    properties: dict[str, Any] = {"file": {"type": "string", "format": "binary"}}
+    properties.update({name: {"type": "string"} for name in fields})
+    schema = {"type": "object", "properties": properties, "required": ["file"]}
+    return {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": schema}}}}
 
 
 @router.post(
@@ -71,41 +97,34 @@ FormField = Annotated[str | None, Form()]
     dependencies=[Depends(counted_upload)],
     status_code=202,
     response_model=SubmissionAccepted,
+    openapi_extra=_form_body("phase", *FORM_METADATA_FIELDS),
     responses={
         409: {"description": "same file already submitted, or Idempotency-Key reused with another file"},
         422: {"description": "every problem of the file: token, field, message"},
         429: {"description": "a quota is exhausted, or too many uploads; says which and when to retry"},
     },
 )
-def submit(
+async def submit(
     request: Request,
     session: SessionDep,
     team: ApprovedTeamDep,
-    file: Annotated[UploadFile, File(description="JSON (navsim-lb/submission) or NAVSIM submission pickle")],
-    phase: FormField = None,
-    method: FormField = None,
-    authors: FormField = None,
-    institution: FormField = None,
-    country: FormField = None,
-    tech_report_url: FormField = None,
-    code_url: FormField = None,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key", max_length=200)] = None,
 ) -> JSONResponse:
-    """Upload a submission: checked before anything is stored or queued; 202 with its id."""
-    form = {
-        "method": method,
-        "authors": authors,
-        "institution": institution,
-        "country": country,
-        "tech_report_url": tech_report_url,
-        "code_url": code_url,
-    }
-    phase_row, upload = _checked_upload(request, session, file, phase, {k: v for k, v in form.items() if v})
+    """Upload a submission (a form with `file`: JSON (navsim-lb/submission) or NAVSIM submission pickle, and
+    optionally phase, method, authors, institution, country, tech_report_url, code_url, before the file):
+    checked as it streams to the store, before anything is queued; 202 with its id."""
+    return await run_in_threadpool(_submit, request, session, team, idempotency_key)
+
+
+def _submit(request: Request, session: Session, team: Team, idempotency_key: str | None) -> JSONResponse:
     settings = request.app.state.settings
-    submission, replayed = create_submission(
-        session, team, phase_row, upload, settings.submission_store, idempotency_key
-    )
-    session.commit()
+    # Whatever stops the upload before its row is added, the object written so far is removed.
+    with settings.submission_store.staging() as staged:
+        phase_row, upload = _checked_upload(request, session, staged)
+        submission, replayed = create_submission(
+            session, team, phase_row, upload, settings.submission_store, idempotency_key
+        )
+        session.commit()
     if not replayed:
         try:
             request.app.state.enqueue(submission.id)
@@ -120,19 +139,16 @@ def submit(
     VALIDATE_PATH,
     dependencies=[Depends(counted_upload)],
     response_model=ValidationReport,
+    openapi_extra=_form_body("phase"),
     responses={
         422: {"description": "every problem of the file: token, field, message"},
         429: {"description": "too many uploads from this token or address; Retry-After says when to retry"},
     },
 )
-def validate(
-    request: Request,
-    session: SessionDep,
-    file: Annotated[UploadFile, File()],
-    phase: FormField = None,
-) -> ValidationReport:
-    """Run the upload checks on a file without storing anything."""
-    _, upload = _checked_upload(request, session, file, phase, {})
+async def validate(request: Request, session: SessionDep) -> ValidationReport:
+    """Run the upload checks on a file (a form with `file`, and optionally `phase` before it) without storing
+    anything."""
+    _, upload = await run_in_threadpool(_checked_upload, request, session, None)
     return ValidationReport(
         valid=True, sha256=upload.sha256, seed_count=upload.seed_count, token_count=upload.token_count
     )

@@ -17,7 +17,7 @@ from server.services.quota import check_quota, lock_team
 from server.services.splits import has_closed, is_open
 from server.services.teams import baseline_team
 from server.services.validation import ValidUpload
-from server.storage import store_file, store_trajectories
+from server.storage import store_file, store_trajectories, stored_name
 
 # Statuses after which the same file may be uploaded again (it was never scored to the end).
 RETRYABLE_STATUSES = (Status.failed, Status.cancelled)
@@ -28,7 +28,12 @@ EDITABLE_FIELDS = ("method", "authors", "institution", "country", "tech_report_u
 def _store(store: ObjectStore, upload: ValidUpload) -> str:
     """Store the uploaded file and the trajectories its check parsed; return the file's stored name. Both are
     stored before the row that names them is added (StoreUnavailable leaves no row)."""
-    name = store_file(store, upload.sha256, io.BytesIO(upload.data))
+    if upload.staged is not None:  # streamed to the store as it was checked
+        name = stored_name(upload.sha256)
+        upload.staged.commit(name)
+    else:
+        assert upload.data is not None
+        name = store_file(store, upload.sha256, io.BytesIO(upload.data))
     if upload.trajectories:
         store_trajectories(store, name, upload.sha256, upload.trajectories)
     return name
@@ -44,7 +49,7 @@ def _new_submission(
         sha256=upload.sha256,
         filename=upload.filename,
         stored_name=stored,
-        size_bytes=len(upload.data),
+        size_bytes=upload.size_bytes,
         seed_count=upload.seed_count,
         token_count=upload.token_count,
         **upload.metadata,

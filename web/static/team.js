@@ -147,11 +147,13 @@ async function follow(id) {
 
 $("#upload").addEventListener("submit", async (event) => {
   event.preventDefault();
-  const form = new FormData(event.target);
-  for (const [key, value] of Array.from(form.entries())) if (value === "") form.delete(key);
+  // The phase goes before the file: the server reads the file as it arrives, within the phase's split.
+  const fields = new FormData(event.target);
+  const form = new FormData();
   const check = new FormData();
-  check.append("file", form.get("file"));
-  if (form.get("phase")) check.append("phase", form.get("phase"));
+  if (fields.get("phase")) [form, check].forEach((data) => data.append("phase", fields.get("phase")));
+  for (const [key, value] of fields.entries()) if (key !== "phase" && value !== "") form.append(key, value);
+  check.append("file", fields.get("file"));
   showProblems([]);
   $("#progress").hidden = true;
   $("#upload-button").disabled = true;
