@@ -229,15 +229,28 @@ def _checked_poses(poses: object) -> FloatArray:
     return array
 
 
+def token_results(
+    caches: Sequence[MetricCache],
+    seed: int | None,
+    scores: ProposalScores,
+    version: MetricVersion,
+    start: int = 0,
+) -> list[TokenResult]:
+    """Return the agent's rows of `caches`, whose token b is row `start` + b of `scores`, each token scored alone
+    (v2.2: filtered, EC undefined). A column's values are read from the scores at once, not value by value."""
+    columns = [column for column in version.result_columns if column in ROW_COLUMNS]
+    stop = start + len(caches)
+    values = zip(*(getattr(scores, column)[start:stop, 1].tolist() for column in columns), strict=True)
+    return [
+        token_result(cache, seed, dict(zip(columns, row, strict=True)), version)
+        for cache, row in zip(caches, values, strict=True)
+    ]
+
+
 def token_result(
-    cache: MetricCache, seed: int | None, scores: ProposalScores, index: int, version: MetricVersion
+    cache: MetricCache, seed: int | None, agent: dict[str, float], version: MetricVersion
 ) -> TokenResult:
-    """Return the agent's row of token `index` in `scores`, the token scored alone (v2.2: filtered, EC undefined)."""
-    agent = {
-        column: float(getattr(scores, column)[index, 1])
-        for column in version.result_columns
-        if column in ROW_COLUMNS
-    }
+    """Return the agent's row of `cache` from its result columns `agent`."""
     if version.two_frame_extended_comfort_weight is None:
         return TokenResult(token=cache.token, seed=seed, valid=True, metrics=agent)
     detail: dict[str, Any] = {}
@@ -329,7 +342,7 @@ def score_simulated_versions(
     their areas, DAC, progress) once for all of them, and what reads the observation once per way of
     observing (`observation_key`: v1.0 and v1.1 observe alike, v2.2 drops tracks on the ego). Versions that
     read one cache and score it with the same settings (v2.2 and v2.2-prefix, which differ in how a row's score
-    is formed from these, `token_result`) get the scores of one computation.
+    is formed from these, `token_results`) get the scores of one computation.
     """
     first_alike: dict[tuple[object, ...], MetricVersion] = {}
     scored_as = {
@@ -475,14 +488,10 @@ def _rows_of_simulated(
     for version in measured:
         version_kept = kept[version.name]
         for at, seed in enumerate(seeds):
+            results = token_results(version_kept, seed, scores[version.name], version, at * len(version_kept))
             rows[seed, version.name] += [
-                ScoredToken(
-                    token_result(cache, seed, scores[version.name], at * len(version_kept) + index, version),
-                    cache.log_name,
-                    cache.t0_us,
-                    states[seed, cache.token],
-                )
-                for index, cache in enumerate(version_kept)
+                ScoredToken(result, cache.log_name, cache.t0_us, states[seed, cache.token])
+                for cache, result in zip(version_kept, results, strict=True)
                 if (seed, cache.token) in states
             ]
     return rows
