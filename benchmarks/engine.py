@@ -16,7 +16,9 @@ Prints, under a header that describes the host (benchmarks/host.py):
 - the ratio to that floor of each version alone and of the log-replay versions at once (the workers' call on a
   one-stage split: one simulation serves them all), ending with the two lines `floor ratio, scoring (all
   versions)` (target: at most 1.5x) and `floor ratio, cache (all versions)` (target: at most 2x); the reactive
-  version is apart from those two, since its floor is its IDM traffic's, not the SVDs';
+  version is apart from those two, since its floor is its IDM traffic's, not the SVDs'; and the same call with
+  three seeds (the workers score navtest entries with 3 seeds: what depends on the scene alone serves them all),
+  per token and seed, `floor ratio, scoring (all versions, 3 seeds)`;
 - apart from those, the start-up of `navsim-lb score` (a one-token split, warm cache) with and without
   `--out results.csv`, and of `navsim-lb --help`, against bare `python -c "import numpy, shapely"` (target: at
   most 1.5x), and peak RSS.
@@ -47,10 +49,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Self, TypeVar
 
+import numpy as np
 from host import host_header
 
-from scorer.baselines import constant_velocity
-from scorer.evaluate import build_missing_caches, build_split_cache, score_tokens, score_versions
+from scorer.baselines import constant_velocity, human
+from scorer.evaluate import (
+    build_missing_caches,
+    build_split_cache,
+    score_seeds,
+    score_tokens,
+)
+from scorer.geometry import FloatArray
 from scorer.scene import iter_scenes, scene_paths
 from scorer.submission import Submission, SubmissionMetadata, dump_submission_json
 from scorer.synth import synthesize_split
@@ -249,6 +258,31 @@ def score(
     return Timing(version, workers, len(tokens), seconds, cpu, valid)
 
 
+def three_seeds(split: Path, predictions: dict[str, FloatArray]) -> dict[int | None, dict[str, FloatArray]]:
+    """Return three seeds' predictions that differ as seeds do: constant velocity, the human's poses, and
+    constant velocity slowed to 90 %."""
+    slower = {
+        token: poses * np.array([0.9, 0.9, 1.0], dtype=poses.dtype) for token, poses in predictions.items()
+    }
+    return {0: predictions, 1: {scene.token: human(scene) for scene in iter_scenes(split)}, 2: slower}
+
+
+def score_at_once(
+    split: Path, cache_dir: Path, seeds: dict[int | None, dict[str, FloatArray]], tokens: list[str]
+) -> Timing:
+    """Score every token and seed under every log-replay version at once (the workers' call), one process."""
+    with SvdClock() as svd:
+        valid, seconds, cpu = _timed(
+            lambda: sum(
+                row.valid
+                for rows in score_seeds(split, cache_dir, seeds, LOG_REPLAY, tokens).values()
+                for row in rows
+            )
+        )
+    label = _label(LOG_REPLAY) if len(seeds) == 1 else f"log-replay, {len(seeds)} seeds"
+    return Timing(label, 1, len(tokens) * len(seeds), seconds, cpu, valid, svd.cpu_seconds)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--scenes", type=int, default=1000)
@@ -309,22 +343,18 @@ def main() -> None:
             timing = score(split, cache_dir, predictions, version, tokens, workers)
             single.setdefault(version, timing)
             print(timing.row(), flush=True)
-    with SvdClock() as svd:  # the workers' call: every log-replay version of a token from one simulation
-        valid, seconds, cpu = _timed(
-            lambda: sum(
-                row.valid
-                for rows in score_versions(split, cache_dir, predictions, LOG_REPLAY, tokens).values()
-                for row in rows
-            )
-        )
-    at_once = Timing(_label(LOG_REPLAY), 1, len(tokens), seconds, cpu, valid, svd.cpu_seconds)
+    # The workers' call: every log-replay version of a token from one simulation, with one seed and with three.
+    at_once = score_at_once(split, cache_dir, {None: predictions}, tokens)
     print(at_once.row(), flush=True)
+    seeded = score_at_once(split, cache_dir, three_seeds(split, predictions), tokens)
+    print(seeded.row(), flush=True)
     v2_2, v1_1 = single[VersionName.V2_2], single[VersionName.V1_1]
     print(_ratio("v2.2 against v1.1 per token, 1 process", v2_2, v1_1, SCORE_TARGET))
     print(_against_official(single[VersionName.V2_2_TWO_STAGE]))
     print("the floor of scoring, 1 process:")
     for timing in (*single.values(), at_once):
         print(_floor(timing, timing.svd_cpu_seconds or 0.0, "token"))
+    print(_floor(seeded, seeded.svd_cpu_seconds or 0.0, "token and seed"))
     print(_floor_verdict("the log-replay versions at once, per token and seed", at_once, SCORE_FLOOR_TARGET))
 
     print("\nstart-up, median wall time of 5 runs:")
@@ -348,6 +378,7 @@ def main() -> None:
         f" {_peak_rss_mib(resource.RUSAGE_CHILDREN):.0f} MiB its largest child (a pool process or navsim-lb)"
     )
     print(f"floor ratio, scoring (all versions): {_floor_ratio(at_once):.2f}x")
+    print(f"floor ratio, scoring (all versions, 3 seeds): {_floor_ratio(seeded):.2f}x")
     print(f"floor ratio, cache (all versions): {_floor_ratio(board):.2f}x")
 
 

@@ -229,15 +229,28 @@ def _checked_poses(poses: object) -> FloatArray:
     return array
 
 
+def token_results(
+    caches: Sequence[MetricCache],
+    seed: int | None,
+    scores: ProposalScores,
+    version: MetricVersion,
+    start: int = 0,
+) -> list[TokenResult]:
+    """Return the agent's rows of `caches`, whose token b is row `start` + b of `scores`, each token scored alone
+    (v2.2: filtered, EC undefined). A column's values are read from the scores at once, not value by value."""
+    columns = [column for column in version.result_columns if column in ROW_COLUMNS]
+    stop = start + len(caches)
+    values = zip(*(getattr(scores, column)[start:stop, 1].tolist() for column in columns), strict=True)
+    return [
+        token_result(cache, seed, dict(zip(columns, row, strict=True)), version)
+        for cache, row in zip(caches, values, strict=True)
+    ]
+
+
 def token_result(
-    cache: MetricCache, seed: int | None, scores: ProposalScores, index: int, version: MetricVersion
+    cache: MetricCache, seed: int | None, agent: dict[str, float], version: MetricVersion
 ) -> TokenResult:
-    """Return the agent's row of token `index` in `scores`, the token scored alone (v2.2: filtered, EC undefined)."""
-    agent = {
-        column: float(getattr(scores, column)[index, 1])
-        for column in version.result_columns
-        if column in ROW_COLUMNS
-    }
+    """Return the agent's row of `cache` from its result columns `agent`."""
     if version.two_frame_extended_comfort_weight is None:
         return TokenResult(token=cache.token, seed=seed, valid=True, metrics=agent)
     detail: dict[str, Any] = {}
@@ -307,23 +320,29 @@ def score_simulated(
     """Return the scores (B, 2) of [PDM-Closed, agent] per token, as the devkit scores them: proposal 0 is the
     cached PDM-Closed reference (it sets the progress normaliser), proposal 1 the agent's simulated states."""
     by_token = {cache.token: token_states for cache, token_states in zip(caches, states, strict=True)}
-    return score_simulated_versions({version.name: caches}, by_token, [version])[version.name]
+    return score_simulated_versions({version.name: caches}, [by_token], [version])[version.name]
 
 
 def score_simulated_versions(
     caches: Mapping[str, Sequence[MetricCache]],
-    states: Mapping[str, FloatArray],
+    states: Sequence[Mapping[str, FloatArray]],
     versions: Sequence[MetricVersion],
 ) -> dict[str, ProposalScores]:
-    """Return per version the scores (`score_simulated`) of the tokens of `caches[version.name]`, whose agents'
-    simulated states (41, 11) `states` holds by token; each version's as it gets them alone.
+    """Return per version the scores (`score_simulated`) of the tokens of `caches[version.name]` under each seed,
+    whose agents' simulated states (41, 11) `states[seed]` holds by token; each version's and seed's as it gets
+    them alone. The scores (S·B, 2) are seed-major: row s·B + b is token b under seed s.
+
+    The seeds of a token are measured together, as more proposals of it (a proposal's measures do not depend on
+    the others it is measured with, `ProposalMeasures`): what reads the scene alone (its map, observation and
+    centerline batches) is built once for every seed. Each seed's agent is then scored with the token's
+    reference alone, every seed in one `score_measures` call (its tokens are scored as if alone).
 
     Versions that hold the same centerlines and routes for every token (PDM-Closed's, which every version
     shares) are measured in one `measure_alike` call: what reads the map and the ego alone (the ego boxes,
     their areas, DAC, progress) once for all of them, and what reads the observation once per way of
     observing (`observation_key`: v1.0 and v1.1 observe alike, v2.2 drops tracks on the ego). Versions that
     read one cache and score it with the same settings (v2.2 and v2.2-prefix, which differ in how a row's score
-    is formed from these, `token_result`) get the scores of one computation.
+    is formed from these, `token_results`) get the scores of one computation.
     """
     first_alike: dict[tuple[object, ...], MetricVersion] = {}
     scored_as = {
@@ -334,7 +353,11 @@ def score_simulated_versions(
     }
     distinct = list(first_alike.values())
     scores: dict[str, ProposalScores] = {
-        version.name: _score_reacting(caches[version.name], states, version)
+        version.name: _score_reacting(
+            [cache for _ in states for cache in caches[version.name]],
+            [seed_states[cache.token] for seed_states in states for cache in caches[version.name]],
+            version,
+        )
         for version in distinct
         if version.reactive_traffic is not None
     }
@@ -354,20 +377,19 @@ def score_simulated_versions(
             if observation_key(version) not in observed:
                 observed[observation_key(version)] = [cache.observation for cache in caches[version.name]]
         measured = measure_alike(
-            np.stack([states[cache.token] for cache in held])[:, None],
+            np.stack([np.stack([seed_states[cache.token] for seed_states in states]) for cache in held]),
             [observed[observation_key(version)] for version in group],
             [cache.drivable_map for cache in held],
             [cache.centerline[:, :2] for cache in held],
             [cache.route_lane_ids for cache in held],
             [MeasureSettings.of(version.evaluation) for version in group],
         )
-        for version, agent in zip(group, measured, strict=True):
+        for version, agents in zip(group, measured, strict=True):
             version_caches = caches[version.name]
             reference = join_measures([_reference_measures(cache) for cache in version_caches], axis=0)
-            pasts = [cache.past_states for cache in version_caches]
-            scores[version.name] = score_measures(
-                join_measures([reference, agent]), version.evaluation, pasts
-            )
+            seeds = [join_measures([reference, agents.proposal(seed)]) for seed in range(len(states))]
+            pasts = [cache.past_states for cache in version_caches] * len(states)
+            scores[version.name] = score_measures(join_measures(seeds, axis=0), version.evaluation, pasts)
     return {name: scores[version.name] for name, version in scored_as.items()}
 
 
@@ -378,24 +400,22 @@ def _reference_measures(cache: MetricCache) -> ProposalMeasures:
 
 
 def _score_reacting(
-    caches: Sequence[MetricCache], states: Mapping[str, FloatArray], version: MetricVersion
+    caches: Sequence[MetricCache], states: Sequence[FloatArray], version: MetricVersion
 ) -> ProposalScores:
-    """Return the scores (B, 2) of [PDM-Closed, agent] per token under reactive traffic: the vehicles react to
-    the agent's simulated states, and both proposals are measured against them (`pdm_score` passes the one
-    traffic simulation to the scorer for both)."""
+    """Return the scores (B, 2) of [PDM-Closed, agent] per cache under reactive traffic, `states` (41, 11) being
+    the agent's of each: the vehicles react to the agent's simulated states, and both proposals are measured
+    against them (`pdm_score` passes the one traffic simulation to the scorer for both)."""
     from scorer.reactive.observation import reacting_observation  # only reactive versions need it (start-up)
 
     config = version.reactive_traffic
     if config is None:
         raise ValueError(f"{version.name} has no reactive traffic")
     observations, proposals = [], []
-    for cache in caches:
+    for cache, agent in zip(caches, states, strict=True):
         if cache.starting_traffic is None or cache.reference_states is None:
             raise ValueError(f"{cache.token}: the cache of {version.name} holds no reactive traffic")
-        observations.append(
-            reacting_observation(cache.starting_traffic, cache.observation, states[cache.token], config)
-        )
-        proposals.append(np.stack([cache.reference_states, states[cache.token]]))
+        observations.append(reacting_observation(cache.starting_traffic, cache.observation, agent, config))
+        proposals.append(np.stack([cache.reference_states, agent]))
     measured = measure_alike(
         np.stack(proposals),
         [observations],
@@ -417,41 +437,63 @@ def score_against_references(
 
 def _rows_of_simulated(
     caches: Mapping[str, Sequence[MetricCache]],
-    states: Mapping[str, FloatArray],
-    failed: Mapping[str, str],
+    states: Mapping[tuple[int | None, str], FloatArray],
+    failed: Mapping[tuple[int | None, str], str],
     versions: Sequence[MetricVersion],
-    seed: int | None,
-) -> dict[str, list[TokenResult | ScoredToken]]:
-    """Return per version the rows of `caches[version.name]` from their tokens' simulated states (`_simulated`):
-    an invalid row where the simulation diverged, the others scored in one batch, in the order of the caches."""
-    rows: dict[str, list[TokenResult | ScoredToken]] = {}
+    seeds: Sequence[int | None],
+) -> dict[tuple[int | None, str], list[TokenResult | ScoredToken]]:
+    """Return per (seed, version) the rows of the tokens of `caches[version.name]` that the seed simulated, by
+    their simulated states or errors by (seed, token) (`_simulated`): an invalid row where the simulation
+    diverged, the others scored in one batch for every seed (`score_simulated_versions`), each seed's in the
+    order of the caches.
+
+    A token that a seed lacks (no prediction, or a diverged simulation) is measured under that seed on another
+    seed's states, whose row is left out: every token has a proposal per seed in the batch."""
+    rows: dict[tuple[int | None, str], list[TokenResult | ScoredToken]] = {}
     kept: dict[str, list[MetricCache]] = {}
     for version in versions:
         held = caches[version.name]
-        errors = {cache.token: failed[cache.token] for cache in held if cache.token in failed}
-        errors |= {
+        traffic_errors = {
             cache.token: f"scoring failed: reactive traffic: {cache.starting_traffic.failure}"
             for cache in held
             if cache.starting_traffic is not None and cache.starting_traffic.failure is not None
         }
-        rows[version.name] = [
-            TokenResult(cache.token, seed, False, error=errors[cache.token])
+        for seed in seeds:
+            errors = {
+                cache.token: failed[seed, cache.token] for cache in held if (seed, cache.token) in failed
+            }
+            errors |= {
+                token: error
+                for token, error in traffic_errors.items()
+                if (seed, token) in states or (seed, token) in failed
+            }
+            rows[seed, version.name] = [
+                TokenResult(cache.token, seed, False, error=errors[cache.token])
+                for cache in held
+                if cache.token in errors
+            ]
+        kept[version.name] = [
+            cache
             for cache in held
-            if cache.token in errors
+            if cache.token not in traffic_errors and any((seed, cache.token) in states for seed in seeds)
         ]
-        kept[version.name] = [cache for cache in held if cache.token in states and cache.token not in errors]
+    stand_in: dict[str, FloatArray] = {}
+    for (_, token), token_states in states.items():
+        stand_in.setdefault(token, token_states)
+    by_seed = [
+        {token: states.get((seed, token), other) for token, other in stand_in.items()} for seed in seeds
+    ]
     measured = [version for version in versions if kept[version.name]]
-    scores = score_simulated_versions(kept, states, measured)
+    scores = score_simulated_versions(kept, by_seed, measured)
     for version in measured:
-        rows[version.name] += [
-            ScoredToken(
-                token_result(cache, seed, scores[version.name], index, version),
-                cache.log_name,
-                cache.t0_us,
-                states[cache.token],
-            )
-            for index, cache in enumerate(kept[version.name])
-        ]
+        version_kept = kept[version.name]
+        for at, seed in enumerate(seeds):
+            results = token_results(version_kept, seed, scores[version.name], version, at * len(version_kept))
+            rows[seed, version.name] += [
+                ScoredToken(result, cache.log_name, cache.t0_us, states[seed, cache.token])
+                for cache, result in zip(version_kept, results, strict=True)
+                if (seed, cache.token) in states
+            ]
     return rows
 
 
@@ -587,7 +629,7 @@ def _score_chunk(
 ) -> dict[tuple[int | None, str], list[TokenResult | ScoredToken]]:
     """Score a chunk of tokens under `versions` and `seeds`, by (seed, version): each token's caches loaded once
     (or built, every version at once), every seed's trajectories simulated together, then measured and scored
-    per seed and version."""
+    per version, every seed at once (`_rows_of_simulated`)."""
     rows: dict[tuple[int | None, str], list[TokenResult | ScoredToken]] = {
         (seed, version.name): [] for seed in seeds for version in versions
     }
@@ -603,7 +645,8 @@ def _score_chunk(
             except TokenError as error:
                 for version in versions:
                     rows[seed, version.name].append(TokenResult(token, seed, False, error=str(error)))
-    needed = list(dict.fromkeys(token for _, token in poses))
+    posed = {token for _, token in poses}
+    needed = list(dict.fromkeys(token for token in tokens if token in posed))  # each seed's tokens in order
     caches: dict[str, dict[str, MetricCache]] = {version.name: {} for version in versions}
     unbuilt: list[str] = []
     scene_hashes = {token: scene_file_hash(paths[token]) for token in needed}
@@ -644,18 +687,12 @@ def _score_chunk(
     states, failed = _simulated(
         simulated, [first_cache[token] for _, token in simulated], [poses[key] for key in simulated]
     )
-    for seed in seeds:
-        seed_tokens = [token for key_seed, token in simulated if key_seed == seed]
-        held: dict[str, list[MetricCache]] = {
-            version.name: [
-                caches[version.name][token] for token in seed_tokens if token in caches[version.name]
-            ]
-            for version in versions
-        }
-        seed_states = {token: states[seed, token] for token in seed_tokens if (seed, token) in states}
-        seed_failed = {token: failed[seed, token] for token in seed_tokens if (seed, token) in failed}
-        for name, version_rows in _rows_of_simulated(held, seed_states, seed_failed, versions, seed).items():
-            rows[seed, name] += version_rows
+    held: dict[str, list[MetricCache]] = {
+        version.name: [caches[version.name][token] for token in needed if token in caches[version.name]]
+        for version in versions
+    }
+    for key, version_rows in _rows_of_simulated(held, states, failed, versions, list(seeds)).items():
+        rows[key] += version_rows
     return rows
 
 

@@ -26,7 +26,7 @@ from scorer.evaluate import (
     TokenError,
     build_missing_caches,
     score_against_references,
-    token_result,
+    token_results,
 )
 from scorer.geometry import FloatArray
 from scorer.metrics.ego_areas import EgoArea
@@ -149,7 +149,7 @@ def explain_token(
         infractions.append(
             Infraction("red light", round(light_step * SCORING_INTERVAL_S, 1), None, lane, "lane", light)
         )
-    row = token_result(cache, None, scores, 0, metric_version)
+    (row,) = token_results([cache], None, scores, metric_version)
     return Explanation(
         token=token,
         version=metric_version.name,

@@ -131,6 +131,12 @@ class ProposalMeasures:
             **{field.name: getattr(self, field.name)[index : index + 1] for field in fields(self)}
         )
 
+    def proposal(self, index: int) -> ProposalMeasures:
+        """Return the measures of every token's proposal `index` as proposals of their own (B, 1)."""
+        return ProposalMeasures(
+            **{field.name: getattr(self, field.name)[:, index : index + 1] for field in fields(self)}
+        )
+
 
 @dataclass(frozen=True)
 class MeasureSettings:

@@ -10,7 +10,7 @@ import numpy as np
 
 from scorer.cache import MetricCache
 from scorer.drivable_map import DrivableMap
-from scorer.evaluate import TokenResult, score_against_references, token_result
+from scorer.evaluate import TokenResult, score_against_references, token_results
 from scorer.geometry import FloatArray
 from scorer.observation import Observation
 from scorer.pdm_scorer import ProposalScores, score_batch
@@ -48,4 +48,4 @@ def score_caches(
     if len({cache.token for cache in caches}) < len(caches):
         raise ValueError("one trajectory per token: score another trajectory of a token in another call")
     _, scores = score_against_references(caches, poses, version)
-    return [token_result(cache, seed, scores, index, version) for index, cache in enumerate(caches)]
+    return token_results(caches, seed, scores, version)
