@@ -10,15 +10,14 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Annotated, Any, cast
 
 import typer
-from rich.markup import escape
-from rich.table import Table
 
-from navsim_lb.terminal import console, fail
+from navsim_lb.terminal import console, escape, fail
 
 if TYPE_CHECKING:  # httpx takes a third of `navsim-lb --help`, rich.progress a tenth of `score`'s start-up:
     # the commands that need them import them when they run
     import httpx
     from rich.progress import Progress
+    from rich.table import Table
 
 API_PREFIX = "/api/v1"
 DEFAULT_SERVER = "http://127.0.0.1:8000"
@@ -124,7 +123,7 @@ def wait_until_done(client: httpx.Client, submission_id: int, poll_s: float = 1.
     from rich.progress import BarColumn, Progress, TextColumn
 
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"))
-    with Progress(*columns, console=console) as progress:
+    with Progress(*columns, console=console.rich) as progress:
         task = progress.add_task("queued", total=100)
         while True:
             response = client.get(f"{API_PREFIX}/submissions/{submission_id}")
@@ -140,6 +139,8 @@ def wait_until_done(client: httpx.Client, submission_id: int, poll_s: float = 1.
 def results_table(state: dict[str, Any]) -> Table:
     """Return a table of a scored submission: the score (PDMS or EPDMS), 95% interval and failed tokens per
     version and subset, in % as the pages show them."""
+    from rich.table import Table
+
     from scorer.versions import VERSIONS, VersionName  # plain data: no engine import
     from server.numbers import percent
 
@@ -184,7 +185,7 @@ def submit(
     try:
         with httpx.Client(base_url=server, headers=headers, timeout=timeout, transport=transport) as client:
             columns = (TextColumn("{task.description}"), BarColumn(), DownloadColumn(), TransferSpeedColumn())
-            with Progress(*columns, console=console) as progress:
+            with Progress(*columns, console=console.rich) as progress:
                 accepted = upload(client, file, fields, progress)
             replay = " (an earlier request with this key created it)" if accepted["replayed"] else ""
             console.print(

@@ -23,9 +23,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.markup import escape
 
-from navsim_lb.terminal import console, fail, progress_bar
+from navsim_lb.terminal import console, escape, fail, progress_bar
 from scorer.versions import DEFAULT_VERSION
 
 if TYPE_CHECKING:

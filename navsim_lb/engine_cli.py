@@ -10,10 +10,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import typer
-from rich.markup import escape
-from rich.table import Table
 
-from navsim_lb.terminal import console, fail, output, progress_bar, warn, warn_about_kernels
+from navsim_lb.terminal import (
+    console,
+    escape,
+    fail,
+    output,
+    print_table,
+    progress_bar,
+    say,
+    warn,
+    warn_about_kernels,
+)
 from scorer.versions import DEFAULT_VERSION, LOG_REPLAY_VERSIONS, VERSIONS, VersionName, cached_together
 
 if TYPE_CHECKING:
@@ -56,7 +64,7 @@ def synth(
             tokens = synthesize_split(out, scenes, seed, progress=advance)
     except FileExistsError as error:
         raise fail(f"{error}; choose an empty directory") from None
-    console.print(f"wrote {len(tokens)} scenes to {out / 'scenes'}")
+    say(f"wrote {len(tokens)} scenes to {out / 'scenes'}")
 
 
 def baseline(
@@ -70,7 +78,7 @@ def baseline(
 
     submission = baseline_submission(split, kind.value, kind.value)
     out.write_bytes(dump_submission_json(submission))
-    console.print(f"wrote {len(submission.seeds[0])} trajectories to {out}")
+    say(f"wrote {len(submission.seeds[0])} trajectories to {out}")
 
 
 def cache(
@@ -178,8 +186,8 @@ def score(
             )
     if out is not None:
         write_results_csv(results, metric_version, out)
-        console.print(f"wrote {out}")
-    output.print(summary_table(results, metric_version, f"{loaded.metadata.method} on {split.name}"))
+        say(f"wrote {out}")
+    print_table(summary_table(results, metric_version, f"{loaded.metadata.method} on {split.name}"))
 
 
 def _score_two_stage(
@@ -225,9 +233,9 @@ def _score_two_stage(
     if out is not None:
         for result, path in zip(results, seed_csv_paths(out, len(results)), strict=True):
             write_two_stage_csv(result, path)
-            console.print(f"wrote {path}")
+            say(f"wrote {path}")
     title = f"{loaded.metadata.method} on {split.name}"
-    output.print(two_stage_summary_table(results, version, title))
+    print_table(two_stage_summary_table(results, version, title))
 
 
 def plot(
@@ -290,6 +298,8 @@ def regress(
     update: Annotated[bool, typer.Option(help="rewrite the golden files instead of comparing")] = False,
 ) -> None:
     """Compare the engine with the versioned golden results of the regression split (fails above 1e-9)."""
+    from rich.table import Table
+
     from scorer.regression import run_regression
 
     warn_about_kernels()

@@ -8,11 +8,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.markup import escape
-from rich.table import Table
 
 from navsim_lb.engine_cli import default_cache_dir
-from navsim_lb.terminal import console, fail, output, progress_bar
+from navsim_lb.terminal import console, escape, fail, output, progress_bar
 from scorer.versions import DEFAULT_VERSION, VersionName
 
 SHOWN_REASONS = 10
@@ -95,6 +93,8 @@ def import_openscene(
         console.print(f"[red]{escape(failure['log'])}[/red]: {escape(failure['reason'])}")
     reasons = Counter(entry["reason"] for entry in report["skipped"])
     if reasons:
+        from rich.table import Table
+
         table = Table(title="skipped tokens by reason")
         table.add_column("tokens", justify="right")
         table.add_column("reason")
@@ -127,6 +127,8 @@ def curate(
     cache_dir: Annotated[Path | None, typer.Option(help="cache directory (default: per split)")] = None,
 ) -> None:
     """Drop scenes the constant-velocity agent solves (PDMS > 0.8) or the human fails (< 0.8); print Table 3."""
+    from rich.table import Table
+
     from scorer.openscene.curation import AGENTS, curate_split, curation_table
     from scorer.scene import SceneFormatError, scene_paths
 

@@ -1,4 +1,4 @@
-"""The summary of a scored submission a person reads in a terminal."""
+"""The summary of a scored submission a person reads in a terminal or a log (drawn by `print_table`)."""
 
 from __future__ import annotations
 
@@ -6,10 +6,8 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
-from rich import box
-from rich.markup import escape
-from rich.table import Table
 
+from navsim_lb.terminal import TextTable
 from scorer.evaluate import TokenResult, summarize
 from scorer.versions import METRIC_LABELS, MetricVersion
 from server.numbers import percent
@@ -46,14 +44,14 @@ def summary_rows(results: Sequence[TokenResult], version: MetricVersion) -> list
     return rows
 
 
-def summary_table(results: Sequence[TokenResult], version: MetricVersion, title: str) -> Table:
+def summary_table(results: Sequence[TokenResult], version: MetricVersion, title: str) -> TextTable:
     """Return the summary as a table that fits an 80-column terminal (no vertical rules, numbers right)."""
     caption = f"scores in %; unscored tokens count 0; DDC: {version.ddc_role}" + (
         "; EC only between adjacent frames of a log (– where none)"
         if "two_frame_extended_comfort" in version.result_columns
         else ""
     )
-    return _terminal_table(
+    return TextTable(
         f"{title} ({version.score_label} {version.name})", caption, summary_rows(results, version)
     )
 
@@ -82,29 +80,11 @@ def two_stage_summary_rows(results: Sequence[TwoStageResult], version: MetricVer
     return rows
 
 
-def two_stage_summary_table(results: Sequence[TwoStageResult], version: MetricVersion, title: str) -> Table:
+def two_stage_summary_table(
+    results: Sequence[TwoStageResult], version: MetricVersion, title: str
+) -> TextTable:
     """Return the two-stage summary as a table for a terminal (`two_stage_summary_rows`)."""
     caption = "scores in %; official: the official script gives these numbers (if not, the warnings say why)"
-    return _terminal_table(
+    return TextTable(
         f"{title} ({version.score_label} {version.name})", caption, two_stage_summary_rows(results, version)
     )
-
-
-def _terminal_table(title: str, caption: str, rows: list[list[str]]) -> Table:
-    """Return a header and rows as a table that fits an 80-column terminal (no vertical rules, numbers right)."""
-    header, *body = rows
-    table = Table(
-        title=escape(title),  # plain text: it quotes the method
-        caption=caption,
-        box=box.SIMPLE_HEAD,
-        show_edge=False,
-        pad_edge=False,
-        # Columns are a space apart (the box's own) and, below 12 columns, one more: "100.0" in every column
-        # still fits 80 (v2.2 has thirteen).
-        padding=(0, 1, 0, 0) if len(header) < 12 else 0,
-    )
-    for index, column in enumerate(header):
-        table.add_column(column, justify="left" if index == 0 else "right", no_wrap=True)
-    for row in body:
-        table.add_row(*row)
-    return table

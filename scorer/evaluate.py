@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import hashlib
 import itertools
-import logging
 import math
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -57,11 +56,12 @@ from scorer.versions import (
     get_version,
 )
 
+if TYPE_CHECKING:
+    import logging
+
 POSES_SHAPE = (8, 3)
 CHUNK_SIZE = 256  # tokens per batched simulation; bounds memory on large splits
 CACHE_BATCH_SIZE = 16  # scenes whose caches are built together (a wider batch gains little)
-
-log = logging.getLogger(__name__)
 Key = TypeVar("Key", str, tuple[int | None, str])
 
 
@@ -89,6 +89,13 @@ class ScoredToken:
 
 class TokenError(Exception):
     """A token that cannot be scored; the message is safe to show to the submitting team."""
+
+
+def _log() -> logging.Logger:
+    """Return the organisers' log; logging (1 ms of a score's start-up) loads where a cache is not built."""
+    import logging
+
+    return logging.getLogger(__name__)
 
 
 def split_content_hash(split_dir: Path) -> str:
@@ -166,6 +173,7 @@ def _build_alone(
             try:
                 caches |= _build_and_save([scene], cache_dir, [version])[0]
             except Exception as error:
+                log = _log()
                 log.exception("metric cache of %s under %s could not be built", name, version)
                 errors[name] = error
         return caches
@@ -214,7 +222,7 @@ def build_split_cache(
 def _build_error_text(token: str, error: Exception) -> str:
     """Return what a team may read of why a hidden scene's cache is missing: never the scene's content nor
     the server's paths, which the error's own text quotes (it goes to the log, for the organisers)."""
-    log.warning("token %s: metric cache not built: %s: %s", token, type(error).__name__, error)
+    _log().warning("token %s: metric cache not built: %s: %s", token, type(error).__name__, error)
     if isinstance(error, (SceneFormatError, OSError)):
         return "the hidden scene of this token is unreadable on the server (the organisers are told)"
     return f"the metric cache of this hidden scene could not be built ({type(error).__name__})"

@@ -15,7 +15,7 @@ from scorer.scene import scene_paths
 # The shared fixtures, registered here (before any test module imports them) so their asserts are rewritten.
 pytest_plugins = ["server_testing", "worker_testing"]
 
-# pytest-xdist's workers start with COLUMNS=80 and LINES=24: rich's consoles, made at import, would keep that
+# pytest-xdist's workers start with COLUMNS=80 and LINES=24: rich's consoles, made once, would keep that
 # width, and the tests that ask CliRunner for a wider terminal would not get it. A run is alike on one process.
 for _variable in ("COLUMNS", "LINES"):
     os.environ.pop(_variable, None)

@@ -117,6 +117,7 @@ try:
 finally:
     engines = ("scorer.reactive", "scorer.two_stage")
     print("engines imported:", sorted({name for name in sys.modules for e in engines if name.startswith(e)}))
+    print("rich imported:", "rich" in sys.modules)
 """
 
 
@@ -124,7 +125,8 @@ def test_scoring_a_log_replay_version_does_not_import_reactive_or_two_stage_engi
     tmp_path: Path, one_token_split: tuple[Path, Path]
 ) -> None:
     """Reactive traffic and the two-stage aggregation serve other versions: the default version's
-    `navsim-lb score ... --out` from its cache never loads them (start-up)."""
+    `navsim-lb score ... --out` from its cache never loads them; in a pipe it prints plain text, without rich
+    (start-up)."""
     arguments = [*(str(path) for path in one_token_split), "--cache-dir", str(tmp_path / "cache")]
     arguments += ["--out", str(tmp_path / "results.csv")]
     cold, warm = (
@@ -134,5 +136,6 @@ def test_scoring_a_log_replay_version_does_not_import_reactive_or_two_stage_engi
         for _ in range(2)
     )
     assert cold.returncode == warm.returncode == 0, cold.stderr + warm.stderr
-    assert warm.stdout.splitlines()[-1] == "engines imported: []"
+    assert warm.stdout.splitlines()[-2:] == ["engines imported: []", "rich imported: False"]
+    assert "(PDMS v1.1)" in warm.stdout and f"wrote {tmp_path / 'results.csv'}" in warm.stderr
     assert (tmp_path / "results.csv").read_text().count("\n") >= 2

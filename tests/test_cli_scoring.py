@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from navsim_lb.cli import app
 from navsim_lb.report import summary_rows, summary_table
+from navsim_lb.terminal import TextTable, plain_table, rich_table
 from scorer.evaluate import TokenResult, score_tokens
 from scorer.submission import load_submission
 from scorer.versions import METRIC_LABELS, VERSIONS
@@ -114,6 +115,16 @@ def test_multi_seed_summary_has_per_seed_rows_and_mean_std_max() -> None:
     assert body[2][score] == "47.5" and body[3][score] == "2.5" and body[4][score] == "50.0"
 
 
+def _drawn(table: TextTable) -> str:
+    """Return `table` as rich draws it on an 80-column terminal (trailing spaces off), after checking that the
+    plain text printed in a log or a pipe reads the same."""
+    console = Console(width=80, record=True, file=io.StringIO(), emoji=False)
+    console.print(rich_table(table))
+    text = "\n".join(line.rstrip() for line in console.export_text().splitlines())
+    assert plain_table(table) == text
+    return text
+
+
 @pytest.mark.parametrize("value", [0.987654, 1.0])  # "100.0" everywhere is the widest table
 @pytest.mark.parametrize("version", list(VERSIONS))
 def test_summary_table_reads_in_80_columns(version: str, value: float) -> None:
@@ -122,9 +133,7 @@ def test_summary_table_reads_in_80_columns(version: str, value: float) -> None:
         for seed in range(3)
         for index in range(12000)
     ]
-    console = Console(width=80, record=True, file=io.StringIO())
-    console.print(summary_table(results, VERSIONS[version], "a method with a long name on private_test_e2e"))
-    text = console.export_text()
+    text = _drawn(summary_table(results, VERSIONS[version], "a method with a long name on private_test_e2e"))
     lines = text.splitlines()
     assert max(len(line) for line in lines) <= 80 and "…" not in text
     header = next(line.split() for line in lines if line.split()[:1] == ["seed"])

@@ -11,7 +11,6 @@ edges cross properly: touching edges either cross or overlap along a line, whose
 
 from __future__ import annotations
 
-from fractions import Fraction
 from typing import cast
 
 import numpy as np
@@ -27,6 +26,9 @@ SAFE_EPSILON = 1e-15
 
 
 def _exact_sign(a: FloatArray, b: FloatArray, c: FloatArray) -> int:
+    # Loaded only where the filter cannot decide: fractions, with decimal, is 1 ms of a score's start-up.
+    from fractions import Fraction
+
     ax, ay, bx, by, cx, cy = (Fraction(float(value)) for value in (*a, *b, *c))
     determinant = (ax - cx) * (by - cy) - (ay - cy) * (bx - cx)
     return (determinant > 0) - (determinant < 0)
