@@ -95,6 +95,11 @@ class LanePath:
         return np.concatenate([[[x, y]], self.points[ahead:]])
 
     @cached_property
+    def identity(self) -> tuple[bytes, tuple[float, ...]]:
+        """Return what names the path process-wide: its vertices and their progress."""
+        return self.points.tobytes(), self.progress
+
+    @cached_property
     def _envelopes_ahead(self) -> list[tuple[float, float, float, float]]:
         """Per vertex the envelope (min x, min y, max x, max y) of it and every vertex after it."""
         backwards = self.points[::-1]

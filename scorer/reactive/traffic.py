@@ -31,6 +31,7 @@ the devkit builds them, over the same geometries in the same order, and their tr
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass
@@ -50,6 +51,7 @@ from scorer.reactive.occupancy import (
     Capsules,
     Envelope,
     LazyOccupancy,
+    Recent,
     box_capsule,
     envelope_of,
     overlaps,
@@ -61,6 +63,9 @@ from scorer.versions import IdmTraffic
 EGO = "ego"
 T = TypeVar("T")
 STEP_S = 0.1  # the IDM's tspan: the scorer's proposal sampling interval
+_SIMULATIONS = itertools.count()
+# Lead searches already made in this process (`_lead_of`): the lead and its distance, and what the key names.
+_LEADS: Recent[tuple[str | None, float, tuple[shapely.Geometry, ...]]] = Recent(16384)
 
 
 @dataclass(frozen=True)
@@ -132,7 +137,7 @@ class _Agent:
             )
             return shapely.union_all([ahead, box_polygon(*pose, length, width)])
 
-        return (lower, upper, pose), envelope, bound, build
+        return (path.identity, lower, upper, pose, length, width), envelope, bound, build
 
 
 def _box_envelope(pose: tuple[float, float, float], length: float, width: float) -> Envelope:
@@ -167,26 +172,44 @@ def _lead_of(
     clamped = path.clamp(agent.progress)
     half_width = agent.start.width / 2
     envelope = path.to_go_envelope(clamped, half_width * BUFFER_REACH + BOUND_SLACK)
+    ahead_key = (path.identity, clamped, half_width)
     near = occupancy.near(
-        clamped, envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track
+        ahead_key, envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track
     )
     free_road = None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
     # After its first update a vehicle's footprint holds its box, centred where its path ahead starts: the
     # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test.
     if not near and agent.updated:
         return free_road
-    ahead = shapely.buffer(shapely.linestrings(path.to_go(clamped)), half_width, cap_style="flat")
     own = occupancy.geometry(track)
-    if not agent.updated and not shapely.intersects(own, ahead):
-        raise ValueError(f"vehicle {track}: its path does not meet its own footprint (the devkit asserts)")
-    try:
-        nearest = _nearest_hit(track, own, ahead, near, occupancy)
-    except _TreeOrderNeeded:
-        nearest = _nearest_hit_in_tree_order(track, own, ahead, occupancy)
+    # The same path ahead, own geometry and geometries near give the same lead: keyed by the geometries'
+    # identities, which the memo's value keeps alive (no identity is reused while it is kept).
+    geometries = tuple(occupancy.geometry(name) for name in near)
+    question = (ahead_key, track, id(own), tuple(near), tuple(map(id, geometries)))
+    known = _LEADS.get(question) if agent.updated else None
+    if known is not None:
+        nearest, distance, _ = known
+    else:
+        ahead = shapely.buffer(shapely.linestrings(path.to_go(clamped)), half_width, cap_style="flat")
+        if not agent.updated and not shapely.intersects(own, ahead):
+            raise ValueError(
+                f"vehicle {track}: its path does not meet its own footprint (the devkit asserts)"
+            )
+        try:
+            nearest = _nearest_hit(track, own, ahead, near, occupancy)
+            in_tree_order = False
+        except _TreeOrderNeeded:
+            nearest = _nearest_hit_in_tree_order(track, own, ahead, occupancy)
+            in_tree_order = True
+        distance = math.nan
+        if nearest is not None:
+            near_own, near_other = shapely.ops.nearest_points(own, occupancy.geometry(nearest))
+            distance = float(near_own.distance(near_other))
+        # The STRtrees' order depends on every geometry of the occupancy, not only on those near.
+        if not in_tree_order:
+            _LEADS.put(question, (nearest, distance, (own, *geometries)))
     if nearest is None:
         return free_road
-    near_own, near_other = shapely.ops.nearest_points(own, occupancy.geometry(nearest))
-    distance = float(near_own.distance(near_other))
     heading = agent.pose()[2]
     if EGO in nearest:
         speed = float(np.hypot(ego_state[StateIndex.VELOCITY_X], ego_state[StateIndex.VELOCITY_Y]))
@@ -230,11 +253,13 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
     """Return the vehicles of steps 1..len(ego_states) - 1 reacting to the ego's simulated states (T, 11)."""
     agents = {vehicle.track: _Agent(vehicle, vehicle.progress, vehicle.speed) for vehicle in start.agents}
     occupancy = LazyOccupancy()
+    # The ego's boxes are this simulation's own: its keys name them within it alone.
+    simulation = next(_SIMULATIONS)
     for vehicle in start.agents:
         capsule = box_capsule(*vehicle.pose, vehicle.length, vehicle.width)
         occupancy.set(
             vehicle.track,
-            None,
+            ("box", *vehicle.pose, vehicle.length, vehicle.width),
             envelope_of(capsule),
             partial(_given, capsule),
             partial(box_polygon, *vehicle.pose, vehicle.length, vehicle.width),
@@ -263,7 +288,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
         capsule = ego_capsules[step - 1 : step]
         occupancy.set(
             EGO,
-            tuple(ego_states[step - 1, : StateIndex.HEADING + 1].tolist()),
+            (EGO, simulation, *ego_states[step - 1, : StateIndex.HEADING + 1].tolist()),
             envelope_of(capsule),
             partial(_given, capsule),
             partial(_given, ego[step - 1]),
