@@ -95,7 +95,7 @@ def pairs_meet(first: Capsules, second: Capsules) -> BoolArray:
     radii of the other segment. Measured from a local origin, so that the crossing test's products stay
     well within float precision. The four (end, other segment) pairs of each pair of capsules are one
     array (4P): second's ends against first's segment, then first's ends against second's."""
-    origin = np.tile(first[0, :2], 2)
+    origin = first[0, [0, 1, 0, 1]]
     segments = np.concatenate([first[:, :4], first[:, :4], second[:, :4], second[:, :4]]) - origin
     ends = np.concatenate([second[:, 0:2], second[:, 2:4], first[:, 0:2], first[:, 2:4]]) - origin[:2]
     x0, y0, x1, y1 = segments.T
@@ -187,16 +187,25 @@ class Recent(OrderedDict[Hashable, T]):
 # another simulation of the scene, or of a scene that starts from the same recorded traffic, as the
 # synthetic scenes of one stage-one frame do), and the same question gets the same answer. Bounded, so
 # that a worker's memory does not grow with its tokens.
-_SHAPES: Recent[_Shape] = Recent(8192)
-_ANSWERS: Recent[list[str]] = Recent(32768)
+_SHAPES: Recent[_Shape] = Recent(2048)
+_ANSWERS: Recent[list[str]] = Recent(8192)
 
 
 @dataclass
 class _Entry:
     key: Hashable  # equal keys: the same geometry, built alike, in every simulation of the process
     envelope: Envelope  # holds the geometry
-    shape: _Shape
+    bound: Callable[[], Capsules]
+    build: Callable[[], shapely.Geometry]
     inserted_round: int
+    _shape: _Shape | None = None
+
+    def shape(self) -> _Shape:
+        """Return the shared shape of the key, made from `bound` and `build` where no other holds it (looked
+        up only when a search first needs it: most geometries never are)."""
+        if self._shape is None:
+            self._shape = _SHAPES.get_or_make(self.key, partial(_Shape, self.bound, self.build))
+        return self._shape
 
 
 class LazyOccupancy:
@@ -223,8 +232,7 @@ class LazyOccupancy:
         if previous is not None and previous.key == key:
             self._entries[name] = replace(previous, inserted_round=self._rounds)
         else:
-            shape = _SHAPES.get_or_make(key, partial(_Shape, bound, build))
-            self._entries[name] = _Entry(key, envelope, shape, self._rounds)
+            self._entries[name] = _Entry(key, envelope, bound, build, self._rounds)
 
     def remove(self, name: str) -> None:
         """Remove `name` (a vehicle that left the radius)."""
@@ -255,7 +263,7 @@ class LazyOccupancy:
         return _ANSWERS.get_or_make(question, lambda: self._near(names, bound()))
 
     def _near(self, names: list[str], capsules: Capsules) -> list[str]:
-        held = [self._entries[name].shape.capsules() for name in names]
+        held = [self._entries[name].shape().capsules() for name in names]
         owner = np.repeat(np.arange(len(names)), [len(capsules) for capsules, _ in held])
         piece, index = np.nonzero(
             _meet(_envelopes(capsules), np.concatenate([envelopes for _, envelopes in held]))
@@ -269,4 +277,4 @@ class LazyOccupancy:
     def geometry(self, name: str) -> shapely.Geometry:
         """Return the geometry of `name` as the devkit holds it now: built, and simplified once per round."""
         entry = self._entries[name]
-        return entry.shape.simplified.after(self._rounds - entry.inserted_round)
+        return entry.shape().simplified.after(self._rounds - entry.inserted_round)

@@ -95,9 +95,10 @@ class LanePath:
         return np.concatenate([[[x, y]], self.points[ahead:]])
 
     @cached_property
-    def identity(self) -> tuple[bytes, tuple[float, ...]]:
-        """Return what names the path process-wide: its vertices and their progress."""
-        return self.points.tobytes(), self.progress
+    def identity(self) -> bytes:
+        """Return what names the path process-wide: its vertices and their progress (bytes, whose hash
+        Python keeps)."""
+        return self.points.tobytes() + np.array(self.progress).tobytes()
 
     @cached_property
     def _envelopes_ahead(self) -> list[tuple[float, float, float, float]]:

@@ -65,7 +65,7 @@ T = TypeVar("T")
 STEP_S = 0.1  # the IDM's tspan: the scorer's proposal sampling interval
 _SIMULATIONS = itertools.count()
 # Lead searches already made in this process (`_lead_of`): the lead and its distance, and what the key names.
-_LEADS: Recent[tuple[str | None, float, tuple[shapely.Geometry, ...]]] = Recent(16384)
+_LEADS: Recent[tuple[str | None, float, tuple[shapely.Geometry, ...]]] = Recent(4096)
 
 
 @dataclass(frozen=True)
