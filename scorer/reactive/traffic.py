@@ -51,7 +51,6 @@ from scorer.reactive.occupancy import (
     Capsules,
     Envelope,
     LazyOccupancy,
-    Recent,
     box_capsule,
     envelope_of,
     overlaps,
@@ -66,8 +65,6 @@ STEP_S = 0.1  # the IDM's tspan: the scorer's proposal sampling interval
 _SIMULATIONS = itertools.count()
 # Where the range filter's own distance decides (`_leave_range`): beyond a millionth of the radius.
 RANGE_TIE = 1e-6
-# Lead searches already made in this process (`_lead_of`): the lead and its distance, and what the key names.
-_LEADS: Recent[tuple[str | None, float, tuple[shapely.Geometry, ...]]] = Recent(1024)
 
 
 @dataclass(frozen=True)
@@ -183,35 +180,18 @@ def _lead_of(
     # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test.
     if not near and agent.updated:
         return free_road
+    ahead = shapely.buffer(shapely.linestrings(path.to_go(clamped)), half_width, cap_style="flat")
     own = occupancy.geometry(track)
-    # The same path ahead, own geometry and geometries near give the same lead: keyed by the geometries'
-    # identities, which the memo's value keeps alive (no identity is reused while it is kept).
-    geometries = tuple(occupancy.geometry(name) for name in near)
-    question = (ahead_key, track, id(own), tuple(near), tuple(map(id, geometries)))
-    known = _LEADS.get(question) if agent.updated else None
-    if known is not None:
-        nearest, distance, _ = known
-    else:
-        ahead = shapely.buffer(shapely.linestrings(path.to_go(clamped)), half_width, cap_style="flat")
-        if not agent.updated and not shapely.intersects(own, ahead):
-            raise ValueError(
-                f"vehicle {track}: its path does not meet its own footprint (the devkit asserts)"
-            )
-        try:
-            nearest = _nearest_hit(track, own, ahead, near, occupancy)
-            in_tree_order = False
-        except _TreeOrderNeeded:
-            nearest = _nearest_hit_in_tree_order(track, own, ahead, occupancy)
-            in_tree_order = True
-        distance = math.nan
-        if nearest is not None:
-            near_own, near_other = shapely.ops.nearest_points(own, occupancy.geometry(nearest))
-            distance = float(near_own.distance(near_other))
-        # The STRtrees' order depends on every geometry of the occupancy, not only on those near.
-        if not in_tree_order:
-            _LEADS.put(question, (nearest, distance, (own, *geometries)))
+    if not agent.updated and not shapely.intersects(own, ahead):
+        raise ValueError(f"vehicle {track}: its path does not meet its own footprint (the devkit asserts)")
+    try:
+        nearest = _nearest_hit(track, own, ahead, near, occupancy)
+    except _TreeOrderNeeded:
+        nearest = _nearest_hit_in_tree_order(track, own, ahead, occupancy)
     if nearest is None:
         return free_road
+    near_own, near_other = shapely.ops.nearest_points(own, occupancy.geometry(nearest))
+    distance = float(near_own.distance(near_other))
     heading = agent.pose()[2]
     if EGO in nearest:
         speed = float(np.hypot(ego_state[StateIndex.VELOCITY_X], ego_state[StateIndex.VELOCITY_Y]))
