@@ -18,12 +18,22 @@ A geometry a search needs is built then and simplified as many times as the devk
 coordinates in the same structure (`equals_exact` with tolerance 0), every later round gives them back too.
 So every geometry a lead search reads is the one the devkit reads, bit for bit, and none is simplified more
 than twice. A vehicle standing still gets the same footprint at every step: it is built once.
+
+What is built is shared by the process's simulations: a geometry's key names it (the numbers it is built
+from), and every simulation that holds a geometry of that key (the other simulation of the token, or a token
+starting from the same recorded traffic: the synthetic scenes of one stage-one frame differ in their ego
+alone) reads the same built and simplified shapes and the same answers of the capsule test. GEOS gives the
+same coordinates for the same input, so sharing changes no bit; the memos are bounded (least recently
+used first out), so a worker's memory does not grow with its tokens.
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, replace
+from functools import partial
+from typing import TypeVar
 
 import numpy as np
 import shapely
@@ -41,6 +51,7 @@ BUFFER_REACH = 1.02
 # Capsules (k, 5): a segment's x0, y0, x1, y1 and a radius.
 Capsules = FloatArray
 Envelope = tuple[float, float, float, float]  # min x, min y, max x, max y
+T = TypeVar("T")
 
 
 def polyline_capsules(points: FloatArray, distance: float) -> Capsules:
@@ -78,53 +89,24 @@ def _meet(first: FloatArray, second: FloatArray) -> BoolArray:
     )
 
 
-def _point_segment_distance(
-    x: FloatArray, y: FloatArray, x0: FloatArray, y0: FloatArray, x1: FloatArray, y1: FloatArray
-) -> FloatArray:
-    dx, dy = x1 - x0, y1 - y0
-    squared = dx * dx + dy * dy
-    along = (x - x0) * dx + (y - y0) * dy
-    fraction = np.clip(along / np.where(squared > 0, squared, 1.0), 0.0, 1.0)
-    return np.hypot(x - x0 - fraction * dx, y - y0 - fraction * dy)
-
-
-def _side(
-    x0: FloatArray, y0: FloatArray, x1: FloatArray, y1: FloatArray, x: FloatArray, y: FloatArray
-) -> FloatArray:
-    return (x1 - x0) * (y - y0) - (y1 - y0) * (x - x0)
-
-
 def pairs_meet(first: Capsules, second: Capsules) -> BoolArray:
     """Return per pair of capsules (P, 5) whether they come within the slack of each other: the segments
     cross (strictly; touching and overlapping ones have an end on the other) or an end lies within the two
     radii of the other segment. Measured from a local origin, so that the crossing test's products stay
-    well within float precision."""
-    origin_x, origin_y = first[0, 0], first[0, 1]
-    ax0, ay0, ax1, ay1 = (
-        first[:, 0] - origin_x,
-        first[:, 1] - origin_y,
-        first[:, 2] - origin_x,
-        first[:, 3] - origin_y,
-    )
-    bx0, by0, bx1, by1 = (
-        second[:, 0] - origin_x,
-        second[:, 1] - origin_y,
-        second[:, 2] - origin_x,
-        second[:, 3] - origin_y,
-    )
-    distance = np.minimum(
-        np.minimum(
-            _point_segment_distance(ax0, ay0, bx0, by0, bx1, by1),
-            _point_segment_distance(ax1, ay1, bx0, by0, bx1, by1),
-        ),
-        np.minimum(
-            _point_segment_distance(bx0, by0, ax0, ay0, ax1, ay1),
-            _point_segment_distance(bx1, by1, ax0, ay0, ax1, ay1),
-        ),
-    )
-    crossing = (_side(ax0, ay0, ax1, ay1, bx0, by0) * _side(ax0, ay0, ax1, ay1, bx1, by1) < 0) & (
-        _side(bx0, by0, bx1, by1, ax0, ay0) * _side(bx0, by0, bx1, by1, ax1, ay1) < 0
-    )
+    well within float precision. The four (end, other segment) pairs of each pair of capsules are one
+    array (4P): second's ends against first's segment, then first's ends against second's."""
+    origin = first[0, [0, 1, 0, 1]]
+    segments = np.concatenate([first[:, :4], first[:, :4], second[:, :4], second[:, :4]]) - origin
+    ends = np.concatenate([second[:, 0:2], second[:, 2:4], first[:, 0:2], first[:, 2:4]]) - origin[:2]
+    x0, y0, x1, y1 = segments.T
+    x, y = ends.T
+    dx, dy = x1 - x0, y1 - y0
+    squared = dx * dx + dy * dy
+    along = (x - x0) * dx + (y - y0) * dy
+    fraction = np.clip(along / np.where(squared > 0, squared, 1.0), 0.0, 1.0)
+    distance = np.hypot(x - x0 - fraction * dx, y - y0 - fraction * dy).reshape(4, -1).min(axis=0)
+    side = (dx * (y - y0) - dy * (x - x0)).reshape(4, -1)
+    crossing = (side[0] * side[1] < 0) & (side[2] * side[3] < 0)
     return crossing | (distance <= first[:, 4] + second[:, 4] + BOUND_SLACK)
 
 
@@ -161,21 +143,69 @@ class _Simplified:
         return self._rounds[min(rounds, len(self._rounds) - 1)]
 
 
-@dataclass
-class _Entry:
-    key: Hashable  # equal keys: the same geometry, built alike
-    envelope: Envelope  # holds the geometry
-    bound: Callable[[], Capsules]  # the capsules holding the geometry, tighter than the envelope
-    simplified: _Simplified
-    inserted_round: int
-    _capsules: tuple[Capsules, FloatArray] | None = None
+class _Shape:
+    """A geometry's capsules and its simplifications: what every occupancy holding the same geometry shares."""
+
+    def __init__(self, bound: Callable[[], Capsules], build: Callable[[], shapely.Geometry]) -> None:
+        self._bound = bound
+        self.simplified = _Simplified(build)
+        self._capsules: tuple[Capsules, FloatArray] | None = None
 
     def capsules(self) -> tuple[Capsules, FloatArray]:
         """Return the capsules holding the geometry and their envelopes."""
         if self._capsules is None:
-            capsules = self.bound()
+            capsules = self._bound()
             self._capsules = capsules, _envelopes(capsules)
         return self._capsules
+
+
+class Recent(OrderedDict[Hashable, T]):
+    """A dict of at most `limit` items that forgets the least recently used."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__()
+        self._limit = limit
+
+    def get_or_make(self, key: Hashable, make: Callable[[], T]) -> T:
+        """Return the value of `key`, made (and kept) if absent."""
+        value = self.get(key)
+        if value is None:
+            value = make()
+            self.put(key, value)
+        else:
+            self.move_to_end(key)
+        return value
+
+    def put(self, key: Hashable, value: T) -> None:
+        """Keep `value` for `key`, forgetting the least recently used beyond the limit."""
+        self[key] = value
+        if len(self) > self._limit:
+            self.popitem(last=False)
+
+
+# What tokens of one process share: a key names one geometry wherever it appears (the same vehicle in
+# another simulation of the scene, or of a scene that starts from the same recorded traffic, as the
+# synthetic scenes of one stage-one frame do), and the same question gets the same answer. Bounded, so
+# that a worker's memory does not grow with its tokens.
+_SHAPES: Recent[_Shape] = Recent(2048)
+_ANSWERS: Recent[list[str]] = Recent(8192)
+
+
+@dataclass
+class _Entry:
+    key: Hashable  # equal keys: the same geometry, built alike, in every simulation of the process
+    envelope: Envelope  # holds the geometry
+    bound: Callable[[], Capsules]
+    build: Callable[[], shapely.Geometry]
+    inserted_round: int
+    _shape: _Shape | None = None
+
+    def shape(self) -> _Shape:
+        """Return the shared shape of the key, made from `bound` and `build` where no other holds it (looked
+        up only when a search first needs it: most geometries never are)."""
+        if self._shape is None:
+            self._shape = _SHAPES.get_or_make(self.key, partial(_Shape, self.bound, self.build))
+        return self._shape
 
 
 class LazyOccupancy:
@@ -184,7 +214,6 @@ class LazyOccupancy:
     def __init__(self) -> None:
         self._entries: dict[str, _Entry] = {}
         self._rounds = 0
-        self._answers: dict[Hashable, list[str]] = {}
 
     def set(
         self,
@@ -195,14 +224,15 @@ class LazyOccupancy:
         build: Callable[[], shapely.Geometry],
     ) -> None:
         """Insert or replace the geometry of `name`, held within `envelope` and within the capsules `bound`
-        gives (a replaced name keeps its place, as in a dict). Where it replaces a geometry of the same
-        `key` (a vehicle standing still), what was built and simplified of that one serves again: the devkit
-        builds the same coordinates anew and simplifies them from the start, and so do its rounds here."""
+        gives (a replaced name keeps its place, as in a dict). `key` names the geometry process-wide: what
+        was built and simplified of a geometry of the same key (a vehicle standing still, the same vehicle in
+        another simulation) serves again: the devkit builds the same coordinates anew and simplifies them from
+        the start, and so do its rounds here."""
         previous = self._entries.get(name)
         if previous is not None and previous.key == key:
             self._entries[name] = replace(previous, inserted_round=self._rounds)
         else:
-            self._entries[name] = _Entry(key, envelope, bound, _Simplified(build), self._rounds)
+            self._entries[name] = _Entry(key, envelope, bound, build, self._rounds)
 
     def remove(self, name: str) -> None:
         """Remove `name` (a vehicle that left the radius)."""
@@ -219,8 +249,8 @@ class LazyOccupancy:
     def near(
         self, shape: Hashable, envelope: Envelope, bound: Callable[[], Capsules], excluded: str
     ) -> list[str]:
-        """Return the names but `excluded` whose geometry may meet a shape (equal `shape` keys: the same
-        shape) held within `envelope` and within the capsules `bound` gives, in the devkit's order."""
+        """Return the names but `excluded` whose geometry may meet a shape (`shape` names it process-wide)
+        held within `envelope` and within the capsules `bound` gives, in the devkit's order."""
         names = [
             name
             for name, entry in self._entries.items()
@@ -228,14 +258,12 @@ class LazyOccupancy:
         ]
         if not names:
             return []
-        # What a vehicle standing still asks again of geometries standing still has the same answer.
+        # The same shape asked about the same geometries has the same answer.
         question = (shape, excluded, tuple((name, self._entries[name].key) for name in names))
-        if question not in self._answers:
-            self._answers[question] = self._near(names, bound())
-        return self._answers[question]
+        return _ANSWERS.get_or_make(question, lambda: self._near(names, bound()))
 
     def _near(self, names: list[str], capsules: Capsules) -> list[str]:
-        held = [self._entries[name].capsules() for name in names]
+        held = [self._entries[name].shape().capsules() for name in names]
         owner = np.repeat(np.arange(len(names)), [len(capsules) for capsules, _ in held])
         piece, index = np.nonzero(
             _meet(_envelopes(capsules), np.concatenate([envelopes for _, envelopes in held]))
@@ -249,4 +277,4 @@ class LazyOccupancy:
     def geometry(self, name: str) -> shapely.Geometry:
         """Return the geometry of `name` as the devkit holds it now: built, and simplified once per round."""
         entry = self._entries[name]
-        return entry.simplified.after(self._rounds - entry.inserted_round)
+        return entry.shape().simplified.after(self._rounds - entry.inserted_round)

@@ -95,6 +95,12 @@ class LanePath:
         return np.concatenate([[[x, y]], self.points[ahead:]])
 
     @cached_property
+    def identity(self) -> bytes:
+        """Return what names the path process-wide: its vertices and their progress (bytes, whose hash
+        Python keeps)."""
+        return self.points.tobytes() + np.array(self.progress).tobytes()
+
+    @cached_property
     def _envelopes_ahead(self) -> list[tuple[float, float, float, float]]:
         """Per vertex the envelope (min x, min y, max x, max y) of it and every vertex after it."""
         backwards = self.points[::-1]

@@ -31,6 +31,7 @@ the devkit builds them, over the same geometries in the same order, and their tr
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass
@@ -61,6 +62,9 @@ from scorer.versions import IdmTraffic
 EGO = "ego"
 T = TypeVar("T")
 STEP_S = 0.1  # the IDM's tspan: the scorer's proposal sampling interval
+_SIMULATIONS = itertools.count()
+# Where the range filter's own distance decides (`_leave_range`): beyond a millionth of the radius.
+RANGE_TIE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -132,7 +136,7 @@ class _Agent:
             )
             return shapely.union_all([ahead, box_polygon(*pose, length, width)])
 
-        return (lower, upper, pose), envelope, bound, build
+        return (path.identity, lower, upper, pose, length, width), envelope, bound, build
 
 
 def _box_envelope(pose: tuple[float, float, float], length: float, width: float) -> Envelope:
@@ -167,8 +171,9 @@ def _lead_of(
     clamped = path.clamp(agent.progress)
     half_width = agent.start.width / 2
     envelope = path.to_go_envelope(clamped, half_width * BUFFER_REACH + BOUND_SLACK)
+    ahead_key = (path.identity, clamped, half_width)
     near = occupancy.near(
-        clamped, envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track
+        ahead_key, envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track
     )
     free_road = None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
     # After its first update a vehicle's footprint holds its box, centred where its path ahead starts: the
@@ -230,11 +235,13 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
     """Return the vehicles of steps 1..len(ego_states) - 1 reacting to the ego's simulated states (T, 11)."""
     agents = {vehicle.track: _Agent(vehicle, vehicle.progress, vehicle.speed) for vehicle in start.agents}
     occupancy = LazyOccupancy()
+    # The ego's boxes are this simulation's own: its keys name them within it alone.
+    simulation = next(_SIMULATIONS)
     for vehicle in start.agents:
         capsule = box_capsule(*vehicle.pose, vehicle.length, vehicle.width)
         occupancy.set(
             vehicle.track,
-            None,
+            ("box", *vehicle.pose, vehicle.length, vehicle.width),
             envelope_of(capsule),
             partial(_given, capsule),
             partial(box_polygon, *vehicle.pose, vehicle.length, vehicle.width),
@@ -263,7 +270,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
         capsule = ego_capsules[step - 1 : step]
         occupancy.set(
             EGO,
-            tuple(ego_states[step - 1, : StateIndex.HEADING + 1].tolist()),
+            (EGO, simulation, *ego_states[step - 1, : StateIndex.HEADING + 1].tolist()),
             envelope_of(capsule),
             partial(_given, capsule),
             partial(_given, ego[step - 1]),
@@ -305,18 +312,31 @@ def _leave_range(
     step: int,
     out_of_range: dict[str, int],
 ) -> None:
-    """Remove the vehicles farther than `radius` from the ego's rear axle, from the simulation for good."""
-    if not agents:
-        return
-    # Imported here: scoring and caching the log-replay versions start without scipy (docs/engine.md, "Start-up").
-    from scipy.spatial.distance import cdist
+    """Remove the vehicles farther than `radius` from the ego's rear axle, from the simulation for good.
 
-    centres = np.array([agent.pose()[:2] for agent in agents.values()])
-    distances = cdist(ego_state[None, : StateIndex.HEADING], centres)[0]
-    for track in np.array(list(agents))[distances > radius].tolist():
+    The devkit measures with scipy's `cdist`; Python's sqrt(dx * dx + dy * dy) is within a few ulps of it, so
+    it decides every vehicle but those within a millionth of the radius, which `cdist` decides."""
+    ego_x, ego_y = float(ego_state[StateIndex.X]), float(ego_state[StateIndex.Y])
+    leaving = []
+    for track, agent in agents.items():
+        x, y, _ = agent.pose()
+        distance = math.sqrt((x - ego_x) * (x - ego_x) + (y - ego_y) * (y - ego_y))
+        if abs(distance - radius) <= radius * RANGE_TIE:
+            distance = _devkit_distance(ego_state, x, y)
+        if distance > radius:
+            leaving.append(track)
+    for track in leaving:
         del agents[track]
         occupancy.remove(track)
         out_of_range[track] = step
+
+
+def _devkit_distance(ego_state: FloatArray, x: float, y: float) -> float:
+    """Return the distance from the ego's rear axle to (x, y) as the devkit's range filter measures it."""
+    # Imported here: scoring and caching the log-replay versions start without scipy (docs/engine.md, "Start-up").
+    from scipy.spatial.distance import cdist
+
+    return float(cdist(ego_state[None, : StateIndex.HEADING], np.array([[x, y]]))[0, 0])
 
 
 def _vehicles_of_step(
