@@ -14,13 +14,16 @@ Usage: .venv/bin/python benchmarks/comfort_rounding.py [--groups 3000] [--size 2
 
 from __future__ import annotations
 
+import scorer  # noqa: F401 - before numpy: it selects the official results' OpenBLAS kernels
+
+# isort: split
+
 import argparse
 import time
 
 import numpy as np
 from scipy.signal import savgol_filter
 
-import scorer  # noqa: F401 - first, for the devkit's OpenBLAS kernels
 from scorer.metrics import comfort
 from scorer.metrics.savgol import EDGE_ERROR_ULPS, filter_batch, savgol_operator
 from scorer.trajectory import SCORING_INTERVAL_S
