@@ -78,7 +78,9 @@ def _envelope(capsule: Capsule) -> Envelope:
     """Return the envelope of a capsule, widened by the slack."""
     x0, y0, x1, y1, radius = capsule
     reach = radius + BOUND_SLACK
-    return min(x0, x1) - reach, min(y0, y1) - reach, max(x0, x1) + reach, max(y0, y1) + reach
+    low_x, high_x = (x0, x1) if x0 <= x1 else (x1, x0)
+    low_y, high_y = (y0, y1) if y0 <= y1 else (y1, y0)
+    return low_x - reach, low_y - reach, high_x + reach, high_y + reach
 
 
 def _end_within(
@@ -285,15 +287,25 @@ class LazyOccupancy:
         # them: the first piece among them is the origin every capsule test measures from.
         meeting_envelopes: list[tuple[int, int, Capsule]] = []
         held = [self._entries[name].shape().capsules() for name in names]
-        for owner, (owned, envelopes, around) in enumerate(held):
-            near_pieces = [index for index, piece in enumerate(pieces) if overlaps(piece, around)]
-            for index in near_pieces:
-                piece = pieces[index]
-                meeting_envelopes.extend(
-                    (index, owner, capsule)
-                    for capsule, envelope in zip(owned, envelopes, strict=True)
-                    if overlaps(piece, envelope)
-                )
+        # Written out (no `overlaps` calls): this loop is most of the pre-check's Python.
+        for owner, (owned, envelopes, (low_x, low_y, high_x, high_y)) in enumerate(held):
+            for index, (piece_low_x, piece_low_y, piece_high_x, piece_high_y) in enumerate(pieces):
+                if (
+                    piece_low_x <= high_x
+                    and low_x <= piece_high_x
+                    and piece_low_y <= high_y
+                    and low_y <= piece_high_y
+                ):
+                    meeting_envelopes.extend(
+                        (index, owner, capsule)
+                        for capsule, (other_low_x, other_low_y, other_high_x, other_high_y) in zip(
+                            owned, envelopes, strict=True
+                        )
+                        if piece_low_x <= other_high_x
+                        and other_low_x <= piece_high_x
+                        and piece_low_y <= other_high_y
+                        and other_low_y <= piece_high_y
+                    )
         if not meeting_envelopes:
             return []
         origin_x, origin_y = capsules[min(index for index, _, _ in meeting_envelopes)][:2]
