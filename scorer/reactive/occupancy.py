@@ -29,6 +29,8 @@ used first out), so a worker's memory does not grow with its tokens.
 
 from __future__ import annotations
 
+import itertools
+import math
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, replace
@@ -38,7 +40,7 @@ from typing import TypeVar
 import numpy as np
 import shapely
 
-from scorer.geometry import BoolArray, FloatArray
+from scorer.geometry import FloatArray
 
 SIMPLIFY_TOLERANCE = 1e-5
 # Margin (m) on every bound: the bounds hold in real numbers; GEOS's buffers, the simplification and the
@@ -48,74 +50,90 @@ BOUND_SLACK = 1e-3
 # (`BufferParameters` simplify factor): the buffer may reach that much farther than the distance; twice it.
 BUFFER_REACH = 1.02
 
-# Capsules (k, 5): a segment's x0, y0, x1, y1 and a radius.
-Capsules = FloatArray
+# Capsules: per segment its x0, y0, x1, y1 and a radius, in Python floats: the pre-check runs per lead
+# search on a few dozen segments, where numpy's per-call cost outweighs its arithmetic.
+Capsule = tuple[float, float, float, float, float]
+Capsules = list[Capsule]
 Envelope = tuple[float, float, float, float]  # min x, min y, max x, max y
 T = TypeVar("T")
+# Where the capsule test's own distance decides (`_end_within`): beyond a billionth of the reach, Python's
+# hypot and numpy's (each within an ulp of the true distance) agree on the side.
+HYPOT_TIE = 1e-9
 
 
 def polyline_capsules(points: FloatArray, distance: float) -> Capsules:
     """Return the capsules holding the buffer at `distance` of a polyline (n, 2), n >= 2: its segments."""
     radius = distance * BUFFER_REACH
-    return np.concatenate([points[:-1], points[1:], np.full((len(points) - 1, 1), radius)], axis=1)
+    xy = points.tolist()
+    return [(x0, y0, x1, y1, radius) for (x0, y0), (x1, y1) in itertools.pairwise(xy)]
 
 
-def box_capsule(x: float, y: float, heading: float, length: float, width: float) -> Capsules:
-    """Return the capsule (1, 5) holding a box: its long axis and half its width."""
-    half_x, half_y = length / 2 * np.cos(heading), length / 2 * np.sin(heading)
-    return np.array([[x - half_x, y - half_y, x + half_x, y + half_y, width / 2]])
+def box_capsule(x: float, y: float, heading: float, length: float, width: float) -> Capsule:
+    """Return the capsule holding a box: its long axis and half its width."""
+    half_x, half_y = length / 2 * float(np.cos(heading)), length / 2 * float(np.sin(heading))
+    return (x - half_x, y - half_y, x + half_x, y + half_y, width / 2)
 
 
-def _envelopes(capsules: Capsules) -> FloatArray:
-    """Return the envelopes (k, 4) (min x, min y, max x, max y) of capsules, widened by the slack."""
-    reach = capsules[:, 4:] + BOUND_SLACK
-    return np.concatenate(
-        [
-            np.minimum(capsules[:, 0:2], capsules[:, 2:4]) - reach,
-            np.maximum(capsules[:, 0:2], capsules[:, 2:4]) + reach,
-        ],
-        axis=1,
-    )
+def _envelope(capsule: Capsule) -> Envelope:
+    """Return the envelope of a capsule, widened by the slack."""
+    x0, y0, x1, y1, radius = capsule
+    reach = radius + BOUND_SLACK
+    low_x, high_x = (x0, x1) if x0 <= x1 else (x1, x0)
+    low_y, high_y = (y0, y1) if y0 <= y1 else (y1, y0)
+    return low_x - reach, low_y - reach, high_x + reach, high_y + reach
 
 
-def _meet(first: FloatArray, second: FloatArray) -> BoolArray:
-    """Return per envelope of `first` (m, 4) and of `second` (k, 4) whether they meet, (m, k)."""
-    first, second = first[:, None], second[None]
-    return (
-        (first[..., 0] <= second[..., 2])
-        & (second[..., 0] <= first[..., 2])
-        & (first[..., 1] <= second[..., 3])
-        & (second[..., 1] <= first[..., 3])
-    )
-
-
-def pairs_meet(first: Capsules, second: Capsules) -> BoolArray:
-    """Return per pair of capsules (P, 5) whether they come within the slack of each other: the segments
-    cross (strictly; touching and overlapping ones have an end on the other) or an end lies within the two
-    radii of the other segment. Measured from a local origin, so that the crossing test's products stay
-    well within float precision. The four (end, other segment) pairs of each pair of capsules are one
-    array (4P): second's ends against first's segment, then first's ends against second's."""
-    origin = first[0, [0, 1, 0, 1]]
-    segments = np.concatenate([first[:, :4], first[:, :4], second[:, :4], second[:, :4]]) - origin
-    ends = np.concatenate([second[:, 0:2], second[:, 2:4], first[:, 0:2], first[:, 2:4]]) - origin[:2]
-    x0, y0, x1, y1 = segments.T
-    x, y = ends.T
-    dx, dy = x1 - x0, y1 - y0
-    squared = dx * dx + dy * dy
+def _end_within(
+    x: float, y: float, x0: float, y0: float, dx: float, dy: float, squared: float, reach: float
+) -> bool:
+    """Return whether the point (x, y) lies within `reach` of the segment from (x0, y0) by (dx, dy) (its
+    squared length `squared`), measured as numpy measured it: hypot of the offset from the clamped
+    projection; numpy's hypot where the distance is a near-tie."""
     along = (x - x0) * dx + (y - y0) * dy
-    fraction = np.clip(along / np.where(squared > 0, squared, 1.0), 0.0, 1.0)
-    distance = np.hypot(x - x0 - fraction * dx, y - y0 - fraction * dy).reshape(4, -1).min(axis=0)
-    side = (dx * (y - y0) - dy * (x - x0)).reshape(4, -1)
-    crossing = (side[0] * side[1] < 0) & (side[2] * side[3] < 0)
-    return crossing | (distance <= first[:, 4] + second[:, 4] + BOUND_SLACK)
+    fraction = min(max(along / (squared if squared > 0 else 1.0), 0.0), 1.0)
+    off_x, off_y = x - x0 - fraction * dx, y - y0 - fraction * dy
+    distance = math.hypot(off_x, off_y)
+    if abs(distance - reach) <= reach * HYPOT_TIE:
+        distance = float(np.hypot(off_x, off_y))
+    return distance <= reach
+
+
+def capsules_meet(first: Capsule, second: Capsule, origin_x: float, origin_y: float) -> bool:
+    """Return whether two capsules come within the slack of each other: the segments cross (strictly;
+    touching and overlapping ones have an end on the other) or an end lies within the two radii of the other
+    segment. Measured from a local origin (the first capsule's start of the search), so that the crossing
+    test's products stay well within float precision."""
+    ax0, ay0, ax1, ay1 = first[0] - origin_x, first[1] - origin_y, first[2] - origin_x, first[3] - origin_y
+    bx0, by0, bx1, by1 = (
+        second[0] - origin_x,
+        second[1] - origin_y,
+        second[2] - origin_x,
+        second[3] - origin_y,
+    )
+    adx, ady, bdx, bdy = ax1 - ax0, ay1 - ay0, bx1 - bx0, by1 - by0
+    a_side = (adx * (by0 - ay0) - ady * (bx0 - ax0)) * (adx * (by1 - ay0) - ady * (bx1 - ax0))
+    b_side = (bdx * (ay0 - by0) - bdy * (ax0 - bx0)) * (bdx * (ay1 - by0) - bdy * (ax1 - bx0))
+    if a_side < 0 and b_side < 0:
+        return True
+    reach = first[4] + second[4] + BOUND_SLACK
+    a_squared, b_squared = adx * adx + ady * ady, bdx * bdx + bdy * bdy
+    return (
+        _end_within(bx0, by0, ax0, ay0, adx, ady, a_squared, reach)
+        or _end_within(bx1, by1, ax0, ay0, adx, ady, a_squared, reach)
+        or _end_within(ax0, ay0, bx0, by0, bdx, bdy, b_squared, reach)
+        or _end_within(ax1, ay1, bx0, by0, bdx, bdy, b_squared, reach)
+    )
 
 
 def envelope_of(capsules: Capsules) -> Envelope:
     """Return the envelope of the union of capsules, widened by the slack."""
-    envelopes = _envelopes(capsules)
-    low_x, low_y = envelopes[:, :2].min(axis=0).tolist()
-    high_x, high_y = envelopes[:, 2:].max(axis=0).tolist()
-    return low_x, low_y, high_x, high_y
+    envelopes = [_envelope(capsule) for capsule in capsules]
+    return (
+        min(envelope[0] for envelope in envelopes),
+        min(envelope[1] for envelope in envelopes),
+        max(envelope[2] for envelope in envelopes),
+        max(envelope[3] for envelope in envelopes),
+    )
 
 
 def overlaps(first: Envelope, second: Envelope) -> bool:
@@ -149,13 +167,14 @@ class _Shape:
     def __init__(self, bound: Callable[[], Capsules], build: Callable[[], shapely.Geometry]) -> None:
         self._bound = bound
         self.simplified = _Simplified(build)
-        self._capsules: tuple[Capsules, FloatArray] | None = None
+        self._capsules: tuple[Capsules, list[Envelope], Envelope] | None = None
 
-    def capsules(self) -> tuple[Capsules, FloatArray]:
-        """Return the capsules holding the geometry and their envelopes."""
+    def capsules(self) -> tuple[Capsules, list[Envelope], Envelope]:
+        """Return the capsules holding the geometry, their envelopes and the envelope of them all."""
         if self._capsules is None:
             capsules = self._bound()
-            self._capsules = capsules, _envelopes(capsules)
+            envelopes = [_envelope(capsule) for capsule in capsules]
+            self._capsules = capsules, envelopes, envelope_of(capsules)
         return self._capsules
 
 
@@ -263,15 +282,37 @@ class LazyOccupancy:
         return _ANSWERS.get_or_make(question, lambda: self._near(names, bound()))
 
     def _near(self, names: list[str], capsules: Capsules) -> list[str]:
+        pieces = [_envelope(capsule) for capsule in capsules]
+        # The (piece, owner, capsule) triples whose envelopes meet, as numpy's (piece, capsule) grid listed
+        # them: the first piece among them is the origin every capsule test measures from.
+        meeting_envelopes: list[tuple[int, int, Capsule]] = []
         held = [self._entries[name].shape().capsules() for name in names]
-        owner = np.repeat(np.arange(len(names)), [len(capsules) for capsules, _ in held])
-        piece, index = np.nonzero(
-            _meet(_envelopes(capsules), np.concatenate([envelopes for _, envelopes in held]))
-        )
-        if not len(piece):
+        # Written out (no `overlaps` calls): this loop is most of the pre-check's Python.
+        for owner, (owned, envelopes, (low_x, low_y, high_x, high_y)) in enumerate(held):
+            for index, (piece_low_x, piece_low_y, piece_high_x, piece_high_y) in enumerate(pieces):
+                if (
+                    piece_low_x <= high_x
+                    and low_x <= piece_high_x
+                    and piece_low_y <= high_y
+                    and low_y <= piece_high_y
+                ):
+                    meeting_envelopes.extend(
+                        (index, owner, capsule)
+                        for capsule, (other_low_x, other_low_y, other_high_x, other_high_y) in zip(
+                            owned, envelopes, strict=True
+                        )
+                        if piece_low_x <= other_high_x
+                        and other_low_x <= piece_high_x
+                        and piece_low_y <= other_high_y
+                        and other_low_y <= piece_high_y
+                    )
+        if not meeting_envelopes:
             return []
-        owned = np.concatenate([capsules for capsules, _ in held])
-        meeting = set(owner[index[pairs_meet(capsules[piece], owned[index])]].tolist())
+        origin_x, origin_y = capsules[min(index for index, _, _ in meeting_envelopes)][:2]
+        meeting: set[int] = set()
+        for index, owner, capsule in meeting_envelopes:
+            if owner not in meeting and capsules_meet(capsules[index], capsule, origin_x, origin_y):
+                meeting.add(owner)
         return [name for position, name in enumerate(names) if position in meeting]
 
     def geometry(self, name: str) -> shapely.Geometry:

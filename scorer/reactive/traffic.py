@@ -126,9 +126,10 @@ class _Agent:
         envelope = pose[0] - reach, pose[1] - reach, pose[0] + reach, pose[1] + reach
 
         def bound() -> Capsules:
-            return np.concatenate(
-                [polyline_capsules(path.between(lower, upper), width / 2), box_capsule(*pose, length, width)]
-            )
+            return [
+                *polyline_capsules(path.between(lower, upper), width / 2),
+                box_capsule(*pose, length, width),
+            ]
 
         def build() -> shapely.Geometry:
             ahead = shapely.buffer(
@@ -238,7 +239,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
     # The ego's boxes are this simulation's own: its keys name them within it alone.
     simulation = next(_SIMULATIONS)
     for vehicle in start.agents:
-        capsule = box_capsule(*vehicle.pose, vehicle.length, vehicle.width)
+        capsule = [box_capsule(*vehicle.pose, vehicle.length, vehicle.width)]
         occupancy.set(
             vehicle.track,
             ("box", *vehicle.pose, vehicle.length, vehicle.width),
@@ -261,13 +262,13 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
             np.full((len(ego_corners), 1), EGO_HALF_WIDTH),
         ],
         axis=1,
-    )
+    ).tolist()
     steps = []
     updates: list[IdmUpdate] = []
     out_of_range: dict[str, int] = {}
     for step in range(1, len(ego_states)):
         ego_state = ego_states[step - 1]
-        capsule = ego_capsules[step - 1 : step]
+        capsule = [tuple(ego_capsules[step - 1])]
         occupancy.set(
             EGO,
             (EGO, simulation, *ego_states[step - 1, : StateIndex.HEADING + 1].tolist()),
