@@ -19,9 +19,10 @@ version and seed; one leaderboard entry per version). The target (issue 26): the
 p99 at most 100 ms, the upload routes below 1 s, while 2 workers score on the same 2 cores.
 
 With --storage local,s3: each configuration also with its uploads, its split's scenes and the metric caches in
-an S3 object store (moto's server, started here, or the endpoint AWS_ENDPOINT_URL names): the split registered
-from the store, and each worker's caches cold (an earlier worker published them: it fetches them, as it does
-the scenes its chunks need), against the local directory with the cache built.
+an S3 object store (moto's server with keep-alive, benchmarks/keepalive_s3.py, started here, or the endpoint
+AWS_ENDPOINT_URL names): the split registered from the store, and each worker's caches cold (an earlier worker
+published them: it fetches them, as it does the scenes its chunks need), against the local directory with the
+cache built.
 
 With --two-stage GROUPS (and --pairs P): a synthetic two-stage split of GROUPS groups, each an original and
 its previous frame (stage one) with P synthetic pairs (stage two), scorer.synth.two_stage; navhard's size is
@@ -270,7 +271,7 @@ def storage(
         own_port = own_pid = None  # of the moto server started here, when no endpoint is given
         if "AWS_ENDPOINT_URL" not in os.environ or os.environ.get("NAVSIM_LB_BENCH_OWN_S3"):
             own_port = port = free_port()
-            command = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)]
+            command = [sys.executable, str(Path(__file__).parent / "keepalive_s3.py"), str(port)]
             own_pid = stack.enter_context(child_process(command, dict(os.environ), root / "moto.log")).pid
             os.environ["NAVSIM_LB_BENCH_OWN_S3"] = "1"  # the next configuration starts its own again
             os.environ |= {"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "bench"}

@@ -5,9 +5,9 @@ Registering such a split reads every scene once (the split's content hash covers
 publishes its manifest, token -> (file name, sha256), beside its scenes under that content hash. Every other
 machine reads the manifest instead of the scenes: the API its tokens, a worker the scenes a chunk needs, each
 fetched into a local mirror and checked against its sha256 (the manifest is checked against the split's hash
-in the database, so neither can be swapped). The mirror is bounded: past `split_cache_bytes` the scenes used
-least recently are removed, never one used within the task time limit (a chunk of another process may be
-about to read it).
+in the database, so neither can be swapped). The mirror is bounded: whenever it grows, past `split_cache_bytes`
+the scenes used least recently are removed, never one used within the task time limit (a chunk of another
+process may be about to read it).
 """
 
 from __future__ import annotations
@@ -199,18 +199,38 @@ def local_scenes(location: str, content_hash: str, tokens: Iterable[str]) -> Pat
                 "registered split's; restore it"
             )
         write_atomically(path, data, durable=False)
-    settings = get_settings()
-    evict(directory.parent, settings.split_cache_bytes, now - settings.task_time_limit)
+    if missing:  # each growth is followed by a check of the bound, by the process that grew the mirror
+        settings = get_settings()
+        evict(directory.parent, settings.split_cache_bytes, now - settings.task_time_limit)
     return directory
 
 
 def evict(root: Path, bound_bytes: int, used_before: float) -> None:
     """Remove the scenes under `root` used least recently (their modification time) until the rest fit in
     `bound_bytes`; a scene used after `used_before` stays, whatever the bound."""
-    files = [(path.stat(), path) for path in root.glob(f"*/{SCENES}/*") if path.is_file()]
+    files = _mirrored_scenes(root)
     total = sum(status.st_size for status, _ in files)
     for status, path in sorted(files, key=lambda item: item[0].st_mtime):
         if total <= bound_bytes or status.st_mtime > used_before:
             return
-        path.unlink(missing_ok=True)
+        Path(path).unlink(missing_ok=True)
         total -= status.st_size
+
+
+def _mirrored_scenes(root: Path) -> list[tuple[os.stat_result, str]]:
+    """Return the status and path of each scene file under `root`/*/scenes/. A cold worker checks the bound
+    after every chunk, over every scene mirrored so far (12,000 on navtest): os.scandir reads each file's
+    status once, where Path.glob with is_file and stat read it twice and build a Path each (~3x the CPU)."""
+    found = []
+    with os.scandir(root) as splits:
+        for split in splits:
+            try:
+                with os.scandir(os.path.join(split.path, SCENES)) as scenes:
+                    found += [
+                        (entry.stat(follow_symlinks=False), entry.path)
+                        for entry in scenes
+                        if entry.is_file(follow_symlinks=False)
+                    ]
+            except (FileNotFoundError, NotADirectoryError):
+                continue  # a file beside the mirrors, or a mirror being renamed into place
+    return found

@@ -32,6 +32,7 @@ from scorer.explain import explain_split_token
 from scorer.scene import scene_paths
 from scorer.submission import dump_two_stage_submission_json
 from scorer.two_stage.split import MAPPING_FILE
+from server import split_store
 from server.cli import register
 from server.db import make_engine, make_session_factory, transaction
 from server.models import Split, SplitKind, Submission
@@ -105,6 +106,24 @@ def test_a_worker_fetches_only_the_scenes_it_needs_each_checked(world: World, ma
         local_scenes(store.url, content_hash, tokens[3:4])
     with pytest.raises(SplitStoreError, match="manifest .* is missing"):
         local_scenes(store.url, "0" * 64, tokens[:1])
+
+
+def test_the_mirror_checks_its_bound_when_it_grows_only(
+    world: World, machine: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = _upload_split(REFERENCE_DIR)
+    with transaction(world.factory) as session:
+        content_hash = register_split(session, "stored", store.url).content_hash
+    shutil.rmtree(mirror_dir(content_hash))
+    checks: list[Path] = []
+    monkeypatch.setattr(split_store, "evict", lambda root, *_: checks.append(root))
+    tokens = list(scene_paths(REFERENCE_DIR))
+    local_scenes(store.url, content_hash, tokens[:2])
+    assert checks == [mirror_dir(content_hash).parent]
+    local_scenes(store.url, content_hash, tokens[:2])  # nothing fetched: the bound was checked at the growth
+    assert len(checks) == 1
+    local_scenes(store.url, content_hash, tokens[1:3])
+    assert len(checks) == 2
 
 
 def test_the_mirror_keeps_to_its_bound_least_recently_used_first(tmp_path: Path) -> None:
