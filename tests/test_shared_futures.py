@@ -9,12 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from object_stores import fresh_s3_store
 from server_testing import REFERENCE_DIR
 
 from scorer.human import human_future_poses, is_synthetic
 from scorer.scene import load_scene, scene_paths
 from server import shared_futures
-from server.object_store import LocalStore
+from server.object_store import LocalStore, ObjectStore
 from server.shared_caches import engine_key
 
 SPLIT_HASH = "a" * 64
@@ -48,10 +49,11 @@ def _same(futures: dict[str, np.ndarray], expected: dict[str, np.ndarray]) -> bo
     )
 
 
+@pytest.mark.parametrize("kind", ["local", "s3"])
 def test_two_workers_sharing_a_store_compute_a_split_s_futures_once(
-    tmp_path: Path, computed: list[int]
+    tmp_path: Path, computed: list[int], kind: str
 ) -> None:
-    store = LocalStore(tmp_path / "store")
+    store: ObjectStore = LocalStore(tmp_path / "store") if kind == "local" else fresh_s3_store()
     expected = _expected()
     first = shared_futures.human_futures(REFERENCE_DIR, SPLIT_HASH, tmp_path / "one", store)
     again = shared_futures.human_futures(REFERENCE_DIR, SPLIT_HASH, tmp_path / "one", store)
