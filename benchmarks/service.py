@@ -653,13 +653,15 @@ def scored_once(database_url: str, submission_ids: list[int], tokens: int, seeds
 @dataclass(frozen=True)
 class Loaded:
     """The service under load: each route's latencies, the load average before and after, how many uploads
-    were still being scored when the load ended, the seconds until all were, what is wrong with their
-    records, and the worker's peak RSS."""
+    were still being scored when the load ended, the seconds until all were and the CPU seconds its worker's
+    processes used meanwhile (on a shared host they swing far less), what is wrong with their records, and
+    the worker's peak RSS."""
 
     latencies: dict[str, Latencies]
     load_average: tuple[tuple[float, float, float], tuple[float, float, float]]
     unscored_at_end: int
     total_s: float
+    worker_cpu_s: float
     problems: list[str]
     peaks: tuple[float, list[float]] | None
 
@@ -685,7 +687,7 @@ def under_load(
         ids: list[int] = []
         streams = board_streams(rate) + upload_streams(entries, seconds, ids)
         before = os.getloadavg()
-        started = time.perf_counter()
+        started, worker_cpu = time.perf_counter(), session_cpu_seconds(service.worker_pid)
         latencies = asyncio.run(route_latencies(service.url, service.token, streams, seconds))
         after = os.getloadavg()
         client = service.client
@@ -699,6 +701,7 @@ def under_load(
             (before, after),
             unscored_at_end,
             time.perf_counter() - started,
+            session_cpu_seconds(service.worker_pid) - worker_cpu,
             scored_once(service.database_url, ids, split_size(split), seeds),
             worker_peak_rss(service.worker_pid),
         )
@@ -748,7 +751,7 @@ def main() -> None:
             for route, latencies in loaded.latencies.items():
                 print(f"  {route:34} {latencies.text()}")
             print(
-                f"  all scored after {loaded.total_s:.0f} s; "
+                f"  all scored after {loaded.total_s:.0f} s, the worker's CPU meanwhile {loaded.worker_cpu_s:.1f} s; "
                 + (
                     "every upload scored exactly once"
                     if not loaded.problems

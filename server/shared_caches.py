@@ -25,12 +25,13 @@ from server.object_store import ObjectStore, StoreUnavailable, get_many
 log = logging.getLogger(__name__)
 
 
-def _engine_key() -> str:
+def engine_key() -> str:
+    """Return the short name of the engine that computes what is cached (its version and OpenBLAS kernels)."""
     return hashlib.sha256(engine_provenance().encode()).hexdigest()[:16]
 
 
 def _key(scene_hash: str) -> str:
-    return f"{_engine_key()}/{scene_hash}.nlc"
+    return f"{engine_key()}/{scene_hash}.nlc"
 
 
 def _holds(data: bytes, scene_hash: str) -> bool:

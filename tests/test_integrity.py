@@ -21,7 +21,7 @@ from scorer.submission import Submission as Predictions
 from scorer.submission import SubmissionMetadata, dump_submission_json
 from server.cli import register
 from server.db import transaction
-from server.models import IntegrityCheck, Status, Submission, utc_now
+from server.models import ChunkState, IntegrityCheck, ScoringChunk, Status, Submission, utc_now
 from server.runs import check_integrity_after_run
 from server.services import integrity
 from server.services.integrity import AFTER_COMMIT, integrity_report
@@ -295,3 +295,39 @@ def test_of_two_overlapping_checks_the_newer_one_s_flags_remain(world: World) ->
         assert [check.id for check in session.query(IntegrityCheck)] == [newer]
         (check,) = integrity_report(session)["checks"]
     assert check["id"] == newer and len(check["flags"]) == 1
+
+
+def test_a_check_that_finds_chunks_waiting_goes_behind_them_once(
+    world: World, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker's task: with a chunk queued it sends itself again, marked, and checks nothing; marked, or with
+    no chunk waiting, it checks (scoring goes first, and a check is never sent back twice)."""
+    from worker import tasks
+
+    team, _ = add_team(world.factory, "team")
+    submission_id = _submit(world, team, _noisy(_baseline("human"), 0.5, 12), "honest")
+    _scored(world, submission_id, finished_ago=2 * AFTER_COMMIT)
+    sent: list[tuple[int, bool]] = []
+    monkeypatch.setattr(tasks, "get_settings", lambda: world.settings)
+    monkeypatch.setattr(tasks, "_sessions", lambda _: world.factory)
+    monkeypatch.setattr(
+        tasks, "_send_integrity_check", lambda *args, **kwargs: sent.append((*args, *kwargs.values()))
+    )
+    with transaction(world.factory) as session:
+        chunk = ScoringChunk(submission_id=submission_id, run=1, tokens=["t"], state=ChunkState.queued)
+        session.add(chunk)
+        session.flush()
+        chunk_id = chunk.id
+
+    def checks() -> int:
+        with transaction(world.factory) as session:
+            return len(integrity_report(session)["checks"])
+
+    assert "behind the waiting chunks" in tasks.check_integrity(submission_id)
+    assert sent == [(submission_id, True)] and checks() == 0
+    assert "integrity check" in tasks.check_integrity(submission_id, True) and checks() == 1
+    with transaction(world.factory) as session:
+        session.get(ScoringChunk, chunk_id).state = ChunkState.done  # type: ignore[union-attr]
+    _scored(world, submission_id)  # a newer run: its check is due again
+    assert "behind" not in tasks.check_integrity(submission_id) and sent == [(submission_id, True)]
+    assert checks() == 1  # the newer check replaced the older one

@@ -200,20 +200,28 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
     return f"submission {submission_id} run {run}: {_guarded(submission_id, run, score)}"
 
 
-def _send_integrity_check(submission_id: int) -> None:
+def _send_integrity_check(submission_id: int, behind_chunks: bool = False) -> None:
     """Ask for the integrity check of a scored entry's split; the run is scored whatever happens to it."""
     try:
-        check_integrity.delay(submission_id)
+        check_integrity.delay(submission_id, behind_chunks)
     except Exception:  # the broker away: the next run's check, or an organiser's, reads this entry too
         log.exception("submission %s: the integrity check after its run could not be sent", submission_id)
 
 
 @app.task(name=INTEGRITY_TASK, **RETRY)
-def check_integrity(submission_id: int) -> str:
+def check_integrity(submission_id: int, behind_chunks: bool = False) -> str:
     """Check the split of a submission whose run was just scored (server.services.integrity): its flags wait
-    for organisers in the admin console; a failed check is recorded there and logged, never failing the run."""
+    for organisers in the admin console; a failed check is recorded there and logged, never failing the run.
+    Sent while chunks wait, it goes behind them once (server.runs._after), `behind_chunks` set."""
     settings = get_settings()
-    check_id = runs.check_integrity_after_run(_sessions(settings.database_url), settings, submission_id)
+    sessions = _sessions(settings.database_url)
+    if not behind_chunks:
+        with sessions() as session:
+            waiting = runs.chunks_waiting(session)
+        if waiting:
+            _send_integrity_check(submission_id, behind_chunks=True)
+            return f"submission {submission_id}: integrity check sent behind the waiting chunks"
+    check_id = runs.check_integrity_after_run(sessions, settings, submission_id)
     if check_id is None:
         return f"submission {submission_id}: nothing to check"
     return f"submission {submission_id}: integrity check {check_id}"

@@ -10,14 +10,15 @@ A submission's run is claimed (`claim_submission`) and planned into chunks of co
     write_chunk (_rows)    upsert the rows, finish the chunk's record, then (_finish) record the run's
                            progress and, after its last rows, aggregate it (_aggregate) and mark it scored
 
-Once a run is scored and committed, its worker sends `check_integrity_after_run` (_after) as a task of its own.
+Once a run is scored and committed, its worker sends `check_integrity_after_run` (_after) as a task of its own,
+which goes once behind the chunks waiting when it starts (`chunks_waiting`).
 The reaper (`reap_dead_chunks`, `reap_lost_work`) decides from the same records what to send again and what
 to fail; `mark_failed` fails a run with a message the team may read, refunding what was not its fault.
 Admins `cancel` a run or start a new one (`reset_for_rerun`). Every write names its run (_run): a late chunk of
 an older run is dropped, and a repeated one overwrites its rows.
 """
 
-from server.runs._after import check_integrity_after_run
+from server.runs._after import check_integrity_after_run, chunks_waiting
 from server.runs._chunks import POISON_DEATHS, ChunkStart, StartAction, beat_chunk, start_chunk
 from server.runs._finish import mark_scored
 from server.runs._job import ChunkInputs, Rejected, ScoringJob, chunk_inputs
@@ -44,6 +45,7 @@ __all__ = [
     "cancel",
     "check_integrity_after_run",
     "chunk_inputs",
+    "chunks_waiting",
     "claim_submission",
     "mark_failed",
     "mark_scored",

@@ -8,15 +8,14 @@ submission of the split from its stored trajectories, every seed. Its flags, wit
 only, and act on nothing: the organiser decides (hide, disqualify) with the usual actions.
 
 Cost on a navtest-size split (12,146 tokens, 3 seeds an entry; `benchmarks/integrity.py`, CPU time on a shared
-2-core EPYC): the human futures take 6-35 ms a scene to read the first time (up to 7 min for navtest, then read
-from disk), the leaked-log check 10-15 ms an entry, the near-identical check 5 s for 100 entries (it grows with
-their square and the seeds'), probing 4 s for 20 teams of 5 uploads; reading each entry's stored trajectories
-comes on top.
+2-core EPYC): the human futures take 6-35 ms a scene to read (up to 7 min for navtest), once per split and
+engine for all workers (server.shared_futures); the leaked-log check 10-15 ms an entry, the near-identical check
+5 s for 100 entries (it grows with their square and the seeds'), probing 4 s for 20 teams of 5 uploads; reading
+each entry's stored trajectories comes on top.
 """
 
 from __future__ import annotations
 
-import io
 import logging
 from collections import defaultdict
 from datetime import timedelta
@@ -27,7 +26,6 @@ import numpy as np
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from scorer.files import write_atomically
 from scorer.geometry import FloatArray
 from server.db import transaction
 from server.models import ApiToken, IntegrityCheck, IntegrityFlag, Split, Status, Submission, utc_now
@@ -35,34 +33,12 @@ from server.services.admin import audit
 from server.services.integrity_checks import Entry, Finding, leaked_log, near_duplicates, probing
 from server.services.splits import split_tokens
 from server.settings import Settings
+from server.shared_futures import human_futures
 from server.storage import submission_trajectories
 
 log = logging.getLogger(__name__)
 POSES = 8
 AFTER_COMMIT = timedelta(seconds=5)  # a run's end time to its commit, at most
-
-
-def human_futures(split: Split, data_dir: Path) -> dict[str, FloatArray]:
-    """Return the logged human's 8 future positions (8, 2) of each original scene of a split, read from its
-    scenes once and then kept on disk by the split's content hash (synthetic scenes have none)."""
-    from scorer.human import human_future_poses, is_synthetic
-    from scorer.scene import load_scene, scene_paths
-
-    path = data_dir / "integrity" / f"human-{split.content_hash}-{split.id}.npz"
-    try:
-        with np.load(path, allow_pickle=False) as stored:
-            return dict(zip(stored["tokens"].tolist(), stored["positions"], strict=True))
-    except (OSError, ValueError, KeyError):
-        pass
-    futures = {
-        token: human_future_poses(load_scene(scene))[:, :2]
-        for token, scene in scene_paths(split.directory).items()
-        if not is_synthetic(token)
-    }
-    buffer = io.BytesIO()
-    np.savez(buffer, tokens=np.array(list(futures), dtype=str), positions=np.array(list(futures.values())))
-    write_atomically(path, buffer.getvalue(), durable=False)  # computed again when lost
-    return futures
 
 
 def _aligned(predictions: dict[str, FloatArray], tokens: list[str]) -> FloatArray:
@@ -164,7 +140,9 @@ def _findings(
     from scorer.submission import SubmissionError
 
     tokens = list(split_tokens(split))
-    futures = human_futures(split, settings.data_dir)
+    futures = human_futures(
+        Path(split.directory), split.content_hash, settings.cache_dir, settings.cache_store
+    )
     human = _aligned(futures, tokens)
     submissions = session.scalars(
         select(Submission)
