@@ -131,13 +131,8 @@ class _Reader:
             key = self.whole()
             text.expect(":", "Expecting ':' delimiter")
             pairs.append((key, value_of(key)))
-            char = text.next_char()
-            text.pos += 1
-            if char == "}":
+            if self.closed("}"):
                 return self.hook(pairs)
-            if char != ",":
-                text.pos -= 1
-                raise text.error("Expecting ',' delimiter")
 
     def streamed_value(self) -> Any:
         """A streamed field's value: an object of leaves, a list of them, or any value read whole."""
@@ -154,13 +149,17 @@ class _Reader:
             return items
         while True:
             items.append(self.streamed_value() if text.next_char() == "{" else self.whole())
-            char = text.next_char()
-            text.pos += 1
-            if char == "]":
+            if self.closed("]"):
                 return items
-            if char != ",":
-                text.pos -= 1
-                raise text.error("Expecting ',' delimiter")
+
+    def closed(self, close: str) -> bool:
+        """Read what follows a member or an item: True at `close`, False at ',', else the decoder's error."""
+        text = self.text
+        char = text.next_char()
+        if char != close and char != ",":
+            raise text.error("Expecting ',' delimiter")
+        text.pos += 1
+        return char == close
 
     def document(self) -> Any:
         text = self.text
