@@ -128,6 +128,26 @@ def test_numpy_svml_is_detected_and_the_emulations_take_over_without_it() -> Non
         assert detected({}) == " ".join(["True"] * SVML_REPLAYS)
 
 
+# The engine's power (`power_avx512`) on SVML's recorded bits, off its main path too (test_svml_pow).
+RECORDED_POWERS = """
+import json, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from scorer.svml_pow import NUMPY_POWER_IS_SVML, power_avx512
+from test_svml_pow import recorded_powers
+with np.errstate(all="ignore"):
+    same = [np.array_equal(power_avx512(b, e).view(np.int64), p.view(np.int64)) for e, b, p in recorded_powers()]
+print(json.dumps({"svml": NUMPY_POWER_IS_SVML, "same": all(same)}))
+"""
+
+
+@pytest.mark.parametrize("numpy_path", NUMPY_PATHS)
+def test_the_engines_power_gives_svmls_recorded_bits_on_every_numpy_path(numpy_path: str) -> None:
+    """The IDM's v / v0 is negative where the ego's speed is: SVML's scalar path, replayed without numpy's SVML."""
+    output = run_python(RECORDED_POWERS, [str(Path(__file__).parent)], NUMPY_PATHS[numpy_path])
+    assert output == {"svml": NUMPY_RUNS_SVML and numpy_path == "native", "same": True}
+
+
 def _compared(kernels: str, numpy_path: str, cache_dir: Path) -> tuple[dict, dict]:
     native, other = _run(kernels, "native", cache_dir), _run(kernels, numpy_path, cache_dir)
     assert other["svml"] == [False] * SVML_REPLAYS  # the switch took effect: the emulations ran
