@@ -184,7 +184,7 @@ _RECIPROCALS_1, _LOGS_1 = _SCALAR_TABLES[:33], _SCALAR_TABLES[33:99].reshape(33,
 _RECIPROCALS_2, _LOGS_2 = _SCALAR_TABLES[99:132], _SCALAR_TABLES[132:198].reshape(33, 2)
 _RECIPROCALS_3, _LOGS_3 = _SCALAR_TABLES[198:327], _SCALAR_TABLES[327:585].reshape(129, 2)
 _EXP2_128THS = _SCALAR_TABLES[585:841].reshape(128, 2)
-# log2(1 + r' / log2 e) - r' / log2 e over r' (in log2 e units), and 2^t - 1 over t: highest first.
+# log2(1 + r' ln 2) - r' over r' (r' below, `_scalar_power`), and 2^t - 1 over t: highest first.
 _SCALAR_LOG_COEFFICIENTS = hex_table(
     "-0x1.550472a9012d8p-4", "0x1.47fd462b6dee1p-3", "-0x1.62e4346694107p-2", "0x1.9c3a6966457e8p-24"
 )
@@ -266,8 +266,9 @@ def _scalar_power(x: FloatArray, y: float) -> FloatArray:
     x = np.where(subnormal, x * 2.0**200, x)
     k = ((_high_word(x) - 0x3FE7C000) >> 20) - np.where(subnormal, 200, 0)  # x = 2^k m', m' in [0.742, 1.484)
     m = ((x.view(np.int64) & 0xFFFFFFFFFFFFF) | 0x3FF0000000000000).view(np.float64)  # in [1, 2)
-    # log2 x = k - log2(r1 r2 r3) + log2(m r1 r2 r3), each r from its table by the leading bits of m r1 ..., the
-    # third times log2 e, so that m r1 r2 r3 - log2 e (high part) = r' is log2 e (m r1 r2 r3 / log2 e - 1).
+    # log2 x = k + log2 m: m r1 r2 r3 is near log2 e (the third table's reciprocals are times log2 e), each r
+    # from its table by the leading bits of the product so far; log2 m = -log2(r1 r2 r3 / log2 e) (the tables'
+    # logs, high + low) + log2(1 + r' ln 2), r' = m r1 r2 r3 - log2 e (high part): r' plus a polynomial.
     i1 = ((_high_word(m) & 0xFC000) + 0x4000) >> 15
     product = _RECIPROCALS_1[i1] * m
     log_high = k.astype(np.float64) + _LOGS_1[i1, 0]
@@ -340,10 +341,11 @@ def _scalar_path(x: FloatArray, y: float) -> FloatArray:
     integer = bool(np.isfinite(y)) and y.is_integer()
     odd = integer and abs(y) < 2.0**53 and int(y) % 2 == 1
     sign = np.where(np.signbit(x) & odd, -1.0, 1.0)
-    computed = np.ones_like(x)  # every lane is a special case without a finite nonzero y
-    if np.isfinite(y) and y != 0:
+    computed = np.ones_like(x)  # the other lanes and exponents are special cases below
+    computing = np.isfinite(x) & (x != 0) & (np.abs(x) != 1)
+    if np.isfinite(y) and y != 0 and computing.any():
         with np.errstate(all="ignore"):  # lanes that over- or underflow compute values they do not take
-            computed = sign * _scalar_power(np.where(np.isfinite(x) & (x != 0), np.abs(x), 1.0), y)
+            computed = sign * _scalar_power(np.where(computing, np.abs(x), 2.0), y)
     minus_one = (-1.0 if odd else 1.0) if integer or np.isinf(y) else _DEFAULT_NAN
     zero = sign * (np.inf if np.signbit(y) else 0.0)  # sign / (x * x) or sign (x * x)
     return np.select(
@@ -379,7 +381,7 @@ def svml_power_emulated(base: npt.ArrayLike, exponent: float) -> FloatArray:
     main_path = positive & (np.abs(w) <= _MAIN_PATH_W)
     if main_path.all():
         return main
-    return np.where(main_path, main, _scalar_path(np.where(main_path, 2.0, x), y))
+    return np.where(main_path, main, _scalar_path(np.where(main_path, 1.0, x), y))
 
 
 # Bases whose tenth power SVML rounds other than the C library, with SVML's results: numpy is SVML here exactly
