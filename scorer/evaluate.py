@@ -24,7 +24,7 @@ from scorer.cache import (
     observation_key,
     save_caches,
 )
-from scorer.geometry import FloatArray
+from scorer.geometry import BoolArray, FloatArray
 from scorer.human import filtered, is_synthetic
 from scorer.metrics.aggregation import aggregate, defined_mean
 from scorer.metrics.two_frame_comfort import (
@@ -39,6 +39,7 @@ from scorer.pdm_scorer import (
     MeasureSettings,
     ProposalMeasures,
     ProposalScores,
+    comfort_of,
     join_measures,
     measure_alike,
     score_measures,
@@ -420,12 +421,17 @@ def score_simulated_versions(
             [cache.route_lane_ids for cache in held],
             [MeasureSettings.of(version.evaluation) for version in group],
         )
+        comfort: list[tuple[FloatArray, BoolArray]] = []  # v1's, shared where references agree
         for version, agents in zip(group, measured, strict=True):
             version_caches = caches[version.name]
             reference = join_measures([_reference_measures(cache) for cache in version_caches], axis=0)
             seeds = [join_measures([reference, agents.proposal(seed)]) for seed in range(len(states))]
+            joined = join_measures(seeds, axis=0)
+            comfortable = None
+            if "comfortable" in version.evaluation.weights:
+                comfortable = comfort_of(joined.comfort_series, comfort)
             pasts = [cache.past_states for cache in version_caches] * len(states)
-            scores[version.name] = score_measures(join_measures(seeds, axis=0), version.evaluation, pasts)
+            scores[version.name] = score_measures(joined, version.evaluation, pasts, comfortable)
     return {name: scores[version.name] for name, version in scored_as.items()}
 
 
