@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import itertools
-import math
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -25,7 +24,7 @@ from scorer.cache import (
     observation_key,
     save_caches,
 )
-from scorer.geometry import FloatArray
+from scorer.geometry import BoolArray, FloatArray
 from scorer.human import filtered, is_synthetic
 from scorer.metrics.aggregation import aggregate, defined_mean
 from scorer.metrics.two_frame_comfort import (
@@ -40,6 +39,7 @@ from scorer.pdm_scorer import (
     MeasureSettings,
     ProposalMeasures,
     ProposalScores,
+    comfort_of,
     join_measures,
     measure_alike,
     score_measures,
@@ -245,22 +245,33 @@ def token_results(
     start: int = 0,
 ) -> list[TokenResult]:
     """Return the agent's rows of `caches`, whose token b is row `start` + b of `scores`, each token scored alone
-    (v2.2: filtered, EC undefined). A column's values are read from the scores at once, not value by value."""
+    (v2.2: filtered, EC undefined). A column's values are read from the scores at once, not value by value, and
+    v2's row scores are formed at once (`extended_scores`)."""
     columns = [column for column in version.result_columns if column in ROW_COLUMNS]
     stop = start + len(caches)
     values = zip(*(getattr(scores, column)[start:stop, 1].tolist() for column in columns), strict=True)
-    return [
-        token_result(cache, seed, dict(zip(columns, row, strict=True)), version)
-        for cache, row in zip(caches, values, strict=True)
-    ]
-
-
-def token_result(
-    cache: MetricCache, seed: int | None, agent: dict[str, float], version: MetricVersion
-) -> TokenResult:
-    """Return the agent's row of `cache` from its result columns `agent`."""
+    agents = [dict(zip(columns, row, strict=True)) for row in values]
     if version.two_frame_extended_comfort_weight is None:
-        return TokenResult(token=cache.token, seed=seed, valid=True, metrics=agent)
+        return [
+            TokenResult(token=cache.token, seed=seed, valid=True, metrics=agent)
+            for cache, agent in zip(caches, agents, strict=True)
+        ]
+    filtered_rows = [
+        _human_filtered(cache, agent, version) for cache, agent in zip(caches, agents, strict=True)
+    ]
+    row_scores = extended_scores([_scored_columns(*row, version) for row in filtered_rows], version)
+    results = []
+    for cache, (metrics, detail), score in zip(caches, filtered_rows, row_scores, strict=True):
+        metrics["score"] = score
+        results.append(TokenResult(token=cache.token, seed=seed, valid=True, metrics=metrics, detail=detail))
+    return results
+
+
+def _human_filtered(
+    cache: MetricCache, agent: dict[str, float], version: MetricVersion
+) -> tuple[dict[str, float], dict[str, Any]]:
+    """Return a v2 row's columns `agent` after the human filter, EC undefined, and the detail saying how the
+    filter went; its score is formed afterwards (`extended_scores`)."""
     detail: dict[str, Any] = {}
     if version.human_penalty_filter and cache.human is not None:
         metrics, overridden = filtered(agent, cache.human)
@@ -272,8 +283,7 @@ def token_result(
         )
         detail["human_filter"] = {"overridden": [], "not_applied": reason}
     metrics["two_frame_extended_comfort"] = float("nan")
-    metrics["score"] = extended_score(_scored_columns(metrics, detail, version), version)
-    return TokenResult(token=cache.token, seed=seed, valid=True, metrics=metrics, detail=detail)
+    return metrics, detail
 
 
 def _scored_columns(
@@ -300,17 +310,36 @@ ROW_COLUMNS = tuple(
 
 
 def extended_score(metrics: Mapping[str, float], version: MetricVersion) -> float:
-    """Return v2's final score of one row (`compute_final_scores`): the multipliers' product times the weighted
-    mean of EP, TTC, LK, HC and EC, where an undefined EC (NaN) drops out with its weight (/16 or /14)."""
+    """Return v2's final score of one row (`extended_scores`)."""
+    return extended_scores([metrics], version)[0]
+
+
+def extended_scores(rows: Sequence[Mapping[str, float]], version: MetricVersion) -> list[float]:
+    """Return v2's final score of each row (`compute_final_scores`): the multipliers' product times the weighted
+    mean of EP, TTC, LK, HC and EC, where an undefined EC (NaN) drops out with its weight (/16 or /14).
+
+    The rows with EC and those without differ in their weights, so each kind is aggregated in one call; a
+    column of rows is aggregated to the bits of each row alone (the weighted sum runs over the rows' few
+    metrics in order either way)."""
     config = version.evaluation
-    two_frame = metrics["two_frame_extended_comfort"]
-    defined = not math.isnan(two_frame)
-    multipliers = np.array([[metrics[RESULT_COLUMN_OF_ROW[row]]] for row in config.multiplier_rows])
-    weighted = [metrics[RESULT_COLUMN_OF_ROW[row]] for row in config.weights] + [
-        two_frame if defined else 0.0
-    ]
-    weights = [*config.weights.values(), version.two_frame_extended_comfort_weight if defined else 0.0]
-    return float(aggregate(multipliers, np.array(weighted)[:, None], np.array(weights))[0])
+    two_frame = np.array([row["two_frame_extended_comfort"] for row in rows], dtype=np.float64)
+    defined = ~np.isnan(two_frame)
+    multipliers = np.array(
+        [[row[RESULT_COLUMN_OF_ROW[name]] for row in rows] for name in config.multiplier_rows],
+        dtype=np.float64,
+    ).reshape(len(config.multiplier_rows), len(rows))
+    weighted = np.array(
+        [[row[RESULT_COLUMN_OF_ROW[name]] for row in rows] for name in config.weights]
+        + [np.where(defined, two_frame, 0.0)],
+        dtype=np.float64,
+    )
+    scores = np.empty(len(rows))
+    for with_two_frame in (True, False):
+        rows_of_kind = defined == with_two_frame
+        two_frame_weight = version.two_frame_extended_comfort_weight if with_two_frame else 0.0
+        weights = np.array([*config.weights.values(), two_frame_weight])
+        scores[rows_of_kind] = aggregate(multipliers[:, rows_of_kind], weighted[:, rows_of_kind], weights)
+    return scores.tolist()
 
 
 def simulate_agents(caches: Sequence[MetricCache], poses: Sequence[FloatArray]) -> FloatArray:
@@ -392,12 +421,17 @@ def score_simulated_versions(
             [cache.route_lane_ids for cache in held],
             [MeasureSettings.of(version.evaluation) for version in group],
         )
+        comfort: list[tuple[FloatArray, BoolArray]] = []  # v1's, shared where references agree
         for version, agents in zip(group, measured, strict=True):
             version_caches = caches[version.name]
             reference = join_measures([_reference_measures(cache) for cache in version_caches], axis=0)
             seeds = [join_measures([reference, agents.proposal(seed)]) for seed in range(len(states))]
+            joined = join_measures(seeds, axis=0)
+            comfortable = None
+            if "comfortable" in version.evaluation.weights:
+                comfortable = comfort_of(joined.comfort_series, comfort)
             pasts = [cache.past_states for cache in version_caches] * len(states)
-            scores[version.name] = score_measures(join_measures(seeds, axis=0), version.evaluation, pasts)
+            scores[version.name] = score_measures(joined, version.evaluation, pasts, comfortable)
     return {name: scores[version.name] for name, version in scored_as.items()}
 
 

@@ -464,20 +464,48 @@ def _setting_measures(
     )
 
 
+def comfort_of(series: FloatArray, known: list[tuple[FloatArray, BoolArray]]) -> BoolArray:
+    """Return v1's comfort (B, P) of B tokens' proposals' comfort series (B, P, n, c) (`is_comfortable`), and
+    add both to `known`: the series and comfort of the batches measured before it.
+
+    A token's proposals are filtered as one group and judged on their own, so a token whose series an
+    earlier batch of the same shape held to the bit gets that batch's answer: v1.0 and v1.1 score the same
+    agents against PDM-Closed references that are mostly the same trajectories.
+    """
+    comfortable = np.empty(series.shape[:2], dtype=bool)
+    unknown = np.ones(len(series), dtype=bool)
+    bits = series.view(np.uint64)
+    for known_series, known_comfort in known:
+        if known_series.shape == series.shape:
+            same = unknown & (known_series.view(np.uint64) == bits).all(axis=(1, 2, 3))
+            comfortable[same] = known_comfort[same]
+            unknown &= ~same
+    if unknown.any():
+        comfortable[unknown] = is_comfortable(series[unknown], SCORING_INTERVAL_S)
+    known.append((series, comfortable))
+    return comfortable
+
+
 def score_measures(
-    measures: ProposalMeasures, config: ScorerConfig, pasts: Sequence[FloatArray | None] | None = None
+    measures: ProposalMeasures,
+    config: ScorerConfig,
+    pasts: Sequence[FloatArray | None] | None = None,
+    comfortable: BoolArray | None = None,
 ) -> ProposalScores:
     """Return the scores (B, P) from the proposals' measures: DDC windows, EP normalisation, comfort,
     aggregation: the steps in which the devkit's result for a proposal depends on the others.
 
     `pasts` are each token's past ego states (`history_comfort.past_states`) for v2's history comfort;
     without them (PDM-Closed's own ranking, the human of the filter) the devkit leaves HC at 1.
+    `comfortable` is v1's comfort (B, P) where the caller has it already: `comfort_of` these measures.
     """
     ones = np.ones_like(measures.progress_raw)
     weights = config.weights
     comfort = ones
     if "comfortable" in weights:
-        comfort = is_comfortable(measures.comfort_series, SCORING_INTERVAL_S).astype(np.float64)
+        if comfortable is None:
+            comfortable = is_comfortable(measures.comfort_series, SCORING_INTERVAL_S)
+        comfort = comfortable.astype(np.float64)
     with_history = ones
     if "history_comfort" in weights and pasts is not None:
         with_history = history_comfort(measures.comfort_series, pasts)

@@ -179,3 +179,19 @@ def test_centres_in_intersections_are_found_once_and_only_when_a_setting_reads_t
     assert not found
     measure_alike(np.stack(states), [observations] * 3, maps, centerlines, routes, [v1, v2, v2])
     assert len(found) == 1
+
+
+def test_comfort_shared_with_an_earlier_batch_is_each_batchs_own() -> None:
+    rng = np.random.default_rng(11)
+    # Comfort series (B, P, 41, 4): gentle accelerations and headings pass, a jolt of 6 m/s^2 fails.
+    earlier = np.cumsum(rng.normal(0.0, 0.002, (8, 2, 41, 4)), axis=2)
+    later = earlier.copy()
+    later[[1, 4], 1, 20:, 0] += 6.0  # two tokens' agents differ, and fail where the earlier batch's pass
+    later[6, 0, 0, 0] = -later[6, 0, 0, 0]  # another token differs in a single bit of its reference
+    known: list[tuple[np.ndarray, np.ndarray]] = []
+    first = pdm_scorer.comfort_of(earlier, known)
+    second = pdm_scorer.comfort_of(later, known)
+    assert np.array_equal(first, pdm_scorer.is_comfortable(earlier, 0.1)) and first.all()
+    assert np.array_equal(second, pdm_scorer.is_comfortable(later, 0.1))
+    assert not second[[1, 4], 1].any()
+    assert len(known) == 2

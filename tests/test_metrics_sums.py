@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 from scipy.signal import savgol_filter
 
-from scorer.metrics.comfort import comfort_series, filtered_series, is_comfortable
+from scorer.geometry import FloatArray
+from scorer.metrics.comfort import (
+    ACCELERATION_WINDOW,
+    Filter,
+    comfort_series,
+    filtered_as_devkit,
+    filtered_series,
+    is_comfortable,
+)
 from scorer.metrics.driving_direction import _time_windows
 from scorer.trajectory import StateIndex
 
@@ -87,4 +95,23 @@ def test_an_output_on_a_rounding_midpoint_rounds_as_the_devkits_call_on_the_pair
     states[0, :, :, StateIndex.ACCELERATION_X] = lon
     outputs, regrouped = filtered_series(comfort_series(states), 0.1)
     assert regrouped.tolist() == [True]
+    np.testing.assert_array_equal(outputs[0][0], np.round(devkit, 8))
+
+
+def test_an_output_of_the_convolution_near_a_midpoint_is_not_filtered_again() -> None:
+    # Output 20 of the window-8 smoothing is set by the convolution (no error bound) and lies within the
+    # rounding of np.round's product of a midpoint; the edge outputs lie far from any.
+    lon = 0.1 + 0.01 * np.sin(np.arange(41) * 0.7)
+    lon[20] = float.fromhex("0x1.c22cdb70c4d5ep-4")
+    devkit = savgol_filter(lon[None], window_length=ACCELERATION_WINDOW, polyorder=2, axis=-1)
+    scaled = devkit[0, 20] * 1e8
+    assert abs(scaled - np.floor(scaled) - 0.5) < 1e-8  # the fixture sits on a midpoint
+    series = np.zeros((1, 1, 41, 4))
+    series[..., 0] = lon
+
+    def smoothed(values: FloatArray, delta: float, filtered: Filter) -> list[FloatArray]:
+        return [filtered(values[..., 0], ACCELERATION_WINDOW, 2, 0, 1.0)]
+
+    outputs, regrouped = filtered_as_devkit(series, 0.1, smoothed)
+    assert regrouped.tolist() == [False]
     np.testing.assert_array_equal(outputs[0][0], np.round(devkit, 8))

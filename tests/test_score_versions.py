@@ -18,8 +18,10 @@ import pytest
 from scorer import evaluate
 from scorer.cache import MetricCache, _unpack, cache_path, load_caches
 from scorer.evaluate import TokenResult, score_seeds, score_tokens, score_versions
+from scorer.metrics.aggregation import aggregate
+from scorer.pdm_scorer import RESULT_COLUMN_OF_ROW
 from scorer.submission import load_submission
-from scorer.versions import LOG_REPLAY_VERSIONS, VERSIONS, cached_together
+from scorer.versions import LOG_REPLAY_VERSIONS, VERSIONS, VersionName, cached_together
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 PROBES = Path(__file__).parent / "fixtures" / "epdms" / "probes"
@@ -178,3 +180,28 @@ def test_v2_2_prefix_reads_v2_2s_cache_and_is_off_the_board_by_default(tmp_path:
     assert set(sections) == {"v1.0", "v1.1", "v2.2"}
     assert cached_together(["v2.2-prefix"]) == list(LOG_REPLAY_VERSIONS) == ["v1.0", "v1.1", "v2.2"]
     assert not VERSIONS["v2.2-prefix"].published_by_default
+
+
+def test_v2_row_scores_formed_at_once_are_the_bits_of_each_row_alone() -> None:
+    version = VERSIONS[VersionName.V2_2]
+    config = version.evaluation
+    rng = np.random.default_rng(7)
+    rows = []
+    for index in range(600):
+        row = {column: float(rng.choice([0.0, 0.5, 1.0])) for column in RESULT_COLUMN_OF_ROW.values()}
+        row |= {column: float(rng.random()) for column in ("ego_progress", "time_to_collision_within_bound")}
+        row["two_frame_extended_comfort"] = math.nan if index % 3 == 0 else float(rng.random())
+        rows.append(row)
+
+    def alone(row: dict[str, float]) -> float:
+        # One row's (m, 1) and (w, 1) arrays, as the devkit's `compute_final_scores` forms a row's score.
+        defined = not math.isnan(row["two_frame_extended_comfort"])
+        multipliers = np.array([[row[RESULT_COLUMN_OF_ROW[name]]] for name in config.multiplier_rows])
+        weighted = [row[RESULT_COLUMN_OF_ROW[name]] for name in config.weights]
+        weighted.append(row["two_frame_extended_comfort"] if defined else 0.0)
+        weights = [*config.weights.values(), version.two_frame_extended_comfort_weight if defined else 0.0]
+        return float(aggregate(multipliers, np.array(weighted)[:, None], np.array(weights))[0])
+
+    scores = evaluate.extended_scores(rows, version)
+    assert [score.hex() for score in scores] == [alone(row).hex() for row in rows]
+    assert len(set(scores)) > 100

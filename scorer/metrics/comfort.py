@@ -157,9 +157,12 @@ def filtered_as_devkit(
     ) -> FloatArray:
         filtered, error = filter_batch(values, min(window, values.shape[-1]), poly_order, deriv, step)
         scaled = filtered * 10.0**DECIMALS  # np.round's own product: the result is rint of it
-        # Outputs within the error bound (and the product's rounding) of a midpoint may round either way.
+        # Outputs within the error bound (and the product's rounding) of a midpoint may round either way. An
+        # output without error (the convolution's) holds the group call's very bits, so it rounds as the
+        # devkit's does however near a midpoint it lies.
         tolerance = (error + 2 * np.finfo(np.float64).eps * np.abs(filtered)) * 10.0**DECIMALS
-        ambiguous[...] |= (np.abs(scaled - np.floor(scaled) - 0.5) <= tolerance).any(axis=-1)
+        near_midpoint = np.abs(scaled - np.floor(scaled) - 0.5) <= tolerance
+        ambiguous[...] |= (near_midpoint & (error > 0)).any(axis=-1)
         return np.round(filtered, DECIMALS)
 
     outputs = features(series, delta, rounded_in_batch)
