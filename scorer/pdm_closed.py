@@ -313,12 +313,17 @@ class IdmUnroll:
         lead_speed = np.zeros(len(rows))
         writes_speed = np.zeros(len(rows), dtype=bool)
         if len(pair_row):
-            ego = self.poses(rows, slice(step - 1, step), _unwrapped)[:, 0]
-            raw_heading = ego[:, 2].copy()
+            # Only the rows with an object ahead need the ego's pose and footprint (each row's alone).
+            searching = np.flatnonzero(has_lead)
+            ego = self.poses(rows[searching], slice(step - 1, step), _unwrapped)[:, 0]
+            raw_heading = np.zeros(len(rows))
+            raw_heading[searching] = ego[:, 2]
             # The footprint's corners do not move with the last bit of the heading: libm's wrap serves.
-            ego[:, 2] = normalize_angle(raw_heading)
+            ego[:, 2] = normalize_angle(ego[:, 2])
             objects = self.hit_object[pair_hit]
-            distances = shapely.distance(ego_polygons(ego)[pair_row], self.polygons[map_index, objects])
+            footprints = np.empty(len(rows), dtype=object)
+            footprints[searching] = ego_polygons(ego)
+            distances = shapely.distance(footprints[pair_row], self.polygons[map_index, objects])
             # Per row the nearest object, the first in corridor order on ties.
             order = np.argsort(pair_row, kind="stable")
             nearest = order[np.lexsort((distances[order], pair_row[order]))]
