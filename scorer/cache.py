@@ -24,6 +24,7 @@ import numpy as np
 import shapely
 
 from scorer.blas import engine_provenance
+from scorer.collector import collector_paused
 from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.files import write_atomically
 from scorer.geometry import FloatArray
@@ -101,6 +102,13 @@ def build_cache_batch(
     The scenes share the array calls of the PDM-Closed unroll, the simulations and the measures (numpy's
     per-call cost is most of a scene's), nothing else: every scene is planned and measured on its own.
     """
+    with collector_paused():  # most of what a batch allocates is short-lived and acyclic
+        return _build_cache_batch(scenes, versions)
+
+
+def _build_cache_batch(
+    scenes: Sequence[Scene], versions: Sequence[MetricVersion]
+) -> list[dict[str, MetricCache]]:
     # PDM-Closed is imported where a cache is built: scoring from a warm cache never plans (3 ms of start-up).
     from scorer.pdm_closed import plan_references_batch
 

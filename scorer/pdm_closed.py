@@ -232,22 +232,24 @@ class IdmUnroll:
         self.speeds = np.concatenate([observation.speeds for observation in observations])
         self.headings = np.concatenate([observation.headings for observation in observations])
         self.collided = np.concatenate([observation.collided for observation in observations])
-        hit_map, hit_path, hit_object, start = [], [], [], []
+        lines = np.array([path.linestring for path in paths], dtype=object)
+        rear_axles = shapely.points(np.repeat([plan.rear_axle for plan in scenes], NUM_PATHS, axis=0))
+        start = shapely.line_locate_point(lines, rear_axles)  # each path's initial progress
+        # The corridor: the path ahead of the initial progress over the fastest policy's 5 s, ego-wide.
+        reach = (
+            np.repeat([abs(np.max(plan.targets)) for plan in scenes], NUM_PATHS) * TRAJECTORY_STEPS * STEP_S
+        )
+        ahead = [
+            path.substring(first, first + far) for path, first, far in zip(paths, start, reach, strict=True)
+        ]
+        corridors = shapely.buffer(np.array(ahead, dtype=object), EGO_WIDTH / 2, cap_style="square")
+        # Prepared once for the 26 maps' queries (a query prepares an unprepared geometry each time).
+        shapely.prepare(corridors)
+        hit_map, hit_path, hit_object = [], [], []
         for index, plan in enumerate(scenes):
-            point = shapely.Point(*plan.rear_axle)
-            begin = np.array([path.linestring.project(point) for path in plan.paths])
-            start.append(begin)
-            # The corridor: the path ahead of the initial progress over the fastest policy's 5 s, ego-wide.
-            reach = abs(np.max(plan.targets)) * TRAJECTORY_STEPS * STEP_S
-            corridors = np.array(
-                [
-                    path.substring(first, first + reach).buffer(EGO_WIDTH / 2, cap_style="square")
-                    for path, first in zip(plan.paths, begin, strict=True)
-                ],
-                dtype=object,
-            )
+            own_paths = slice(index * NUM_PATHS, (index + 1) * NUM_PATHS)
             for map_index, tree in enumerate(plan.observation.trees):
-                found, objects = tree.query(corridors, predicate="intersects")
+                found, objects = tree.query(corridors[own_paths], predicate="intersects")
                 hit_map.append(np.full(len(found), map_index))
                 hit_path.append(index * NUM_PATHS + found)
                 hit_object.append(offsets[index] + objects)
@@ -261,14 +263,9 @@ class IdmUnroll:
             self.hit_object[keep],
         )
         centroids = shapely.centroid(self.polygons[self.hit_map, self.hit_object])
-        self.hit_progress = np.empty(len(centroids))
-        for index in np.unique(self.hit_path):
-            on_path = self.hit_path == index
-            self.hit_progress[on_path] = shapely.line_locate_point(
-                paths[index].linestring, centroids[on_path]
-            )
+        self.hit_progress = shapely.line_locate_point(lines[self.hit_path], centroids)
 
-        self.idm[:, 0, 0] = np.concatenate(start)[self.path_of]
+        self.idm[:, 0, 0] = start[self.path_of]
         self.idm[:, 0, 1] = np.repeat([plan.speed for plan in scenes], NUM_PATHS * NUM_POLICIES)
 
     def run(self, rows: IntArray, steps: range, groups: IntArray) -> None:
@@ -316,12 +313,17 @@ class IdmUnroll:
         lead_speed = np.zeros(len(rows))
         writes_speed = np.zeros(len(rows), dtype=bool)
         if len(pair_row):
-            ego = self.poses(rows, slice(step - 1, step), _unwrapped)[:, 0]
-            raw_heading = ego[:, 2].copy()
+            # Only the rows with an object ahead need the ego's pose and footprint (each row's alone).
+            searching = np.flatnonzero(has_lead)
+            ego = self.poses(rows[searching], slice(step - 1, step), _unwrapped)[:, 0]
+            raw_heading = np.zeros(len(rows))
+            raw_heading[searching] = ego[:, 2]
             # The footprint's corners do not move with the last bit of the heading: libm's wrap serves.
-            ego[:, 2] = normalize_angle(raw_heading)
+            ego[:, 2] = normalize_angle(ego[:, 2])
             objects = self.hit_object[pair_hit]
-            distances = shapely.distance(ego_polygons(ego)[pair_row], self.polygons[map_index, objects])
+            footprints = np.empty(len(rows), dtype=object)
+            footprints[searching] = ego_polygons(ego)
+            distances = shapely.distance(footprints[pair_row], self.polygons[map_index, objects])
             # Per row the nearest object, the first in corridor order on ties.
             order = np.argsort(pair_row, kind="stable")
             nearest = order[np.lexsort((distances[order], pair_row[order]))]

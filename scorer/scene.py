@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import shapely
 
+from scorer.collector import collector_paused
 from scorer.geometry import FloatArray
 
 SCENE_FORMAT = "navsim-lb/scene"
@@ -613,8 +614,11 @@ def load_scene(path: Path | str) -> Scene:
     """Return the validated scene stored at `path`; its content hash is the sha256 of the file as stored."""
     path = Path(path)
     stored = path.read_bytes()
-    raw = _parse_json(_decompress(stored, path), path)
-    scene = parse_scene(raw, str(path), hashlib.sha256(stored).hexdigest())
+    # The decoded document is a tree of lists and dicts: dropped before the collector resumes, never walked.
+    with collector_paused():
+        raw = _parse_json(_decompress(stored, path), path)
+        scene = parse_scene(raw, str(path), hashlib.sha256(stored).hexdigest())
+        del raw
     expected_stem = path.name.removesuffix(".gz").removesuffix(".json")
     if scene.token != expected_stem:
         raise SceneFormatError(f"{path}: token: {scene.token!r} differs from the file name {expected_stem!r}")
