@@ -365,7 +365,9 @@ def ego_center(x: npt.ArrayLike, y: npt.ArrayLike, heading: npt.ArrayLike) -> tu
 
 # Corner order of every box in the engine: front-left, rear-left, rear-right, front-right
 # (docs/engine.md, "Conventions: state arrays").
-_CORNER_SIGNS = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
+# A box's corners FL, RL, RR, FR: the signs of their longitudinal and lateral offsets.
+CORNER_SIGNS = ((1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0))
+_CORNER_SIGNS = np.array(CORNER_SIGNS)
 
 
 def box_corners(

@@ -70,15 +70,13 @@ def base_observation(frame: Frame, replayed: Observation) -> Observation:
 def with_vehicles(base: Observation, vehicles: VehicleSteps) -> Observation:
     """Return `base` with the vehicles of steps 1.. (`scorer.reactive.traffic.simulate_traffic`) written in."""
     column_of = {track: column for column, track in enumerate(base.tokens)}
-    at = [
-        (step, column_of[vehicle[0]], vehicle[1:])
-        for step, seen in enumerate(vehicles.steps, 1)
-        for vehicle in seen
-    ]
+    seen = [vehicle for vehicles_of_step in vehicles.steps for vehicle in vehicles_of_step]
     present, corners = base.present.copy(), base.corners.copy()
-    if at:
-        step, column, box = (np.array(part) for part in zip(*at, strict=True))
-        box = box.astype(np.float64)
+    if seen:
+        step = np.repeat(np.arange(1, len(vehicles.steps) + 1), [len(at) for at in vehicles.steps])
+        tracks, *box_columns = zip(*seen, strict=True)
+        column = np.array([column_of[track] for track in tracks])
+        box = np.column_stack(box_columns).astype(np.float64, copy=False)  # (n, 5), C order
         present[step, column] = True
         corners[step, column] = box_corners(box[:, 0], box[:, 1], box[:, 2], box[:, 3] / 2.0, box[:, 4] / 2.0)
     return replace(base, present=present, corners=corners)

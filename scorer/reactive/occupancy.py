@@ -29,18 +29,17 @@ used first out), so a worker's memory does not grow with its tokens.
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import partial
 from typing import TypeVar
 
 import numpy as np
 import shapely
 
-from scorer.geometry import FloatArray
+from scorer.reactive.paths import LanePath
 
 SIMPLIFY_TOLERANCE = 1e-5
 # Margin (m) on every bound: the bounds hold in real numbers; GEOS's buffers, the simplification and the
@@ -55,17 +54,49 @@ BUFFER_REACH = 1.02
 Capsule = tuple[float, float, float, float, float]
 Capsules = list[Capsule]
 Envelope = tuple[float, float, float, float]  # min x, min y, max x, max y
+Bound = tuple[Capsules, list[Envelope]]  # capsules holding a geometry and the envelope of each
 T = TypeVar("T")
 # Where the capsule test's own distance decides (`_end_within`): beyond a billionth of the reach, Python's
 # hypot and numpy's (each within an ulp of the true distance) agree on the side.
 HYPOT_TIE = 1e-9
 
 
-def polyline_capsules(points: FloatArray, distance: float) -> Capsules:
-    """Return the capsules holding the buffer at `distance` of a polyline (n, 2), n >= 2: its segments."""
+def _segment_bound(path: LanePath, radius: float) -> Bound:
+    """Return the capsules of the path's segments between consecutive vertices with `radius`, and their
+    envelopes (memoised: the searches of a path read slices of them)."""
+    return _SEGMENTS.get_or_make(
+        (path.identity, radius), lambda: bound_of([(*segment, radius) for segment in path.segments])
+    )
+
+
+def path_to_go_bound(path: LanePath, progress: float, distance: float) -> Bound:
+    """Return the capsules holding the buffer at `distance` of `path.to_go(progress)`: its segments."""
     radius = distance * BUFFER_REACH
-    xy = points.tolist()
-    return [(x0, y0, x1, y1, radius) for (x0, y0), (x1, y1) in itertools.pairwise(xy)]
+    start, first = path.to_go_parts(progress)
+    capsules, envelopes = _segment_bound(path, radius)
+    if start is None:
+        return capsules[first:], envelopes[first:]
+    head = (*start, *path.vertices[first], radius)
+    return [head, *capsules[first:]], [_envelope(head), *envelopes[first:]]
+
+
+def path_between_bound(path: LanePath, start: float, end: float, distance: float) -> Bound:
+    """Return the capsules holding the buffer at `distance` of `path.between(start, end)`: its segments."""
+    radius = distance * BUFFER_REACH
+    ends, first, last = path.between_parts(start, end)
+    capsules, envelopes = _segment_bound(path, radius)
+    if ends is None:
+        return capsules[first:last], envelopes[first:last]
+    start_point, end_point = ends
+    if last < first:
+        alone = (*start_point, *end_point, radius)
+        return [alone], [_envelope(alone)]
+    head = (*start_point, *path.vertices[first], radius)
+    tail = (*path.vertices[last], *end_point, radius)
+    return (
+        [head, *capsules[first:last], tail],
+        [_envelope(head), *envelopes[first:last], _envelope(tail)],
+    )
 
 
 def box_capsule(x: float, y: float, heading: float, length: float, width: float) -> Capsule:
@@ -125,9 +156,13 @@ def capsules_meet(first: Capsule, second: Capsule, origin_x: float, origin_y: fl
     )
 
 
-def envelope_of(capsules: Capsules) -> Envelope:
-    """Return the envelope of the union of capsules, widened by the slack."""
-    envelopes = [_envelope(capsule) for capsule in capsules]
+def bound_of(capsules: Capsules) -> Bound:
+    """Return capsules with their envelopes."""
+    return capsules, [_envelope(capsule) for capsule in capsules]
+
+
+def envelope_of(envelopes: list[Envelope]) -> Envelope:
+    """Return the envelope of the union of capsules, given their envelopes."""
     return (
         min(envelope[0] for envelope in envelopes),
         min(envelope[1] for envelope in envelopes),
@@ -164,7 +199,7 @@ class _Simplified:
 class _Shape:
     """A geometry's capsules and its simplifications: what every occupancy holding the same geometry shares."""
 
-    def __init__(self, bound: Callable[[], Capsules], build: Callable[[], shapely.Geometry]) -> None:
+    def __init__(self, bound: Callable[[], Bound], build: Callable[[], shapely.Geometry]) -> None:
         self._bound = bound
         self.simplified = _Simplified(build)
         self._capsules: tuple[Capsules, list[Envelope], Envelope] | None = None
@@ -172,9 +207,8 @@ class _Shape:
     def capsules(self) -> tuple[Capsules, list[Envelope], Envelope]:
         """Return the capsules holding the geometry, their envelopes and the envelope of them all."""
         if self._capsules is None:
-            capsules = self._bound()
-            envelopes = [_envelope(capsule) for capsule in capsules]
-            self._capsules = capsules, envelopes, envelope_of(capsules)
+            capsules, envelopes = self._bound()
+            self._capsules = capsules, envelopes, envelope_of(envelopes)
         return self._capsules
 
 
@@ -208,13 +242,14 @@ class Recent(OrderedDict[Hashable, T]):
 # that a worker's memory does not grow with its tokens.
 _SHAPES: Recent[_Shape] = Recent(2048)
 _ANSWERS: Recent[list[str]] = Recent(8192)
+_SEGMENTS: Recent[Bound] = Recent(1024)  # by path and radius
 
 
 @dataclass
 class _Entry:
     key: Hashable  # equal keys: the same geometry, built alike, in every simulation of the process
     envelope: Envelope  # holds the geometry
-    bound: Callable[[], Capsules]
+    bound: Callable[[], Bound]
     build: Callable[[], shapely.Geometry]
     inserted_round: int
     _shape: _Shape | None = None
@@ -239,7 +274,7 @@ class LazyOccupancy:
         name: str,
         key: Hashable,
         envelope: Envelope,
-        bound: Callable[[], Capsules],
+        bound: Callable[[], Bound],
         build: Callable[[], shapely.Geometry],
     ) -> None:
         """Insert or replace the geometry of `name`, held within `envelope` and within the capsules `bound`
@@ -249,7 +284,7 @@ class LazyOccupancy:
         the start, and so do its rounds here."""
         previous = self._entries.get(name)
         if previous is not None and previous.key == key:
-            self._entries[name] = replace(previous, inserted_round=self._rounds)
+            previous.inserted_round = self._rounds
         else:
             self._entries[name] = _Entry(key, envelope, bound, build, self._rounds)
 
@@ -266,46 +301,49 @@ class LazyOccupancy:
         return list(self._entries)
 
     def near(
-        self, shape: Hashable, envelope: Envelope, bound: Callable[[], Capsules], excluded: str
+        self, shape: Hashable, envelope: Envelope, bound: Callable[[], Bound], excluded: str
     ) -> list[str]:
         """Return the names but `excluded` whose geometry may meet a shape (`shape` names it process-wide)
         held within `envelope` and within the capsules `bound` gives, in the devkit's order."""
+        # `overlaps` written out: this runs per lead search and entry.
+        low_x, low_y, high_x, high_y = envelope
         names = [
             name
             for name, entry in self._entries.items()
-            if name != excluded and overlaps(entry.envelope, envelope)
+            if name != excluded
+            and (held := entry.envelope)[0] <= high_x
+            and low_x <= held[2]
+            and held[1] <= high_y
+            and low_y <= held[3]
         ]
         if not names:
             return []
         # The same shape asked about the same geometries has the same answer.
         question = (shape, excluded, tuple((name, self._entries[name].key) for name in names))
-        return _ANSWERS.get_or_make(question, lambda: self._near(names, bound()))
+        return _ANSWERS.get_or_make(question, lambda: self._near(names, *bound()))
 
-    def _near(self, names: list[str], capsules: Capsules) -> list[str]:
-        pieces = [_envelope(capsule) for capsule in capsules]
+    def _near(self, names: list[str], capsules: Capsules, pieces: list[Envelope]) -> list[str]:
         # The (piece, owner, capsule) triples whose envelopes meet, as numpy's (piece, capsule) grid listed
         # them: the first piece among them is the origin every capsule test measures from.
-        meeting_envelopes: list[tuple[int, int, Capsule]] = []
         held = [self._entries[name].shape().capsules() for name in names]
-        # Written out (no `overlaps` calls): this loop is most of the pre-check's Python.
-        for owner, (owned, envelopes, (low_x, low_y, high_x, high_y)) in enumerate(held):
-            for index, (piece_low_x, piece_low_y, piece_high_x, piece_high_y) in enumerate(pieces):
-                if (
-                    piece_low_x <= high_x
-                    and low_x <= piece_high_x
-                    and piece_low_y <= high_y
-                    and low_y <= piece_high_y
-                ):
-                    meeting_envelopes.extend(
-                        (index, owner, capsule)
-                        for capsule, (other_low_x, other_low_y, other_high_x, other_high_y) in zip(
-                            owned, envelopes, strict=True
-                        )
-                        if piece_low_x <= other_high_x
-                        and other_low_x <= piece_high_x
-                        and piece_low_y <= other_high_y
-                        and other_low_y <= piece_high_y
-                    )
+        # One comprehension, `overlaps` written out: this is most of the pre-check's Python. A piece meets
+        # a capsule's envelope only where it meets the envelope of all of the owner's: tested first.
+        meeting_envelopes = [
+            (index, owner, capsule)
+            for owner, (owned, envelopes, (low_x, low_y, high_x, high_y)) in enumerate(held)
+            for index, (piece_low_x, piece_low_y, piece_high_x, piece_high_y) in enumerate(pieces)
+            if piece_low_x <= high_x
+            and low_x <= piece_high_x
+            and piece_low_y <= high_y
+            and low_y <= piece_high_y
+            for capsule, (other_low_x, other_low_y, other_high_x, other_high_y) in zip(
+                owned, envelopes, strict=True
+            )
+            if piece_low_x <= other_high_x
+            and other_low_x <= piece_high_x
+            and piece_low_y <= other_high_y
+            and other_low_y <= piece_high_y
+        ]
         if not meeting_envelopes:
             return []
         origin_x, origin_y = capsules[min(index for index, _, _ in meeting_envelopes)][:2]

@@ -19,6 +19,7 @@ it, from the envelopes of its vertices' suffixes, computed once per path.
 from __future__ import annotations
 
 import bisect
+import itertools
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -70,7 +71,7 @@ class LanePath:
 
     def clamp(self, progress: float) -> float:
         """Return `progress` clamped to the path (nuPlan's `_clamp_progress`)."""
-        return max(self.start, min(progress, self.end))
+        return max(self.progress[0], min(progress, self.progress[-1]))
 
     def state_at(self, progress: float) -> tuple[float, float, float]:
         """Return x, y and heading (wrapped to [-pi, pi)) at `progress` on the path, as `get_state_at_progress`."""
@@ -79,7 +80,7 @@ class LanePath:
         low, high = self.progress[lower], self.progress[upper]
         offset = progress - low
         span = high - low
-        (x_low, y_low), (x_high, y_high) = self.points[lower].tolist(), self.points[upper].tolist()
+        (x_low, y_low), (x_high, y_high) = self.vertices[lower], self.vertices[upper]
         heading_low, heading_high = self.unwrapped_heading[lower], self.unwrapped_heading[upper]
         x = (x_high - x_low) / span * offset + x_low
         y = (y_high - y_low) / span * offset + y_low
@@ -88,11 +89,29 @@ class LanePath:
 
     def to_go(self, progress: float) -> FloatArray:
         """Return the points (m, 2) of the path from `progress` (clamped) on (`trim_path_up_to_progress`)."""
+        start, first = self.to_go_parts(progress)
+        if start is None:
+            return self.points[first:]
+        return np.concatenate([[start], self.points[first:]])
+
+    def to_go_parts(self, progress: float) -> tuple[tuple[float, float] | None, int]:
+        """Return what `to_go(progress)` is made of: the point it starts at (None: at a vertex) and the
+        first of the path's vertices that follow it."""
         ahead = bisect.bisect_right(self.progress, progress)
         if ahead == len(self.progress):
-            return self.points[-2:]
+            return None, len(self.progress) - 2
         x, y, _ = self.state_at(progress)
-        return np.concatenate([[[x, y]], self.points[ahead:]])
+        return (x, y), ahead
+
+    @cached_property
+    def vertices(self) -> list[tuple[float, float]]:
+        """Return the vertices' x, y in Python floats."""
+        return [(x, y) for x, y in self.points.tolist()]
+
+    @cached_property
+    def segments(self) -> list[tuple[float, float, float, float]]:
+        """Return the segments between consecutive vertices: x0, y0, x1, y1 in Python floats."""
+        return [(x0, y0, x1, y1) for (x0, y0), (x1, y1) in itertools.pairwise(self.vertices)]
 
     @cached_property
     def identity(self) -> bytes:
@@ -121,12 +140,24 @@ class LanePath:
 
     def between(self, start: float, end: float) -> FloatArray:
         """Return the points (m, 2) of the path from `start` to `end` (both clamped; nuPlan's `trim_path`)."""
+        ends, first, last = self.between_parts(start, end)
+        if ends is None:
+            return self.points[first : last + 1]
+        start_point, end_point = ends
+        return np.concatenate([[start_point], self.points[first : last + 1], [end_point]])
+
+    def between_parts(
+        self, start: float, end: float
+    ) -> tuple[tuple[tuple[float, float], tuple[float, float]] | None, int, int]:
+        """Return what `between(start, end)` is made of: the points it starts and ends at (None: it is two of
+        the path's vertices) and the first and last of the path's vertices between them (last < first:
+        none)."""
         first = bisect.bisect_right(self.progress, start)
         if first == len(self.progress):
-            return self.points[-2:]
+            return None, len(self.progress) - 2, len(self.progress) - 1
         last = bisect.bisect_left(self.progress, end) - 1
         if last < 0:
-            return self.points[:2]
+            return None, 0, 1
         x_start, y_start, _ = self.state_at(start)
         x_end, y_end, _ = self.state_at(end)
-        return np.concatenate([[[x_start, y_start]], self.points[first : last + 1], [[x_end, y_end]]])
+        return ((x_start, y_start), (x_end, y_end)), first, last

@@ -42,19 +42,22 @@ import numpy as np
 import shapely
 import shapely.ops
 
-from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, FloatArray, box_corners, principal_value
+from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, FloatArray, box_corners, principal_value_of
 from scorer.reactive.agents import IdmVehicle, ParkingCandidate, StartingTraffic, box_polygon
 from scorer.reactive.idm import Lead, idm_update
 from scorer.reactive.occupancy import (
     BOUND_SLACK,
     BUFFER_REACH,
-    Capsules,
+    Bound,
     Envelope,
     LazyOccupancy,
+    Recent,
+    bound_of,
     box_capsule,
     envelope_of,
     overlaps,
-    polyline_capsules,
+    path_between_bound,
+    path_to_go_bound,
 )
 from scorer.trajectory import StateIndex
 from scorer.versions import IdmTraffic
@@ -65,6 +68,7 @@ STEP_S = 0.1  # the IDM's tspan: the scorer's proposal sampling interval
 _SIMULATIONS = itertools.count()
 # Where the range filter's own distance decides (`_leave_range`): beyond a millionth of the radius.
 RANGE_TIE = 1e-6
+_BOXES: Recent[shapely.Polygon] = Recent(4096)
 
 
 @dataclass(frozen=True)
@@ -108,7 +112,7 @@ class _Agent:
 
     def projected_footprint(
         self, headway_time: float
-    ) -> tuple[Hashable, Envelope, Callable[[], Capsules], Callable[[], shapely.Geometry]]:
+    ) -> tuple[Hashable, Envelope, Callable[[], Bound], Callable[[], shapely.Geometry]]:
         """Return what defines the vehicle's projected footprint now (its key), what holds it (an envelope,
         capsules) and the function that builds it. The envelope is a square around the box centre (on the
         path): the box's circumscribed circle, and the path's points between the bounds lie no farther from
@@ -125,19 +129,25 @@ class _Agent:
         reach += BOUND_SLACK
         envelope = pose[0] - reach, pose[1] - reach, pose[0] + reach, pose[1] + reach
 
-        def bound() -> Capsules:
-            return [
-                *polyline_capsules(path.between(lower, upper), width / 2),
-                box_capsule(*pose, length, width),
-            ]
+        def bound() -> Bound:
+            capsules, envelopes = path_between_bound(path, lower, upper, width / 2)
+            box, box_envelope = bound_of([box_capsule(*pose, length, width)])
+            return capsules + box, envelopes + box_envelope
 
         def build() -> shapely.Geometry:
             ahead = shapely.buffer(
                 shapely.linestrings(path.between(lower, upper)), width / 2, cap_style="flat"
             )
-            return shapely.union_all([ahead, box_polygon(*pose, length, width)])
+            return shapely.union_all([ahead, _box(*pose, length, width)])
 
         return (path.identity, lower, upper, pose, length, width), envelope, bound, build
+
+
+def _box(x: float, y: float, heading: float, length: float, width: float) -> shapely.Polygon:
+    """Return `box_polygon`, memoised: a vehicle's box at a step serves its footprint and the test of the
+    parked vehicles, and a vehicle standing still keeps its box."""
+    key = (x, y, heading, length, width)
+    return _BOXES.get_or_make(key, partial(box_polygon, *key))
 
 
 def _box_envelope(pose: tuple[float, float, float], length: float, width: float) -> Envelope:
@@ -173,9 +183,7 @@ def _lead_of(
     half_width = agent.start.width / 2
     envelope = path.to_go_envelope(clamped, half_width * BUFFER_REACH + BOUND_SLACK)
     ahead_key = (path.identity, clamped, half_width)
-    near = occupancy.near(
-        ahead_key, envelope, lambda: polyline_capsules(path.to_go(clamped), half_width), track
-    )
+    near = occupancy.near(ahead_key, envelope, partial(path_to_go_bound, path, clamped, half_width), track)
     free_road = None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
     # After its first update a vehicle's footprint holds its box, centred where its path ahead starts: the
     # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test.
@@ -200,7 +208,7 @@ def _lead_of(
     else:
         speed = agents[nearest].speed
         relative_heading = agents[nearest].pose()[2] - heading
-    return nearest, Lead(distance, speed * float(np.cos(principal_value(relative_heading))), 0.0)
+    return nearest, Lead(distance, speed * float(np.cos(principal_value_of(relative_heading))), 0.0)
 
 
 def _nearest_hit(
@@ -239,12 +247,12 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
     # The ego's boxes are this simulation's own: its keys name them within it alone.
     simulation = next(_SIMULATIONS)
     for vehicle in start.agents:
-        capsule = [box_capsule(*vehicle.pose, vehicle.length, vehicle.width)]
+        bound = bound_of([box_capsule(*vehicle.pose, vehicle.length, vehicle.width)])
         occupancy.set(
             vehicle.track,
             ("box", *vehicle.pose, vehicle.length, vehicle.width),
-            envelope_of(capsule),
-            partial(_given, capsule),
+            envelope_of(bound[1]),
+            partial(_given, bound),
             partial(box_polygon, *vehicle.pose, vehicle.length, vehicle.width),
         )
     target_velocity = {vehicle.track: vehicle.target_velocity for vehicle in start.agents}
@@ -268,12 +276,12 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
     out_of_range: dict[str, int] = {}
     for step in range(1, len(ego_states)):
         ego_state = ego_states[step - 1]
-        capsule = [tuple(ego_capsules[step - 1])]
+        bound = bound_of([tuple(ego_capsules[step - 1])])
         occupancy.set(
             EGO,
             (EGO, simulation, *ego_states[step - 1, : StateIndex.HEADING + 1].tolist()),
-            envelope_of(capsule),
-            partial(_given, capsule),
+            envelope_of(bound[1]),
+            partial(_given, bound),
             partial(_given, ego[step - 1]),
         )
         _leave_range(agents, occupancy, ego_state, config.radius, step, out_of_range)
@@ -353,12 +361,8 @@ def _vehicles_of_step(
     vehicles = list(simulated)
     if config.add_open_loop_parked_vehicles and parked:
         envelopes = [_box_envelope(vehicle[1:4], *vehicle[4:]) for vehicle in simulated]
-        boxes: dict[int, shapely.Polygon] = {}
         for candidate, polygon, envelope in parked:
             near = [index for index, around in enumerate(envelopes) if overlaps(around, envelope)]
-            for index in near:
-                if index not in boxes:
-                    boxes[index] = box_polygon(*simulated[index][1:])
-            if not any(shapely.intersects(boxes[index], polygon) for index in near):
+            if not any(shapely.intersects(_box(*simulated[index][1:]), polygon) for index in near):
                 vehicles.append((candidate.track, *candidate.box))
     return tuple(vehicles)
