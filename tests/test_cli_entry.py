@@ -78,6 +78,13 @@ def test_the_script_leaves_its_objects_to_the_os_at_exit() -> None:
     assert frozen > 10_000  # numpy's, typer's and rich's objects and ours
 
 
+def test_the_command_runs_the_cycle_collector_less_often() -> None:
+    """Importing the command's package raises the collector's threshold (start-up), and only the first one."""
+    probe = "import gc, navsim_lb; print(gc.get_threshold(), navsim_lb.COLLECTION_ALLOCATIONS)"
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["(50000,", "10,", "10)", "50000"]
+
+
 WARM_SCORE_PROBE = """
 import sys
 from navsim_lb.cli import main
