@@ -11,16 +11,15 @@ import copy
 import gc
 import sys
 from collections.abc import Callable, Sequence
+from functools import cache
 from importlib.util import find_spec
 from typing import Annotated
 
 import typer
 from typer.main import get_command_name
 
-from navsim_lb import client, demo, engine_cli, openscene_cli
+from navsim_lb import engine_cli
 from navsim_lb.terminal import fail, output
-from server import cli as server_cli
-from worker import cli as worker_cli
 
 SERVER_EXTRA = "pip install 'navsim-leaderboard[server]'"
 # What server.cli, worker.cli and demo register (tests/test_packaging.py checks it).
@@ -57,9 +56,6 @@ def _register_install_hints(app: typer.Typer, missing_module: str) -> None:
         )(_install_hint(name, missing_module))
 
 
-app = typer.Typer(no_args_is_help=True)
-
-
 def _print_version(asked: bool) -> None:
     if asked:
         from importlib.metadata import version
@@ -70,7 +66,6 @@ def _print_version(asked: bool) -> None:
         raise typer.Exit()
 
 
-@app.callback()
 def _options(
     show_version: Annotated[
         bool,
@@ -80,16 +75,56 @@ def _options(
     """NAVSIM Leaderboard: PDM Score engine, evaluation server and data tools."""
 
 
-engine_cli.register(app)
-openscene_cli.register(app)
-client.register(app)
-MISSING_SERVER_MODULE = _missing_server_module()
-if MISSING_SERVER_MODULE is None:
-    server_cli.register(app)
-    worker_cli.register(app)
-    demo.register(app)
-else:
-    _register_install_hints(app, MISSING_SERVER_MODULE)
+def _engine_application() -> typer.Typer:
+    """Return the application with the engine's commands alone (its options and help are the whole one's)."""
+    engine = typer.Typer(no_args_is_help=True)
+    engine.callback()(_options)
+    engine_cli.register(engine)
+    return engine
+
+
+@cache
+def whole_application() -> typer.Typer:
+    """Return the application with every room's commands, the engine's first."""
+    from navsim_lb import client, demo, openscene_cli
+
+    whole = _engine_application()
+    openscene_cli.register(whole)
+    client.register(whole)
+    missing_server_module = _missing_server_module()
+    if missing_server_module is None:
+        from server import cli as server_cli
+        from worker import cli as worker_cli
+
+        server_cli.register(whole)
+        worker_cli.register(whole)
+        demo.register(whole)
+    else:
+        _register_install_hints(whole, missing_server_module)
+    return whole
+
+
+def __getattr__(name: str) -> typer.Typer:
+    """`app`: the whole application, built when first asked for (the console script builds less)."""
+    if name == "app":
+        return whole_application()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _only(application: typer.Typer, name: str) -> typer.Typer | None:
+    """Return `application` holding only its command or group `name`, None when it has none of that name."""
+    commands = [
+        info
+        for info in application.registered_commands
+        if (info.name or get_command_name(info.callback.__name__ if info.callback else "")) == name
+    ]
+    groups = [info for info in application.registered_groups if info.name == name]
+    if not commands and not groups:
+        return None
+    # Its callback keeps it a group: `navsim-lb score ...` still names the command.
+    single = copy.copy(application)
+    single.registered_commands, single.registered_groups = commands, groups
+    return single
 
 
 def application(arguments: Sequence[str]) -> typer.Typer:
@@ -97,21 +132,12 @@ def application(arguments: Sequence[str]) -> typer.Typer:
     start with, or the whole one when they start with no command's name (an option, a typo, completion).
 
     Before it parses anything, typer builds every command from its signature: 40 ms of a one-token
-    `navsim-lb score` on a slow host, for the commands it does not run. Options, usage and errors are the
-    whole application's.
+    `navsim-lb score` on a slow host, for the commands it does not run. An engine command does not even
+    import the other rooms (2 ms). Options, usage and errors are the whole application's.
     """
     name = arguments[0] if arguments else ""
-    commands = [
-        info
-        for info in app.registered_commands
-        if (info.name or get_command_name(info.callback.__name__ if info.callback else "")) == name
-    ]
-    groups = [info for info in app.registered_groups if info.name == name]
-    if not commands and not groups:
-        return app
-    single = copy.copy(app)  # its callback keeps it a group: `navsim-lb score ...` still names the command
-    single.registered_commands, single.registered_groups = commands, groups
-    return single
+    single = _only(_engine_application(), name) or _only(whole_application(), name)
+    return single or whole_application()
 
 
 def main() -> None:

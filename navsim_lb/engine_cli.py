@@ -157,7 +157,6 @@ def score(
     """Score a submission against a split and print the summary."""
     from navsim_lb.report import summary_table
     from scorer.evaluate import score_tokens
-    from scorer.result_csv import write_results_csv
     from scorer.scene import SceneFormatError, scene_paths
     from scorer.submission import validate_submission
 
@@ -185,6 +184,8 @@ def score(
                 split, cache_dir or default_cache_dir(split), predictions, version, tokens, seed, advance
             )
     if out is not None:
+        from scorer.result_csv import write_results_csv
+
         write_results_csv(results, metric_version, out)
         say(f"wrote {out}")
     print_table(summary_table(results, metric_version, f"{loaded.metadata.method} on {split.name}"))

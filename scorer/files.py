@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 
@@ -14,6 +13,8 @@ def write_atomically(path: Path, data: bytes, durable: bool = True) -> None:
     file under the name: needed for what cannot be made again (uploads), not for what is rebuilt when
     missing (metric caches, imported scenes), where it would only cost time.
     """
+    import tempfile  # here, not above: a `navsim-lb score` that writes nothing never pays for its import
+
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
     try:

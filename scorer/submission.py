@@ -55,9 +55,8 @@ PICKLE_METADATA_KEYS = {
     "institution": "institution",
     "country / region": "country",
 }
-_HTML_LINK = re.compile(
-    r"""^\s*<a\s+href\s*=\s*["']?([^"'>\s]+)["']?[^>]*>(.*?)</a>\s*$""", re.IGNORECASE | re.DOTALL
-)
+# A team name written as the leaderboard rules ask: `<a href=URL>Method</a>` (compiled on first use: pickles only).
+_HTML_LINK = r"""^\s*<a\s+href\s*=\s*["']?([^"'>\s]+)["']?[^>]*>(.*?)</a>\s*$"""
 
 
 @dataclass(frozen=True)
@@ -638,7 +637,7 @@ def _pickle_metadata(
         problems.add(None, key, "unknown key")
     values = {name: _text(document.get(key), key, problems) for key, name in PICKLE_METADATA_KEYS.items()}
     # The leaderboard rules ask for team_name as `<a href=URL>Method</a>`: split it into method and link.
-    link = _HTML_LINK.match(values["team_name"])
+    link = re.match(_HTML_LINK, values["team_name"], re.IGNORECASE | re.DOTALL)
     if link:
         values["tech_report_url"], values["method"] = (
             link.group(1),

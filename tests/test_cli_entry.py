@@ -78,6 +78,13 @@ def test_the_script_leaves_its_objects_to_the_os_at_exit() -> None:
     assert frozen > 10_000  # numpy's, typer's and rich's objects and ours
 
 
+def test_the_command_runs_the_cycle_collector_less_often() -> None:
+    """Importing the command's package raises the collector's threshold (start-up), and only the first one."""
+    probe = "import gc, navsim_lb; print(gc.get_threshold(), navsim_lb.COLLECTION_ALLOCATIONS)"
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["(50000,", "10,", "10)", "50000"]
+
+
 WARM_SCORE_PROBE = """
 import sys
 from navsim_lb.cli import main
@@ -85,6 +92,8 @@ sys.argv = ["navsim-lb", "score", *sys.argv[1:]]
 try:
     main()
 finally:
+    rooms = ("navsim_lb.client", "navsim_lb.demo", "navsim_lb.openscene_cli", "server.cli", "worker.cli")
+    print("other rooms imported:", [name for name in rooms if name in sys.modules])
     builders = ("scorer.pdm_closed", "scorer.planner_observation", "scorer.route")
     print("cache builders imported:", [name for name in builders if name in sys.modules])
 """
@@ -94,7 +103,7 @@ def test_scoring_from_a_warm_cache_does_not_import_the_cache_builders(
     tmp_path: Path, one_token_split: tuple[Path, Path]
 ) -> None:
     """PDM-Closed and the route search only build caches: a `navsim-lb score` that finds its cache never loads
-    them (start-up)."""
+    them, nor the other rooms' commands (start-up)."""
     arguments = [*(str(path) for path in one_token_split), "--cache-dir", str(tmp_path / "cache")]
     cold, warm = (
         subprocess.run(
@@ -105,7 +114,7 @@ def test_scoring_from_a_warm_cache_does_not_import_the_cache_builders(
     assert cold.returncode == warm.returncode == 0, cold.stderr + warm.stderr
     builders = "['scorer.pdm_closed', 'scorer.planner_observation', 'scorer.route']"
     assert cold.stdout.splitlines()[-1] == f"cache builders imported: {builders}"  # it built the cache
-    assert warm.stdout.splitlines()[-1] == "cache builders imported: []"
+    assert warm.stdout.splitlines()[-2:] == ["other rooms imported: []", "cache builders imported: []"]
 
 
 LOG_REPLAY_PROBE = """

@@ -6,6 +6,7 @@ from __future__ import annotations
 import html
 import math
 from datetime import timedelta
+from decimal import ROUND_HALF_UP, Decimal
 
 import numpy as np
 import pytest
@@ -466,6 +467,12 @@ def test_the_page_rounds_as_every_page_and_the_command_line_do_and_counts_in_wor
         "–",
         "–",
     ]
+    # The exact product rounded as decimal's ROUND_HALF_UP rounds it, ties and their neighbours included.
+    values = [k / 20_000 for k in range(-20_001, 20_001)]
+    values += np.random.default_rng(0).uniform(-2, 2, 20_000).tolist()
+    for value in values + [math.nextafter(value, 2.0) for value in values]:
+        exact = Decimal(100 * value).quantize(Decimal("0.1"), rounding=ROUND_HALF_UP)
+        assert percent(value) == str(exact if exact else Decimal("0.0")), value
     assert (counted(1, "entry", "entries"), counted(2, "entry", "entries"), counted(3, "token")) == (
         "1 entry",
         "2 entries",
