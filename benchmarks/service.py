@@ -99,7 +99,7 @@ from server.services.splits import create_phase, register_split, scene_starts
 from server.services.teams import create_team
 from server.services.tokens import create_token
 from server.settings import Settings, get_settings
-from server.shared_caches import publish_caches
+from server.shared_caches import publish_caches, scene_hashes
 from worker import SCORING_NICENESS
 from worker.cli import worker_command
 
@@ -286,7 +286,7 @@ def storage(
         scenes = open_store(f"{location}/split/scenes")
         for path in scene_paths(split).values():
             scenes.put_bytes(path.name, path.read_bytes())
-        publish_caches(open_store(f"{location}/metric-cache"), cache, scene_paths(split))
+        publish_caches(open_store(f"{location}/metric-cache"), cache, scene_hashes(split))
         os.environ["DATA_DIR"] = str(root / "organiser")  # where registering copies the split
         get_settings.cache_clear()
         variables = {key: os.environ[key] for key in os.environ if key.startswith("AWS_")}
