@@ -21,8 +21,8 @@ p99 at most 100 ms, the upload routes below 1 s, while 2 workers score on the sa
 With --storage local,s3: each configuration also with its uploads, its split's scenes and the metric caches in
 an S3 object store (moto's server with keep-alive, benchmarks/keepalive_s3.py, started here, or the endpoint
 AWS_ENDPOINT_URL names): the split registered from the store, and each worker's caches cold (an earlier worker
-published them: it fetches them, as it does the scenes its chunks need), against the local directory with the
-cache built.
+published them: it fetches them, and no scene, a token whose cache is in the store needing none), against the
+local directory with the cache built.
 
 With --two-stage GROUPS (and --pairs P): a synthetic two-stage split of GROUPS groups, each an original and
 its previous frame (stage one) with P synthetic pairs (stage two), scorer.synth.two_stage; navhard's size is
@@ -99,7 +99,7 @@ from server.services.splits import create_phase, register_split, scene_starts
 from server.services.teams import create_team
 from server.services.tokens import create_token
 from server.settings import Settings, get_settings
-from server.shared_caches import publish_caches
+from server.shared_caches import publish_caches, scene_hashes
 from worker import SCORING_NICENESS
 from worker.cli import worker_command
 
@@ -286,7 +286,7 @@ def storage(
         scenes = open_store(f"{location}/split/scenes")
         for path in scene_paths(split).values():
             scenes.put_bytes(path.name, path.read_bytes())
-        publish_caches(open_store(f"{location}/metric-cache"), cache, scene_paths(split))
+        publish_caches(open_store(f"{location}/metric-cache"), cache, scene_hashes(split))
         os.environ["DATA_DIR"] = str(root / "organiser")  # where registering copies the split
         get_settings.cache_clear()
         variables = {key: os.environ[key] for key in os.environ if key.startswith("AWS_")}

@@ -599,22 +599,24 @@ def score_seeds(
     tokens: Sequence[str] | None = None,
     progress: Callable[[int], None] | None = None,
     context: Sequence[str] = (),
+    scenes: SceneFiles | None = None,
 ) -> dict[str, list[TokenResult]]:
     """Return, per metric version, one result per token (all tokens of the split by default) and seed, seed by
     seed in the order of `seeds` (seed -> predictions), building whatever the cache lacks (`score_rows`), with
     two-frame comfort between adjacent frames of a log.
 
     `context` tokens are scored too, under a version with two-frame comfort, for their rows to pair with
-    `tokens` of the same seed (`pairing_contexts`), and are not returned.
+    `tokens` of the same seed (`pairing_contexts`), and are not returned. `scenes` are the split's scene files
+    when the caller knows them (a worker's mirror of a stored split); by default `split_dir`'s.
     """
     metric_versions = [get_version(version) for version in versions]
-    paths = scene_paths(split_dir)
-    tokens = list(paths) if tokens is None else list(tokens)
+    scenes = scenes or SceneFiles(scene_paths(split_dir))
+    tokens = list(scenes.paths) if tokens is None else list(tokens)
     if all(version.two_frame_extended_comfort_weight is None for version in metric_versions):
         context = ()
     requested = set(tokens)
     scored_tokens = tokens + [token for token in dict.fromkeys(context) if token not in requested]
-    results = score_rows(split_dir, cache_dir, seeds, versions, scored_tokens, progress)
+    results = score_rows(split_dir, cache_dir, seeds, versions, scored_tokens, progress, scenes)
     order = {token: index for index, token in enumerate(tokens)}
     joined: dict[str, list[TokenResult]] = {version.name: [] for version in metric_versions}
     for seed in seeds:
@@ -630,6 +632,22 @@ def score_seeds(
 ScoredRows = dict[tuple[int | None, str], list[TokenResult | ScoredToken]]
 
 
+@dataclass(frozen=True)
+class SceneFiles:
+    """A split's scene files as scoring reads them: token -> file, and, for a split whose files are fetched
+    on demand (a worker's mirror of a stored split), each file's sha256 as registered and how to fetch files.
+    A token's cache is then found by its registered sha256, and only the scenes of caches to build are
+    fetched (`fetch`, given their tokens): a token with a valid cache is scored without its scene file."""
+
+    paths: Mapping[str, Path]
+    hashes: Mapping[str, str] | None = None
+    fetch: Callable[[Sequence[str]], object] | None = None
+
+    def file_hash(self, token: str) -> str:
+        """Return the sha256 of the token's scene file (the cache key): registered, or hashed from the file."""
+        return self.hashes[token] if self.hashes is not None else scene_file_hash(self.paths[token])
+
+
 def score_rows(
     split_dir: Path,
     cache_dir: Path,
@@ -637,17 +655,18 @@ def score_rows(
     versions: Sequence[str],
     tokens: Sequence[str],
     progress: Callable[[int], None] | None = None,
+    scenes: SceneFiles | None = None,
 ) -> ScoredRows:
     """Return, per (seed, version), the rows of `tokens` before the split-level step (v2.2's EC): a ScoredToken
     per scored token, an invalid TokenResult per other. A token's caches are read once for every seed, and
     each trajectory is simulated once for every version; a chunk's trajectories of every seed go through one
-    simulation."""
+    simulation. `scenes` as `score_seeds` takes them."""
     metric_versions = [get_version(version) for version in versions]
-    paths = scene_paths(split_dir)
+    scenes = scenes or SceneFiles(scene_paths(split_dir))
     results: ScoredRows = {(seed, version.name): [] for seed in seeds for version in metric_versions}
     for start in range(0, len(tokens), CHUNK_SIZE):
         chunk = tokens[start : start + CHUNK_SIZE]
-        for key, scored_rows in _score_chunk(paths, Path(cache_dir), seeds, metric_versions, chunk).items():
+        for key, scored_rows in _score_chunk(scenes, Path(cache_dir), seeds, metric_versions, chunk).items():
             results[key] += scored_rows
         if progress is not None:
             progress(len(chunk) * len(seeds))
@@ -663,7 +682,7 @@ def split_scored(rows: Sequence[TokenResult | ScoredToken]) -> tuple[list[Scored
 
 
 def _score_chunk(
-    paths: Mapping[str, Path],
+    scenes: SceneFiles,
     cache_dir: Path,
     seeds: Mapping[int | None, Mapping[str, object]],
     versions: Sequence[MetricVersion],
@@ -672,6 +691,7 @@ def _score_chunk(
     """Score a chunk of tokens under `versions` and `seeds`, by (seed, version): each token's caches loaded once
     (or built, every version at once), every seed's trajectories simulated together, then measured and scored
     per version, every seed at once (`_rows_of_simulated`)."""
+    paths = scenes.paths
     rows: dict[tuple[int | None, str], list[TokenResult | ScoredToken]] = {
         (seed, version.name): [] for seed in seeds for version in versions
     }
@@ -691,7 +711,7 @@ def _score_chunk(
     needed = list(dict.fromkeys(token for token in tokens if token in posed))  # each seed's tokens in order
     caches: dict[str, dict[str, MetricCache]] = {version.name: {} for version in versions}
     unbuilt: list[str] = []
-    scene_hashes = {token: scene_file_hash(paths[token]) for token in needed}
+    scene_hashes = {token: scenes.file_hash(token) for token in needed}
     for token in needed:
         loaded = load_caches(cache_dir, [version.name for version in versions], token, scene_hashes[token])
         for name in loaded:
@@ -700,6 +720,8 @@ def _score_chunk(
             unbuilt.append(token)
     # Every version at once: one PDM-Closed unroll serves them all.
     together = cached_together(version.name for version in versions)
+    if unbuilt and scenes.fetch is not None:
+        scenes.fetch(unbuilt)
     built, errors = build_missing_caches([paths[token] for token in unbuilt], cache_dir, together)
     for token in unbuilt:
         name = paths[token].name

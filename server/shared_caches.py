@@ -19,7 +19,6 @@ from pathlib import Path
 from scorer.blas import engine_provenance
 from scorer.cache import cache_file_key, cache_path
 from scorer.files import write_atomically
-from scorer.scene import scene_file_hash
 from server.object_store import ObjectStore, StoreUnavailable, get_many
 
 log = logging.getLogger(__name__)
@@ -46,10 +45,17 @@ def _local(cache_dir: Path, token: str) -> bytes:
         return b""
 
 
-def fetch_caches(store: ObjectStore, cache_dir: Path, scenes: Mapping[str, Path]) -> list[str]:
-    """Bring the store's caches of the scenes (token -> scene file) that lack a valid local one into
-    `cache_dir`; return the tokens the store had none for (the engine builds them: `publish_caches`)."""
-    hashes = {token: scene_file_hash(scene) for token, scene in scenes.items()}
+def scene_hashes(split_dir: Path) -> dict[str, str]:
+    """Return token -> the sha256 of its scene file, for every scene of a split directory (what its metric
+    caches are named by in the store)."""
+    from scorer.scene import scene_file_hash, scene_paths
+
+    return {token: scene_file_hash(path) for token, path in scene_paths(split_dir).items()}
+
+
+def fetch_caches(store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str]) -> list[str]:
+    """Bring the store's caches of the scenes (token -> the scene file's sha256) that lack a valid local one
+    into `cache_dir`; return the tokens the store had none for (the engine builds them: `publish_caches`)."""
     wanted = {
         token: scene_hash
         for token, scene_hash in hashes.items()
@@ -70,12 +76,12 @@ def fetch_caches(store: ObjectStore, cache_dir: Path, scenes: Mapping[str, Path]
     return unbuilt
 
 
-def publish_caches(store: ObjectStore, cache_dir: Path, scenes: Mapping[str, Path]) -> int:
-    """Publish the local caches of the scenes (token -> scene file) the store lacked; return how many this
-    call stored (another worker may have stored the same entry first)."""
+def publish_caches(store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str]) -> int:
+    """Publish the local caches of the scenes (token -> the scene file's sha256) the store lacked; return how
+    many this call stored (another worker may have stored the same entry first)."""
     published = 0
-    for token, scene in scenes.items():
-        scene_hash, data = scene_file_hash(scene), _local(cache_dir, token)
+    for token, scene_hash in hashes.items():
+        data = _local(cache_dir, token)
         if not _holds(data, scene_hash):
             continue  # the engine could not build it (the token's row says why)
         try:

@@ -3,11 +3,12 @@ each machine's read-through copy of the scenes it scores.
 
 Registering such a split reads every scene once (the split's content hash covers each scene file's sha256) and
 publishes its manifest, token -> (file name, sha256), beside its scenes under that content hash. Every other
-machine reads the manifest instead of the scenes: the API its tokens, a worker the scenes a chunk needs, each
-fetched into a local mirror and checked against its sha256 (the manifest is checked against the split's hash
-in the database, so neither can be swapped). The mirror is bounded: whenever it grows, past `split_cache_bytes`
-the scenes used least recently are removed, never one used within the task time limit (a chunk of another
-process may be about to read it).
+machine reads the manifest instead of the scenes: the API its tokens, a worker the scenes whose metric caches
+it builds (a cache is named by its scene's sha256, the manifest's), each fetched into a local mirror and
+checked against its sha256 (the manifest is checked against the split's hash in the database, so neither can
+be swapped). The mirror is bounded: whenever it grows, past `split_cache_bytes` the scenes used least
+recently are removed, never one used within the task time limit (a chunk of another process may be about to
+read it).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from types import MappingProxyType
 
 from scorer.files import write_atomically
 from scorer.two_stage.split import MAPPING_FILE, TwoStageSplit, load_two_stage_split
@@ -166,6 +168,23 @@ def _stored_stages(location: str, content_hash: str, mirror: Path) -> TwoStageSp
             )
         write_atomically(path, data, durable=False)
     return load_two_stage_split(mirror, manifest.scenes)
+
+
+def stored_scene_files(location: str, content_hash: str) -> tuple[Mapping[str, Path], Mapping[str, str]]:
+    """Return, for each token of a stored split, its scene file in this machine's mirror (there or not:
+    `local_scenes` fetches it) and its registered sha256, from the manifest: what a worker scores a chunk
+    with, without listing the mirror or fetching the scene of a token whose metric cache it has."""
+    return _stored_scene_files(location, content_hash, mirror_dir(content_hash))
+
+
+@lru_cache(maxsize=8)
+def _stored_scene_files(
+    location: str, content_hash: str, mirror: Path
+) -> tuple[Mapping[str, Path], Mapping[str, str]]:
+    """`stored_scene_files` in `mirror` (the data directory's, a key of the cache)."""
+    scenes = split_manifest(location, content_hash).scenes
+    paths = {token: mirror / SCENES / name for token, (name, _) in scenes.items()}
+    return MappingProxyType(paths), MappingProxyType({token: sha256 for token, (_, sha256) in scenes.items()})
 
 
 def local_scenes(location: str, content_hash: str, tokens: Iterable[str]) -> Path:

@@ -40,6 +40,7 @@ def _faulty_score_seeds(
     versions: Sequence[str],
     tokens: Sequence[str],
     context: Sequence[str] = (),
+    scenes: Any = None,
 ) -> Any:
     if os.environ.get("FAULT_POISON_TOKEN") in tokens:
         os.kill(os.getpid(), signal.SIGKILL)
@@ -48,7 +49,7 @@ def _faulty_score_seeds(
         while True:
             time.sleep(1)
     time.sleep(float(os.environ.get("FAULT_CHUNK_SECONDS", "0")))
-    return _score_seeds(split_dir, cache_dir, seeds, versions, tokens, context=context)
+    return _score_seeds(split_dir, cache_dir, seeds, versions, tokens, context=context, scenes=scenes)
 
 
 def _slow_plan_chunks(*args: Any) -> Any:

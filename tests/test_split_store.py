@@ -42,7 +42,7 @@ from server.runs._score import SPLIT_UNREADABLE
 from server.services.pictures import picture_scenes
 from server.services.splits import register_split, scene_starts, split_tokens, stage_mapping
 from server.settings import get_settings
-from server.shared_caches import fetch_caches, publish_caches
+from server.shared_caches import fetch_caches, publish_caches, scene_hashes
 from server.split_store import (
     SplitStoreError,
     evict,
@@ -142,7 +142,7 @@ def test_a_metric_cache_built_once_is_read_by_the_other_workers(
     synthetic_split: SplitFixture, tmp_path: Path
 ) -> None:
     caches = fresh_s3_store()
-    scenes = dict(list(scene_paths(synthetic_split.directory).items())[:2])
+    scenes = dict(list(scene_hashes(synthetic_split.directory).items())[:2])
     builder, readers = tmp_path / "builder", [tmp_path / f"reader{n}" for n in range(2)]
     builder.mkdir()
     assert fetch_caches(caches, builder, scenes) == list(scenes)  # the store has none yet
@@ -202,6 +202,35 @@ def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: W
             dataclasses.replace(chunk, job=dataclasses.replace(job, run=2)), uploads, machine / "cache"
         )
     assert "damaged" in rejected.value.message and uploads.url in str(rejected.value.detail)
+
+
+def test_a_token_whose_cache_is_in_the_store_is_scored_without_its_scene(
+    world: World, machine: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """A worker with an empty disk reads the published caches of a chunk's tokens and fetches no scene of
+    theirs; the scene of a token whose cache the store lacks is fetched, its cache built and published. The
+    rows equal those of the same chunk on the split's directory, bit for bit."""
+    store = _upload_split(REFERENCE_DIR)
+    with transaction(world.factory) as session:
+        content_hash = register_split(session, "stored", store.url).content_hash
+    uploads, caches = fresh_s3_store(), fresh_s3_store()
+    data = (REFERENCE_DIR / "submissions" / "human.json").read_bytes()
+    sha256 = hashlib.sha256(data).hexdigest()
+    stored_name = store_file(uploads, sha256, io.BytesIO(data))
+    kind, versions = SplitKind.log_replay, ("v1.1",)
+    job = ScoringJob(1, 1, "human.json", stored_name, sha256, "s", store.url, content_hash, kind, 1, versions)
+    tokens = tuple(scene_paths(REFERENCE_DIR))[:3]
+    hashes = {token: scene_hashes(REFERENCE_DIR)[token] for token in tokens}
+    on_directory = dataclasses.replace(job, split_source=str(REFERENCE_DIR))
+    local = score_chunk(ChunkInputs(1, on_directory, tokens, (), False), uploads, tmp_path / "built")
+    publish_caches(caches, tmp_path / "built", {token: hashes[token] for token in tokens[:2]})
+    _another_machine(monkeypatch, tmp_path / "worker")
+    chunk = score_chunk(ChunkInputs(1, job, tokens, (), False), uploads, tmp_path / "worker-cache", caches)
+    assert chunk.rows == local.rows and all(row.valid for row in chunk.rows["v1.1"])
+    fetched = {path.name for path in (mirror_dir(content_hash) / "scenes").iterdir()}
+    assert fetched == {scene_paths(REFERENCE_DIR)[tokens[2]].name}
+    (tmp_path / "reader").mkdir()
+    assert fetch_caches(caches, tmp_path / "reader", hashes) == []  # the cache built was published
 
 
 def _stored_two_stage_split() -> S3Store:

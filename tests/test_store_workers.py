@@ -37,7 +37,7 @@ from server.main import STORE_DOWN
 from server.models import ChunkState, ScoringChunk, Summary
 from server.object_store import open_store
 from server.settings import get_settings
-from server.shared_caches import publish_caches
+from server.shared_caches import publish_caches, scene_hashes
 
 REDIS_URL = os.environ.get("NAVSIM_LB_TEST_REDIS", "redis://127.0.0.1:6379/0")
 OUTAGE_S = 20.0
@@ -58,7 +58,7 @@ def _stored_split(
     for path in scene_paths(split.directory).values():
         scenes.put_bytes(path.name, path.read_bytes())
     # Built once by an earlier worker: these workers read them instead of building.
-    publish_caches(open_store(f"{storage_url}/metric-cache"), split.cache_dir, scene_paths(split.directory))
+    publish_caches(open_store(f"{storage_url}/metric-cache"), split.cache_dir, scene_hashes(split.directory))
     return split_url, storage_url
 
 
@@ -118,12 +118,15 @@ def test_two_workers_sharing_no_disk_score_every_row_once(
                     # Each worker in a network namespace of its own: it sees its veth and loopback only.
                     spaces = {_network_namespace(pid) for pid in (service.worker.pid, second_worker.pid)}
                     assert len(spaces) == 2 and _network_namespace(os.getpid()) not in spaces
-    first, second = _scenes_on_disk(api_dir), _scenes_on_disk(second_dir)
-    assert len(workers) == 2 and first and second  # both scored, each from the scenes it fetched
+    assert len(workers) == 2  # both scored
     assert not (api_dir / "submissions").exists() and not (second_dir / "submissions").exists()
-    for data_dir in (api_dir, second_dir):  # each read the caches of the scenes it scored from the store
-        cached = {path.name.removesuffix(".nlc") for path in (data_dir / "cache").iterdir()}
-        assert cached == {name.split(".")[0] for name in _scenes_on_disk(data_dir)}
+    # Each read the caches of the tokens it scored from the store, and so fetched no scene.
+    cached = [
+        {path.name.removesuffix(".nlc") for path in (data / "cache").iterdir()}
+        for data in (api_dir, second_dir)
+    ]
+    assert all(cached) and set.union(*cached) == set(scene_paths(synthetic_split.directory))
+    assert not _scenes_on_disk(api_dir) and not _scenes_on_disk(second_dir)
 
 
 def _network_namespace(pid: int) -> str:

@@ -7,18 +7,26 @@ import math
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from time import perf_counter
 from typing import TYPE_CHECKING, Any
 
 from server.models import FailureKind, SplitKind
 from server.object_store import ObjectStore
-from server.runs._job import ChunkInputs, Rejected, trajectories
+from server.runs._job import ChunkInputs, Rejected, ScoringJob, trajectories
 from server.runs._two_stage import stage_rows
-from server.split_store import SplitStoreError, local_scenes, split_stages
+from server.split_store import (
+    SplitStoreError,
+    is_stored_split,
+    local_scenes,
+    mirror_dir,
+    split_stages,
+    stored_scene_files,
+)
 
 if TYPE_CHECKING:
-    from scorer.evaluate import TokenResult
+    from scorer.evaluate import SceneFiles, TokenResult
     from scorer.two_stage.split import TwoStageSplit
 
 SPLIT_UNREADABLE = "the split's scenes cannot be read from the server's store; the organisers are told"
@@ -44,7 +52,7 @@ def score_chunk(
     be used; StoreUnavailable while the object store does not answer). With `cache_store`, the metric caches
     of the chunk's scenes come from there when another worker built them, and go there when built here."""
     # The engine is heavy: the API imports this package without it.
-    from scorer.evaluate import TokenResult, score_seeds
+    from scorer.evaluate import SceneFiles, TokenResult, score_seeds
     from scorer.scene import scene_paths
     from server.shared_caches import fetch_caches, publish_caches
 
@@ -65,22 +73,45 @@ def score_chunk(
     scored = {*inputs.todo, *inputs.context}
     with _split_read():
         seeds: dict[int | None, Mapping[str, object]] = dict(enumerate(trajectories(job, store)))
-        split_dir = local_scenes(job.split_source, job.split_hash, scored)
-        two_stage = job.split_kind == SplitKind.two_stage
-        stages = split_stages(job.split_source, job.split_hash) if two_stage else None
-    scenes = {token: path for token, path in scene_paths(split_dir).items() if token in scored}
-    unbuilt = fetch_caches(cache_store, cache_dir, scenes) if cache_store is not None else []
-    started = perf_counter()
-    if stages is not None:
-        rows = {
-            version: _two_stage_rows(split_dir, stages, cache_dir, seeds, version, inputs)
-            for version in job.versions
-        }
-    else:
-        rows = score_seeds(split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context)
+        stages = None
+        if job.split_kind == SplitKind.two_stage:  # a part reads its scenes (their starts): fetched first
+            split_dir = local_scenes(job.split_source, job.split_hash, scored)
+            stages = split_stages(job.split_source, job.split_hash)
+            scenes = SceneFiles(scene_paths(split_dir))
+        else:
+            split_dir, scenes = _one_stage_scenes(job)
+    unbuilt: list[str] = []
     if cache_store is not None:
-        publish_caches(cache_store, cache_dir, {token: scenes[token] for token in unbuilt})
+        hashes = {token: scenes.file_hash(token) for token in scored if token in scenes.paths}
+        unbuilt = fetch_caches(cache_store, cache_dir, hashes)
+    started = perf_counter()
+    with _split_read():  # the scenes of the caches to build are fetched as the engine needs them
+        if stages is not None:
+            rows = {
+                version: _two_stage_rows(split_dir, stages, cache_dir, seeds, version, inputs)
+                for version in job.versions
+            }
+        else:
+            rows = score_seeds(
+                split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context, scenes=scenes
+            )
+    if cache_store is not None:
+        publish_caches(cache_store, cache_dir, {token: scenes.file_hash(token) for token in unbuilt})
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))
+
+
+def _one_stage_scenes(job: ScoringJob) -> tuple[Path, SceneFiles]:
+    """Return the directory and the scene files of a one-stage run's split: a local split's, listed once for
+    the chunk; a stored split's mirror, its files from the manifest, each fetched only when its metric cache
+    is to be built (`SceneFiles`)."""
+    from scorer.evaluate import SceneFiles
+    from scorer.scene import scene_paths
+
+    if not is_stored_split(job.split_source):
+        return Path(job.split_source), SceneFiles(scene_paths(job.split_source))
+    paths, hashes = stored_scene_files(job.split_source, job.split_hash)
+    fetch = partial(local_scenes, job.split_source, job.split_hash)
+    return mirror_dir(job.split_hash), SceneFiles(paths, hashes, fetch)
 
 
 @contextmanager
