@@ -29,6 +29,7 @@ from scorer.drivable_map import DrivableMap, build_drivable_map
 from scorer.files import write_atomically
 from scorer.geometry import FloatArray
 from scorer.human import FILTERED_COLUMNS, human_future_poses, is_synthetic
+from scorer.json_reading import read_json
 from scorer.metrics.history_comfort import past_states
 from scorer.observation import Observation, drop_tracks_on_ego, observe_scene
 from scorer.pdm_scorer import MeasureSettings, ProposalMeasures, measure_alike, score_batch
@@ -550,7 +551,7 @@ def _header(data: bytes) -> tuple[dict[str, Any], int]:
     length, stated = int.from_bytes(data[:8], "little"), int.from_bytes(data[8:_PREFIX], "little")
     if stated != len(data):
         raise ValueError(f"a cache file of {stated} bytes holds {len(data)}")
-    return json.loads(data[_PREFIX : _PREFIX + length]), _PREFIX + length
+    return read_json(data[_PREFIX : _PREFIX + length]), _PREFIX + length
 
 
 Section = tuple[dict[str, Any], dict[str, np.ndarray]]  # metadata, arrays

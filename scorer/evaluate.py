@@ -24,6 +24,7 @@ from scorer.cache import (
     observation_key,
     save_caches,
 )
+from scorer.collector import collector_paused
 from scorer.geometry import BoolArray, FloatArray
 from scorer.human import filtered, is_synthetic
 from scorer.metrics.aggregation import aggregate, defined_mean
@@ -666,7 +667,10 @@ def score_rows(
     results: ScoredRows = {(seed, version.name): [] for seed in seeds for version in metric_versions}
     for start in range(0, len(tokens), CHUNK_SIZE):
         chunk = tokens[start : start + CHUNK_SIZE]
-        for key, scored_rows in _score_chunk(scenes, Path(cache_dir), seeds, metric_versions, chunk).items():
+        # A chunk's cache reading, measures and rows allocate many short-lived, acyclic objects.
+        with collector_paused():
+            scored = _score_chunk(scenes, Path(cache_dir), seeds, metric_versions, chunk)
+        for key, scored_rows in scored.items():
             results[key] += scored_rows
         if progress is not None:
             progress(len(chunk) * len(seeds))

@@ -22,6 +22,7 @@ import shapely
 
 from scorer.collector import collector_paused
 from scorer.geometry import FloatArray
+from scorer.json_reading import read_json
 
 SCENE_FORMAT = "navsim-lb/scene"
 SCENE_VERSION = 1
@@ -566,22 +567,9 @@ def _decompress(data: bytes, path: Path) -> bytes:
 
 
 def _parse_json(data: bytes, path: Path) -> Any:
-    """Return the JSON document `data` as the standard library reads it.
-
-    orjson reads a scene in about 0.6x the time (the same floats, bit for bit: both round each decimal
-    correctly). It refuses what the standard library accepts and the format then rejects by field (NaN,
-    Infinity, numbers beyond a double's range) or reads (a byte-order mark, lone surrogates): such a
-    document is read by the standard library, so every error still names its field. The one difference
-    left: an integer beyond 64 bits comes back as a float, refused wherever an integer is required.
-    """
-    import orjson  # here: scoring from a warm cache reads no scene (start-up of `navsim-lb score`)
-
+    """Return the JSON document `data` as the standard library reads it (`read_json`)."""
     try:
-        return orjson.loads(data)
-    except orjson.JSONDecodeError:
-        pass
-    try:
-        return json.loads(data)
+        return read_json(data)
     except (UnicodeDecodeError, json.JSONDecodeError) as error:
         raise SceneFormatError(f"{path}: (file): not valid JSON ({error})") from None
 
