@@ -36,7 +36,7 @@ import math
 from collections.abc import Callable, Hashable, Iterable
 from dataclasses import dataclass
 from functools import partial
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 import shapely
@@ -55,7 +55,6 @@ from scorer.reactive.occupancy import (
     bound_of,
     box_capsule,
     envelope_of,
-    overlaps,
     path_between_bound,
     path_to_go_bound,
 )
@@ -71,9 +70,9 @@ RANGE_TIE = 1e-6
 _BOXES: Recent[shapely.Polygon] = Recent(4096)
 
 
-@dataclass(frozen=True)
-class IdmUpdate:
-    """One IDM update: the step, the vehicle, what it followed and its state before and after."""
+class IdmUpdate(NamedTuple):
+    """One IDM update: the step, the vehicle, what it followed and its state before and after (a tuple: one
+    is made per vehicle and step)."""
 
     step: int
     track: str
@@ -361,8 +360,16 @@ def _vehicles_of_step(
     vehicles = list(simulated)
     if config.add_open_loop_parked_vehicles and parked:
         envelopes = [_box_envelope(vehicle[1:4], *vehicle[4:]) for vehicle in simulated]
-        for candidate, polygon, envelope in parked:
-            near = [index for index, around in enumerate(envelopes) if overlaps(around, envelope)]
+        for candidate, polygon, (low_x, low_y, high_x, high_y) in parked:
+            # Do the envelopes meet (touching counts)? Per step, parked and simulated vehicle: written out.
+            near = [
+                index
+                for index, (around_low_x, around_low_y, around_high_x, around_high_y) in enumerate(envelopes)
+                if around_low_x <= high_x
+                and low_x <= around_high_x
+                and around_low_y <= high_y
+                and low_y <= around_high_y
+            ]
             if not any(shapely.intersects(_box(*simulated[index][1:]), polygon) for index in near):
                 vehicles.append((candidate.track, *candidate.box))
     return tuple(vehicles)
