@@ -1,6 +1,7 @@
 """The reactive simulation's shortcuts against the plain computations they replace, bit for bit: the capsules
 of a path ahead and of a footprint's path (slices of a path's memoised segments) against the segments of the
-points `to_go` and `between` give, and a box polygon's corners against `box_corners`."""
+points `to_go` and `between` give, a box polygon's corners against `box_corners`, whether a path ahead meets
+a box against GEOS's buffer of it, and a path's memoised states against fresh ones."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from scorer.geometry import box_corners
 from scorer.reactive.agents import box_polygon
 from scorer.reactive.occupancy import BUFFER_REACH, bound_of, path_between_bound, path_to_go_bound
 from scorer.reactive.paths import LanePath
+from scorer.reactive.traffic import _PathAhead
 
 HALF_WIDTH = 0.9
 
@@ -67,3 +69,27 @@ def test_box_polygons_are_box_corners_bit_for_bit() -> None:
         expected = shapely.polygons(box_corners(x, y, heading, length / 2.0, width / 2.0))
         polygon = box_polygon(x, y, float(heading), length, width)
         assert shapely.get_coordinates(polygon).tobytes() == shapely.get_coordinates(expected).tobytes()
+
+
+@pytest.mark.parametrize("path", _paths(), ids=lambda path: f"{len(path.progress)}-vertices")
+def test_a_path_ahead_meets_what_its_buffer_meets(path: LanePath) -> None:
+    rng = np.random.default_rng(13)
+    for progress in _progresses(path):
+        points = path.to_go(path.clamp(progress))
+        buffer = shapely.buffer(shapely.linestrings(points), HALF_WIDTH, cap_style="flat")
+        ahead = _PathAhead(points, HALF_WIDTH)
+        # Boxes about the path ahead's points and beyond its ends, their sides near the buffer's edge.
+        for _ in range(200):
+            x, y = points[rng.integers(len(points))] + rng.normal(0.0, 1.5, 2)
+            length, width = rng.uniform(0.2, 4.0, 2).tolist()
+            box = box_polygon(float(x), float(y), float(rng.uniform(-math.pi, math.pi)), length, width)
+            assert ahead.meets(box) == shapely.intersects(box, buffer)
+
+
+@pytest.mark.parametrize("path", _paths(), ids=lambda path: f"{len(path.progress)}-vertices")
+def test_memoised_states_are_fresh_ones(path: LanePath) -> None:
+    progresses = _progresses(path) * 3
+    states = [path.state_at(progress) for progress in progresses]
+    assert states == [
+        LanePath(path.progress, path.points, path.unwrapped_heading).state_at(p) for p in progresses
+    ]

@@ -13,14 +13,14 @@ do, in its order.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from scorer.versions import IdmTraffic
 
 
-@dataclass(frozen=True)
-class Lead:
-    """What a vehicle follows: its distance ahead (m), speed along the vehicle's heading (m/s), rear length."""
+class Lead(NamedTuple):
+    """What a vehicle follows: its distance ahead (m), speed along the vehicle's heading (m/s), rear length
+    (a tuple: one is made per vehicle and step)."""
 
     distance: float
     velocity: float

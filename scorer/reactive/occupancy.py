@@ -171,11 +171,6 @@ def envelope_of(envelopes: list[Envelope]) -> Envelope:
     )
 
 
-def overlaps(first: Envelope, second: Envelope) -> bool:
-    """Return whether two envelopes meet (touching counts)."""
-    return first[0] <= second[2] and second[0] <= first[2] and first[1] <= second[3] and second[1] <= first[3]
-
-
 class _Simplified:
     """A geometry and its simplifications, round by round, up to a fixed point."""
 
@@ -305,7 +300,7 @@ class LazyOccupancy:
     ) -> list[str]:
         """Return the names but `excluded` whose geometry may meet a shape (`shape` names it process-wide)
         held within `envelope` and within the capsules `bound` gives, in the devkit's order."""
-        # `overlaps` written out: this runs per lead search and entry.
+        # The envelopes' overlap test (touching counts) written out: this runs per lead search and entry.
         low_x, low_y, high_x, high_y = envelope
         names = [
             name
@@ -326,8 +321,9 @@ class LazyOccupancy:
         # The (piece, owner, capsule) triples whose envelopes meet, as numpy's (piece, capsule) grid listed
         # them: the first piece among them is the origin every capsule test measures from.
         held = [self._entries[name].shape().capsules() for name in names]
-        # One comprehension, `overlaps` written out: this is most of the pre-check's Python. A piece meets
-        # a capsule's envelope only where it meets the envelope of all of the owner's: tested first.
+        # One comprehension, the envelopes' overlap test written out: this is most of the pre-check's Python.
+        # A piece meets a capsule's envelope only where it meets the envelope of all of the owner's: tested
+        # first.
         meeting_envelopes = [
             (index, owner, capsule)
             for owner, (owned, envelopes, (low_x, low_y, high_x, high_y)) in enumerate(held)

@@ -27,6 +27,8 @@ import numpy as np
 
 from scorer.geometry import FloatArray, arctan2_avx512, principal_value_of
 
+RECENT_STATES = 16  # how many states at a progress a path keeps (`LanePath.state_at`)
+
 
 class PathError(ValueError):
     """A baseline nuPlan's IDM cannot make a path of (the official token fails)."""
@@ -74,7 +76,23 @@ class LanePath:
         return max(self.progress[0], min(progress, self.progress[-1]))
 
     def state_at(self, progress: float) -> tuple[float, float, float]:
-        """Return x, y and heading (wrapped to [-pi, pi)) at `progress` on the path, as `get_state_at_progress`."""
+        """Return x, y and heading (wrapped to [-pi, pi)) at `progress` on the path, as `get_state_at_progress`.
+
+        Memoised by progress, a few at a time: a step reads the state at a vehicle's progress for its pose,
+        its path ahead and the envelope of it, and the simulations of one scene begin alike."""
+        states = self._recent_states
+        state = states.get(progress)
+        if state is None:
+            if len(states) >= RECENT_STATES:
+                states.clear()
+            state = states[progress] = self._interpolated_state(progress)
+        return state
+
+    @cached_property
+    def _recent_states(self) -> dict[float, tuple[float, float, float]]:
+        return {}
+
+    def _interpolated_state(self, progress: float) -> tuple[float, float, float]:
         upper = min(max(bisect.bisect_left(self.progress, progress), 1), len(self.progress) - 1)
         lower = upper - 1
         low, high = self.progress[lower], self.progress[upper]
