@@ -59,6 +59,18 @@ def test_the_installed_script_runs_a_command_and_says_its_version() -> None:
     assert failing.returncode == 2 and "/no/such/split" in failing.stderr
 
 
+def test_the_package_runs_as_a_module_as_the_script_does() -> None:
+    """`python -m navsim_lb` is the same command, named as it was called."""
+    version = subprocess.run(
+        [sys.executable, "-m", "navsim_lb", "--version"], capture_output=True, text=True, check=True
+    )
+    assert f"(engine {ENGINE_VERSION})" in version.stdout
+    listing = subprocess.run(
+        [sys.executable, "-m", "navsim_lb", "--help"], capture_output=True, text=True, check=True
+    )
+    assert "python -m navsim_lb" in listing.stdout and "score" in listing.stdout
+
+
 EXIT_PROBE = """
 import atexit, gc, sys
 atexit.register(lambda: print("frozen at exit:", gc.get_freeze_count()))
