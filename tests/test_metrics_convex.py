@@ -10,7 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from scorer.geometry import box_corners
-from scorer.metrics.convex import is_convex_counterclockwise, orientation, quads_intersect, segment_meets_quad
+from scorer.metrics.convex import (
+    is_convex_counterclockwise,
+    orientation,
+    quads_apart,
+    quads_intersect,
+    segment_meets_quad,
+)
 
 ORIGIN = np.array([665328.6352374122, 3996354.5321324635])  # UTM-sized coordinates, as in the logs
 
@@ -96,3 +102,37 @@ def test_only_proper_counterclockwise_boxes_are_convex() -> None:
     flat = box.copy()
     flat[1] = (flat[0] + flat[2]) / 2.0
     assert not is_convex_counterclockwise(flat)
+
+
+def test_boxes_found_apart_are_disjoint_for_shapely() -> None:
+    rng = np.random.default_rng(5)
+    first, second = boxes(rng, 20000, 4.0), boxes(rng, 20000, 4.0)
+    meet = shapely_meets(first, second)
+    apart = quads_apart(first, second)
+    assert not (apart & meet).any()
+    # An axis of one of two rectangles separates them whenever they are disjoint (up to the rounding gap).
+    assert apart.sum() >= 0.99 * (~meet).sum()
+
+
+def test_boxes_a_rounding_error_apart_are_left_to_the_exact_test() -> None:
+    # A second box with a corner on the first's edge 0 or 1 (or at its corner), then pushed out along
+    # that edge's outward normal by 0 to 1e-6 m: from ulps, where only the exact test decides, to clear gaps.
+    rng = np.random.default_rng(13)
+    count = 6000
+    first, second = boxes(rng, count, 0.0), boxes(rng, count, 0.0)
+    edge = rng.integers(0, 2, count)
+    rows = np.arange(count)
+    start, end = first[rows, edge], first[rows, edge + 1]
+    along = rng.choice([0.0, 0.3, 0.5, 1.0], count)
+    normal = np.stack([end[:, 1] - start[:, 1], start[:, 0] - end[:, 0]], axis=1)  # outward: boxes run ccw
+    normal /= np.hypot(normal[:, 0], normal[:, 1])[:, None]
+    gap = rng.choice([0.0, 1e-15, 1e-12, 1e-10, 1e-9, 1e-6], count) * rng.choice([-1.0, 1.0], count)
+    touching = start + (end - start) * along[:, None] + normal * gap[:, None]
+    # The corner of the second box that lies furthest against the normal touches the first box's edge.
+    nearest = np.argmin(np.einsum("kcd,kd->kc", second, normal), axis=1)
+    second += (touching - second[rows, nearest])[:, None, :]
+    meet = shapely_meets(first, second)
+    apart = quads_apart(first, second)
+    assert meet.sum() > count // 4
+    assert not (apart & meet).any()
+    assert apart[gap >= 1e-9].mean() > 0.9

@@ -16,7 +16,12 @@ import numpy.typing as npt
 import shapely
 
 from scorer.geometry import BoolArray, FloatArray, IntArray
-from scorer.metrics.convex import is_convex_counterclockwise, quads_intersect, segment_meets_quad
+from scorer.metrics.convex import (
+    is_convex_counterclockwise,
+    quads_apart,
+    quads_intersect,
+    segment_meets_quad,
+)
 from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, same_token_pairs
 from scorer.observation import ObservationBatch
 from scorer.svml_acos import arccos_avx512
@@ -59,7 +64,10 @@ def find_contacts(
         )
     row, obj = rows[pair], objects[pair]
     object_corners = observations.corners[map_index[step], obj]
-    hit = _boxes_meet(corners[row, step], object_corners)
+    ego_corners = corners[row, step]
+    # Most boxes whose bounds touch are apart along an axis of either box; the others get the exact test.
+    hit = ~quads_apart(ego_corners, object_corners)
+    hit[hit] = _boxes_meet(ego_corners[hit], object_corners[hit])
     return Contacts(
         row=row[hit],
         step=step[hit],
