@@ -8,6 +8,7 @@ from __future__ import annotations
 from enum import IntEnum
 
 import numpy as np
+import shapely
 
 from scorer.drivable_map import MapBatch
 from scorer.geometry import BoolArray, FloatArray, IntArray
@@ -39,16 +40,21 @@ def ego_areas(points: FloatArray, row_token: IntArray, maps: MapBatch) -> BoolAr
     near = boxes_touch(extents(state_bounds)[rows], maps.bounds[polygons])
     near &= (maps.is_lane | maps.is_drivable)[polygons]
     rows, polygons = rows[near], polygons[near]
-    # Then per state, then per point: only points of states whose box touches the polygon's box.
+    # Then per state, then per point: only points of states whose box touches the polygon's box, and of those
+    # only the points within the polygon's box (a point strictly inside lies within it), go to GEOS.
     pair, step = np.nonzero(boxes_touch(state_bounds[rows], maps.bounds[polygons][:, None]))
+    x, y = (points[rows[pair], step, :, axis] for axis in range(2))  # (pairs, 5) each
+    bounds = maps.bounds[polygons[pair]]
+    tested = (bounds[:, :1] <= x) & (x <= bounds[:, 2:3]) & (bounds[:, 1:2] <= y) & (y <= bounds[:, 3:])
     # The centre decides ONCOMING_TRAFFIC alone, which reads on-route lanes only: no other polygon needs it.
-    needed = np.ones((len(pair), num_points), dtype=bool)
-    needed[:, CORNERS] = maps.is_route[polygons[pair]]
-    coords = points[rows[pair], step][needed]
-    tested, point = np.nonzero(needed)
-    pair, step = pair[tested], step[tested]
-    inside = points_inside(coords[:, 0], coords[:, 1], polygons[pair], maps)
-    pair, step, point = pair[inside], step[inside], point[inside]
+    tested[:, CORNERS] &= maps.is_route[polygons[pair]]
+    flat = np.flatnonzero(tested)
+    candidate, point = np.divmod(flat, num_points)
+    inside = shapely.contains_xy(
+        maps.polygons[polygons[pair[candidate]]], x.reshape(-1)[flat], y.reshape(-1)[flat]
+    )
+    candidate, point = candidate[inside], point[inside]
+    pair, step = pair[candidate], step[candidate]
     row, polygon = rows[pair], polygons[pair]
     corner = point < CORNERS
 
