@@ -31,6 +31,7 @@ from scorer.metrics.ego_areas import ego_areas, in_intersection
 from scorer.metrics.ego_box import BoxPoint, ego_box_points, ego_corners
 from scorer.metrics.history_comfort import history_comfort
 from scorer.metrics.lane_keeping import lane_keeping
+from scorer.metrics.pairs import corner_bounds
 from scorer.metrics.progress import centerline_strings, normalised_progress, raw_progress
 from scorer.metrics.time_to_collision import time_to_collision
 from scorer.metrics.traffic_light import traffic_light_compliance
@@ -231,6 +232,9 @@ class EgoRows:
     maps: MapBatch
     centerlines: npt.NDArray[np.object_]  # (B,) LineStrings
     points: FloatArray  # (R, 41, 5, 2) `ego_box_points`
+    bounds: (
+        FloatArray  # (R, 41, 4) each box's bounding box (`corner_bounds`): every pruning of pairs starts here
+    )
     areas: BoolArray  # (R, 41, 3) `ego_areas`
 
     @classmethod
@@ -252,6 +256,7 @@ class EgoRows:
         row_token = np.repeat(np.arange(num_tokens), num_proposals)
         maps = MapBatch.of(drivable_maps, route_lane_ids)
         points = ego_box_points(rows)
+        bounds = corner_bounds(points)
         return cls(
             rows=rows,
             row_token=row_token,
@@ -260,7 +265,8 @@ class EgoRows:
             maps=maps,
             centerlines=centerline_strings(list(centerlines)),
             points=points,
-            areas=ego_areas(points, row_token, maps),
+            bounds=bounds,
+            areas=ego_areas(points, bounds, row_token, maps),
         )
 
     def per_token(self, values: np.ndarray) -> np.ndarray:
@@ -291,7 +297,7 @@ class _Observed:
         self.batch = ObservationBatch.of(observations)
         self.row_token = ego.row_token
         self.collisions, self.collision = no_at_fault_collisions(
-            ego.rows, ego.points, ego.areas, ego.row_token, self.batch
+            ego.rows, ego.points, ego.bounds, ego.areas, ego.row_token, self.batch
         )
 
     def local_object(self, batch_column: IntArray) -> IntArray:
@@ -327,6 +333,7 @@ def _time_to_collision(
         found = time_to_collision(
             ego.rows,
             ego.points,
+            ego.bounds,
             ego.areas,
             ego.row_token,
             batch,
@@ -349,6 +356,7 @@ def _traffic_lights(
     return {
         key: traffic_light_compliance(
             ego_corners(ego.points),
+            ego.bounds,
             ego.row_token,
             [observation.red_lights for observation in observed[key].observations],
         )

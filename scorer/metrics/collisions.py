@@ -37,13 +37,15 @@ OBJECT_COLLISION = 0.5  # static objects
 def no_at_fault_collisions(
     states: FloatArray,
     points: FloatArray,
+    bounds: FloatArray,
     areas: npt.NDArray[np.bool_],
     row_token: IntArray,
     observations: ObservationBatch,
 ) -> tuple[FloatArray, FirstInfraction]:
-    """Return NC (R,) and each row's first at-fault collision: time index and object (-1 if none)."""
+    """Return NC (R,) and each row's first at-fault collision: time index and object (-1 if none), from the
+    states (R, T, 11), their box points (R, T, 5, 2), bounds (R, T, 4) and ego areas (R, T, 3)."""
     num_rows, num_steps = states.shape[:2]
-    contacts = find_contacts(ego_corners(points), np.arange(num_steps), row_token, observations)
+    contacts = find_contacts(ego_corners(points), bounds, np.arange(num_steps), row_token, observations)
     if not len(contacts.row):
         return no_contacts(num_rows)
     row, step, obj = contacts.row, contacts.step, contacts.obj

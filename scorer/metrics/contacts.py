@@ -42,12 +42,16 @@ class Contacts:
 
 
 def find_contacts(
-    corners: FloatArray, map_index: IntArray, row_token: IntArray, observations: ObservationBatch
+    corners: FloatArray,
+    box_bounds: FloatArray,
+    map_index: IntArray,
+    row_token: IntArray,
+    observations: ObservationBatch,
 ) -> Contacts:
-    """Return the contacts of ego boxes (R, S, 4, 2): box (r, s) against occupancy map `map_index[s]` of row
-    r's token. Red-light tokens are left out (the devkit skips them before anything else).
+    """Return the contacts of ego boxes (R, S, 4, 2) with their bounds (R, S, 4): box (r, s) against occupancy
+    map `map_index[s]` of row r's token. Red-light tokens are left out (the devkit skips them before anything
+    else).
     """
-    box_bounds = corner_bounds(corners)  # (R, S, 4)
     rows, objects = same_token_pairs(row_token, observations.start, observations.count)
     near = (
         boxes_touch(extents(box_bounds)[rows], observations.extent[objects])

@@ -13,7 +13,7 @@ import shapely
 from scorer.drivable_map import MapBatch
 from scorer.geometry import BoolArray, FloatArray, IntArray
 from scorer.metrics.ego_box import BoxPoint
-from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, points_inside, same_token_pairs
+from scorer.metrics.pairs import boxes_touch, extents, points_inside, same_token_pairs
 
 CORNERS = int(BoxPoint.CENTER)  # points 0..3 are the corners
 
@@ -26,8 +26,9 @@ class EgoArea(IntEnum):
     ONCOMING_TRAFFIC = 2
 
 
-def ego_areas(points: FloatArray, row_token: IntArray, maps: MapBatch) -> BoolArray:
-    """Return the ego-area flags (R, T, 3) of ego box points (R, T, 5, 2) (`_calculate_ego_area`).
+def ego_areas(points: FloatArray, bounds: FloatArray, row_token: IntArray, maps: MapBatch) -> BoolArray:
+    """Return the ego-area flags (R, T, 3) of ego box points (R, T, 5, 2) with the boxes' bounds (R, T, 4)
+    (`_calculate_ego_area`).
 
     MULTIPLE_LANES: more than one lane polygon holds a corner and none holds all four (the centre is not
     used). NON_DRIVABLE_AREA: some corner is in no roadblock, intersection or car park (lane polygons
@@ -35,17 +36,17 @@ def ego_areas(points: FloatArray, row_token: IntArray, maps: MapBatch) -> BoolAr
     Containment is strict: a point on a boundary is outside.
     """
     num_rows, num_steps, num_points = points.shape[:3]
-    state_bounds = corner_bounds(points)  # (R, T, 4); the centre lies within
     rows, polygons = same_token_pairs(row_token, maps.start, maps.count)
-    near = boxes_touch(extents(state_bounds)[rows], maps.bounds[polygons])
+    near = boxes_touch(extents(bounds)[rows], maps.bounds[polygons])
     near &= (maps.is_lane | maps.is_drivable)[polygons]
     rows, polygons = rows[near], polygons[near]
-    # Then per state, then per point: only points of states whose box touches the polygon's box, and of those
-    # only the points within the polygon's box (a point strictly inside lies within it), go to GEOS.
-    pair, step = np.nonzero(boxes_touch(state_bounds[rows], maps.bounds[polygons][:, None]))
+    # Then per state (the centre lies within the box's bounds), then per point: only points of states whose
+    # box touches the polygon's box, and of those only the points within the polygon's box (a point strictly
+    # inside lies within it), go to GEOS.
+    pair, step = np.nonzero(boxes_touch(bounds[rows], maps.bounds[polygons][:, None]))
     x, y = (points[rows[pair], step, :, axis] for axis in range(2))  # (pairs, 5) each
-    bounds = maps.bounds[polygons[pair]]
-    tested = (bounds[:, :1] <= x) & (x <= bounds[:, 2:3]) & (bounds[:, 1:2] <= y) & (y <= bounds[:, 3:])
+    box = maps.bounds[polygons[pair]]
+    tested = (box[:, :1] <= x) & (x <= box[:, 2:3]) & (box[:, 1:2] <= y) & (y <= box[:, 3:])
     # The centre decides ONCOMING_TRAFFIC alone, which reads on-route lanes only: no other polygon needs it.
     tested[:, CORNERS] &= maps.is_route[polygons[pair]]
     flat = np.flatnonzero(tested)

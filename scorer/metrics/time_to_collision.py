@@ -39,6 +39,7 @@ PROJECTION_STEPS = np.arange(0, 10, 3)  # time indices ahead: 0, 3, 6, 9
 def time_to_collision(
     states: FloatArray,
     points: FloatArray,
+    bounds: FloatArray,
     areas: npt.NDArray[np.bool_],
     row_token: IntArray,
     observations: ObservationBatch,
@@ -48,7 +49,8 @@ def time_to_collision(
     evaluated_steps: Sequence[int],
 ) -> list[tuple[FloatArray, FirstInfraction]]:
     """Return TTC (R,) and each row's first infraction, time index and object (-1 if none), checking the first
-    n time indices, for each n of `evaluated_steps`.
+    n time indices, for each n of `evaluated_steps`, from the states (R, T, 11), their box points (R, T, 5, 2),
+    bounds (R, T, 4) and ego areas (R, T, 3).
 
     The contacts are found once, over the longest horizon; a shorter one keeps those that start before its
     end. That is what it finds alone: each contact is judged on its own, and whether it counts depends on the
@@ -62,13 +64,20 @@ def time_to_collision(
     # Along the heading with |v|: a reversing ego is projected forward, as in the devkit.
     velocity = np.stack([np.cos(heading) * speed, np.sin(heading) * speed], axis=-1)[:, :num_steps]
     delta_t = PROJECTION_STEPS.astype(np.float64) * step_s
-    corners = (
-        ego_corners(points[:, :num_steps])[:, :, None]
-        + velocity[:, :, None, None, :] * delta_t[:, None, None]
-    )
+    shift = velocity[:, :, None, :] * delta_t[:, None]  # (R, T, projection, 2)
+    corners = ego_corners(points[:, :num_steps])[:, :, None] + shift[:, :, :, None, :]
+    # Every corner moves by the same shift and rounding is monotone, so the moved box's bounds are its bounds
+    # moved, to the bit.
+    box_bounds = bounds[:, :num_steps, None] + np.concatenate([shift, shift], axis=-1)
     # Box s = k * 4 + projection: the devkit's visiting order, tested against map k + 0, 3, 6 or 9.
     map_index = (np.arange(num_steps)[:, None] + PROJECTION_STEPS).reshape(-1)
-    contacts = find_contacts(corners.reshape(num_rows, -1, 4, 2), map_index, row_token, observations)
+    contacts = find_contacts(
+        corners.reshape(num_rows, -1, 4, 2),
+        box_bounds.reshape(num_rows, -1, 4),
+        map_index,
+        row_token,
+        observations,
+    )
     if not len(contacts.row):
         return [no_contacts(num_rows) for _ in evaluated_steps]
     row, step = contacts.row, contacts.step // num_projections

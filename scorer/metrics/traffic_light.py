@@ -14,15 +14,16 @@ import numpy as np
 import shapely
 
 from scorer.geometry import FloatArray, IntArray
-from scorer.metrics.pairs import boxes_touch, corner_bounds, extents, same_token_pairs
+from scorer.metrics.pairs import boxes_touch, extents, same_token_pairs
 from scorer.red_lights import RedLights
 
 
 def traffic_light_compliance(
-    corners: FloatArray, row_token: IntArray, red_lights: Sequence[RedLights | None]
+    corners: FloatArray, box_bounds: FloatArray, row_token: IntArray, red_lights: Sequence[RedLights | None]
 ) -> tuple[FloatArray, IntArray, IntArray]:
-    """Return TLC (R,) of ego boxes (R, T, 4, 2) against each row's token's red lights, and each row's first
-    contact: its time index and the light's index in the token's red lights (-1 and -1 if none)."""
+    """Return TLC (R,) of ego boxes (R, T, 4, 2) with their bounds (R, T, 4) against each row's token's red
+    lights, and each row's first contact: its time index and the light's index in the token's red lights (-1
+    and -1 if none)."""
     num_rows, num_steps = corners.shape[:2]
     lights = [lights if lights is not None else RedLights.none(num_steps) for lights in red_lights]
     count = np.array([len(light.lane_ids) for light in lights], dtype=np.intp)
@@ -36,7 +37,6 @@ def traffic_light_compliance(
     bounds = np.concatenate([light.bounds for light in lights])
     present = np.concatenate([light.present[:num_steps] for light in lights], axis=1)  # (T, N)
 
-    box_bounds = corner_bounds(corners)  # (R, T, 4)
     rows, items = same_token_pairs(row_token, start, count)
     near = boxes_touch(extents(box_bounds)[rows], bounds[items])
     rows, items = rows[near], items[near]
