@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -97,13 +98,23 @@ def _extents(corners: FloatArray) -> FloatArray:
     """Return each object's bounding box (N, 4) over all its corners (T, N, 4, 2), absent steps (NaN) left out.
 
     Over the steps first, where the corners lie contiguous: one pass over the batch in two calls, where
-    reducing each box's 4 corners first strides through it. Minima round nothing, and the extents only prune
-    candidate pairs (`scorer.metrics.pairs`).
+    reducing each box's 4 corners first strides through it; then over the 4 corners, a column pair at a time
+    (numpy reduces a short axis slowly). Minima round nothing, and the extents only prune candidate pairs
+    (`scorer.metrics.pairs`).
     """
     per_object = corners.reshape(*corners.shape[:2], 8)  # x, y of the 4 corners
-    lower = np.fmin.reduce(per_object, axis=0).reshape(-1, 4, 2)
-    upper = np.fmax.reduce(per_object, axis=0).reshape(-1, 4, 2)
-    return np.concatenate([np.fmin.reduce(lower, axis=1), np.fmax.reduce(upper, axis=1)], axis=-1)
+    lower = np.fmin.reduce(per_object, axis=0)
+    upper = np.fmax.reduce(per_object, axis=0)
+
+    def over_corners(pick: np.ufunc, values: FloatArray, coordinate: int) -> FloatArray:
+        columns = [values[:, 2 * corner + coordinate] for corner in range(4)]
+        return cast(FloatArray, pick(pick(columns[0], columns[1]), pick(columns[2], columns[3])))
+
+    return np.stack(
+        [over_corners(np.fmin, lower, 0), over_corners(np.fmin, lower, 1)]
+        + [over_corners(np.fmax, upper, 0), over_corners(np.fmax, upper, 1)],
+        axis=-1,
+    )
 
 
 def _track_indices(tracks: npt.NDArray[np.str_]) -> tuple[IntArray, IntArray]:

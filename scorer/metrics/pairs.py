@@ -31,8 +31,10 @@ def corner_bounds(points: FloatArray) -> FloatArray:
 
 def extents(bounds: FloatArray) -> FloatArray:
     """Return the bounding box (R, 4) of all boxes (R, ..., 4) of each row."""
-    flat = bounds.reshape(len(bounds), -1, 4)
-    return np.concatenate([flat[..., :2].min(axis=1), flat[..., 2:].max(axis=1)], axis=-1)
+    # Each bound's values of a row made contiguous first (R, 4, n): numpy reduces over a short last axis (or
+    # across it) about ten times slower.
+    by_bound = np.ascontiguousarray(bounds.reshape(len(bounds), -1, 4).transpose(0, 2, 1))
+    return np.concatenate([by_bound[:, :2].min(axis=-1), by_bound[:, 2:].max(axis=-1)], axis=-1)
 
 
 def boxes_touch(first: FloatArray, second: FloatArray) -> BoolArray:
