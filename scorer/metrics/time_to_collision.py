@@ -65,10 +65,12 @@ def time_to_collision(
     velocity = np.stack([np.cos(heading) * speed, np.sin(heading) * speed], axis=-1)[:, :num_steps]
     delta_t = PROJECTION_STEPS.astype(np.float64) * step_s
     shift = velocity[:, :, None, :] * delta_t[:, None]  # (R, T, projection, 2)
-    corners = ego_corners(points[:, :num_steps])[:, :, None] + shift[:, :, :, None, :]
+    # Each box's 4 corners as 8 values (x, y, x, y, ...), each moved by the shift's x or y: numpy adds along a
+    # last axis of 8 far faster than along one of 2.
+    corners = ego_corners(points[:, :num_steps]).reshape(num_rows, -1, 1, 8) + np.tile(shift, 4)
     # Every corner moves by the same shift and rounding is monotone, so the moved box's bounds are its bounds
     # moved, to the bit.
-    box_bounds = bounds[:, :num_steps, None] + np.concatenate([shift, shift], axis=-1)
+    box_bounds = bounds[:, :num_steps, None] + np.tile(shift, 2)
     # Box s = k * 4 + projection: the devkit's visiting order, tested against map k + 0, 3, 6 or 9.
     map_index = (np.arange(num_steps)[:, None] + PROJECTION_STEPS).reshape(-1)
     contacts = find_contacts(
