@@ -27,6 +27,7 @@ import numpy as np
 import shapely
 
 from scorer.geometry import CORNER_SIGNS
+from scorer.reactive import geos
 from scorer.reactive.paths import LanePath
 from scorer.scene import Frame, Lane, MapExcerpt
 from scorer.versions import IdmTraffic
@@ -34,6 +35,8 @@ from scorer.versions import IdmTraffic
 VEHICLE = "vehicle"
 PARKED_SPEED = 0.1  # m/s: below it a vehicle outside the lanes counts as parked
 NEAREST_POSE_STEP = 0.5  # m along the baseline towards which the nearest pose's heading points
+TRIGONOMETRY_MEMO = 4096  # headings whose box trigonometry is kept (`box_trigonometry`)
+_TRIGONOMETRY: dict[float, tuple[float, float, float, float]] = {}
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,17 +137,32 @@ def box_polygon(x: float, y: float, heading: float, length: float, width: float)
     """Return the box polygon nuPlan's `OrientedBox.geometry` gives (PDM's corner formula, FL, RL, RR, FR).
 
     The corners of `box_corners` for one box, without numpy's per-call cost where it adds nothing: the
-    sines and cosines from the very numpy calls it makes, the products and sums in Python floats (the same
-    operations in the same order, rounded alike)."""
-    angle = np.asarray(heading, dtype=np.float64)[..., None]
-    lat_cos, lon_cos = float(np.cos(angle + math.pi / 2)[0]), float(np.cos(angle)[0])
-    lat_sin, lon_sin = float(np.sin(angle + math.pi / 2)[0]), float(np.sin(angle)[0])
+    sines and cosines from the numpy functions it calls (`box_trigonometry`), the products and sums in
+    Python floats (the same operations in the same order, rounded alike)."""
+    lat_cos, lon_cos, lat_sin, lon_sin = box_trigonometry(heading)
     half_length, half_width = length / 2.0, width / 2.0
     corners = []
     for lon_sign, lat_sign in CORNER_SIGNS:
         lon, lat = lon_sign * half_length, lat_sign * half_width
         corners.append((x + (lat * lat_cos + lon * lon_cos), y + (lat * lat_sin + lon * lon_sin)))
-    return shapely.polygons(np.array(corners))
+    return geos.polygon(corners)
+
+
+def box_trigonometry(heading: float) -> tuple[float, float, float, float]:
+    """Return cos(heading + pi / 2), cos(heading), sin(heading + pi / 2) and sin(heading), from numpy's
+    `cos` and `sin` of the angles `box_corners` computes (numpy's sum, as Python's, is the rounded sum),
+    memoised: a vehicle keeps its heading along a straight stretch of its path, step after step (not a zero
+    heading: 0.0 and -0.0 are one key, and their sines differ in sign)."""
+    trigonometry = _TRIGONOMETRY.get(heading) if heading else None
+    if trigonometry is None:
+        if len(_TRIGONOMETRY) >= TRIGONOMETRY_MEMO:
+            _TRIGONOMETRY.clear()
+        angles = np.array([heading + math.pi / 2, heading])
+        (lat_cos, lon_cos), (lat_sin, lon_sin) = np.cos(angles).tolist(), np.sin(angles).tolist()
+        trigonometry = lat_cos, lon_cos, lat_sin, lon_sin
+        if heading:
+            _TRIGONOMETRY[heading] = trigonometry
+    return trigonometry
 
 
 def build_agents(

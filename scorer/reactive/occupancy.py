@@ -29,6 +29,7 @@ used first out), so a worker's memory does not grow with its tokens.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
@@ -39,6 +40,8 @@ from typing import TypeVar
 import numpy as np
 import shapely
 
+from scorer.reactive import geos
+from scorer.reactive.agents import box_trigonometry
 from scorer.reactive.paths import LanePath
 
 SIMPLIFY_TOLERANCE = 1e-5
@@ -101,7 +104,8 @@ def path_between_bound(path: LanePath, start: float, end: float, distance: float
 
 def box_capsule(x: float, y: float, heading: float, length: float, width: float) -> Capsule:
     """Return the capsule holding a box: its long axis and half its width."""
-    half_x, half_y = length / 2 * float(np.cos(heading)), length / 2 * float(np.sin(heading))
+    _, cos, _, sin = box_trigonometry(heading)
+    half_x, half_y = length / 2 * cos, length / 2 * sin
     return (x - half_x, y - half_y, x + half_x, y + half_y, width / 2)
 
 
@@ -185,8 +189,8 @@ class _Simplified:
             self._rounds.append(self._build())
         while len(self._rounds) <= rounds and not self._fixed:
             last = self._rounds[-1]
-            simplified = shapely.simplify(last, SIMPLIFY_TOLERANCE, preserve_topology=True)
-            self._fixed = bool(shapely.equals_exact(simplified, last, tolerance=0.0))
+            simplified = geos.simplify(last, SIMPLIFY_TOLERANCE)
+            self._fixed = geos.equals_exactly(simplified, last)
             self._rounds.append(simplified)
         return self._rounds[min(rounds, len(self._rounds) - 1)]
 
@@ -235,25 +239,35 @@ class Recent(OrderedDict[Hashable, T]):
 # another simulation of the scene, or of a scene that starts from the same recorded traffic, as the
 # synthetic scenes of one stage-one frame do), and the same question gets the same answer. Bounded, so
 # that a worker's memory does not grow with its tokens.
-_SHAPES: Recent[_Shape] = Recent(2048)
+_SHAPES: Recent[_Shape] = Recent(2048)  # by key identity
 _ANSWERS: Recent[list[str]] = Recent(8192)
+# Each key's identity, a number no other key ever gets: a memo keyed by identities hashes integers, not the
+# key's numbers (a forgotten key gets a new identity, and what was kept under its old one is not read).
+_IDENTITIES: Recent[int] = Recent(4096)
+_NEXT_IDENTITY = itertools.count()
 _SEGMENTS: Recent[Bound] = Recent(1024)  # by path and radius
 
 
-@dataclass
+@dataclass(slots=True)
 class _Entry:
     key: Hashable  # equal keys: the same geometry, built alike, in every simulation of the process
     envelope: Envelope  # holds the geometry
     bound: Callable[[], Bound]
     build: Callable[[], shapely.Geometry]
     inserted_round: int
+    _identity: int | None = None
     _shape: _Shape | None = None
 
+    def identity(self) -> int:
+        """Return the key's identity (looked up only when a search first needs it: most keys never are)."""
+        if self._identity is None:
+            self._identity = _IDENTITIES.get_or_make(self.key, _NEXT_IDENTITY.__next__)
+        return self._identity
+
     def shape(self) -> _Shape:
-        """Return the shared shape of the key, made from `bound` and `build` where no other holds it (looked
-        up only when a search first needs it: most geometries never are)."""
+        """Return the shared shape of the key, made from `bound` and `build` where no other holds it."""
         if self._shape is None:
-            self._shape = _SHAPES.get_or_make(self.key, partial(_Shape, self.bound, self.build))
+            self._shape = _SHAPES.get_or_make(self.identity(), partial(_Shape, self.bound, self.build))
         return self._shape
 
 
@@ -295,14 +309,11 @@ class LazyOccupancy:
         """Return every name, in the devkit's order."""
         return list(self._entries)
 
-    def near(
-        self, shape: Hashable, envelope: Envelope, bound: Callable[[], Bound], excluded: str
-    ) -> list[str]:
-        """Return the names but `excluded` whose geometry may meet a shape (`shape` names it process-wide)
-        held within `envelope` and within the capsules `bound` gives, in the devkit's order."""
+    def around(self, envelope: Envelope, excluded: str) -> list[str]:
+        """Return the names but `excluded` whose geometry's envelope meets `envelope`, in the devkit's order."""
         # The envelopes' overlap test (touching counts) written out: this runs per lead search and entry.
         low_x, low_y, high_x, high_y = envelope
-        names = [
+        return [
             name
             for name, entry in self._entries.items()
             if name != excluded
@@ -311,10 +322,12 @@ class LazyOccupancy:
             and held[1] <= high_y
             and low_y <= held[3]
         ]
-        if not names:
-            return []
+
+    def near(self, names: list[str], shape: Hashable, bound: Callable[[], Bound]) -> list[str]:
+        """Return those of `names` (`around` a shape) whose geometry may meet the shape (`shape` names it
+        process-wide) held within the capsules `bound` gives, in the devkit's order."""
         # The same shape asked about the same geometries has the same answer.
-        question = (shape, excluded, tuple((name, self._entries[name].key) for name in names))
+        question = (shape, *names, *[self._entries[name].identity() for name in names])
         return _ANSWERS.get_or_make(question, lambda: self._near(names, *bound()))
 
     def _near(self, names: list[str], capsules: Capsules, pieces: list[Envelope]) -> list[str]:

@@ -43,6 +43,7 @@ import shapely
 import shapely.ops
 
 from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, FloatArray, box_corners, principal_value_of
+from scorer.reactive import geos
 from scorer.reactive.agents import IdmVehicle, ParkingCandidate, StartingTraffic, box_polygon
 from scorer.reactive.idm import Lead, idm_update
 from scorer.reactive.occupancy import (
@@ -92,22 +93,22 @@ class VehicleSteps:
     out_of_range: dict[str, int]  # track -> the step at which it left the radius
 
 
-@dataclass
 class _Agent:
-    """A simulated vehicle's state during the loop (`nuplan` `IDMAgent`)."""
+    """A simulated vehicle's state during the loop (`nuplan` `IDMAgent`): its progress and speed, and what a
+    step reads of them, computed once per update: the progress clamped to its path and its pose there."""
 
-    start: IdmVehicle
-    progress: float
-    speed: float
-    updated: bool = False  # its occupancy holds its projected footprint, no longer its box at the start
-    _pose_progress: float = math.nan
-    _pose: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    __slots__ = ("clamped", "pose", "progress", "speed", "start", "updated")
 
-    def pose(self) -> tuple[float, float, float]:
-        clamped = self.start.path.clamp(self.progress)
-        if clamped != self._pose_progress:
-            self._pose_progress, self._pose = clamped, self.start.path.state_at(clamped)
-        return self._pose
+    def __init__(self, start: IdmVehicle) -> None:
+        self.start = start
+        self.updated = False  # its occupancy holds its projected footprint, no longer its box at the start
+        self.move(start.progress, start.speed)
+
+    def move(self, progress: float, speed: float) -> None:
+        """Set the vehicle's progress and speed (an IDM update)."""
+        self.progress, self.speed = progress, speed
+        self.clamped = self.start.path.clamp(progress)
+        self.pose = self.start.path.state_at(self.clamped)
 
     def projected_footprint(
         self, headway_time: float
@@ -119,8 +120,7 @@ class _Agent:
         path, length, width = self.start.path, self.start.length, self.start.width
         lower = path.clamp(self.progress - length / 2)
         upper = path.clamp(self.progress + length / 2 + self.speed * headway_time)
-        pose = self.pose()
-        clamped = path.clamp(self.progress)
+        pose, clamped = self.pose, self.clamped
         reach = max(
             max(clamped - lower, upper - clamped) + width / 2 * BUFFER_REACH,
             math.hypot(length / 2, width / 2),
@@ -134,10 +134,8 @@ class _Agent:
             return capsules + box, envelopes + box_envelope
 
         def build() -> shapely.Geometry:
-            ahead = shapely.buffer(
-                shapely.linestrings(path.between(lower, upper)), width / 2, cap_style="flat"
-            )
-            return shapely.union_all([ahead, _box(*pose, length, width)])
+            ahead = geos.flat_buffer(geos.line(path.between(lower, upper)), width / 2)
+            return geos.union(ahead, _box(*pose, length, width))
 
         return (path.identity, lower, upper, pose, length, width), envelope, bound, build
 
@@ -189,23 +187,23 @@ class _PathAhead:
     def buffer(self) -> shapely.Geometry:
         """Return the buffered path ahead, as the devkit builds it."""
         if self._buffer is None:
-            self._buffer = shapely.buffer(self.line(), self._half_width, cap_style="flat")
+            self._buffer = geos.flat_buffer(self.line(), self._half_width)
         return self._buffer
 
     def line(self) -> shapely.LineString:
         """Return the path ahead as a line."""
         if self._line is None:
-            self._line = shapely.linestrings(self._points)
+            self._line = geos.line(self._points)
         return self._line
 
     def meets(self, geometry: shapely.Geometry) -> bool:
         """Return `shapely.intersects(geometry, self.buffer())`."""
         inner = self._inner_line()
-        if inner is not None and shapely.intersects(geometry, inner):
+        if inner is not None and geos.intersects(geometry, inner):
             return True
-        if shapely.distance(geometry, self.line()) > self._half_width * BUFFER_REACH + BOUND_SLACK:
+        if geos.distance(geometry, self.line()) > self._half_width * BUFFER_REACH + BOUND_SLACK:
             return False
-        return bool(shapely.intersects(geometry, self.buffer()))
+        return geos.intersects(geometry, self.buffer())
 
     def _inner_line(self) -> shapely.LineString | None:
         """Return the line short of its ends by `BOUND_SLACK` (None: an end segment is too short)."""
@@ -226,7 +224,7 @@ class _PathAhead:
                     x3 + (x2 - x3) * (BOUND_SLACK / last_length),
                     y3 + (y2 - y3) * (BOUND_SLACK / last_length),
                 )
-                self._inner = shapely.linestrings(inner)
+                self._inner = geos.line(inner)
         return self._inner
 
 
@@ -240,70 +238,68 @@ def _lead_of(
     """Return what `agent` follows (`NavsimIDMAgentManager.propagate_agents`)."""
     track = agent.start.track
     path = agent.start.path
-    clamped = path.clamp(agent.progress)
+    clamped = agent.clamped
     half_width = agent.start.width / 2
-    envelope = path.to_go_envelope(clamped, half_width * BUFFER_REACH + BOUND_SLACK)
-    ahead_key = (path.identity, clamped, half_width)
-    near = occupancy.near(ahead_key, envelope, partial(path_to_go_bound, path, clamped, half_width), track)
+    near = occupancy.around(path.to_go_envelope(clamped, half_width * BUFFER_REACH + BOUND_SLACK), track)
+    if near:
+        ahead_key = (path.identity, clamped, half_width)
+        near = occupancy.near(near, ahead_key, partial(path_to_go_bound, path, clamped, half_width))
     free_road = None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
     # After its first update a vehicle's footprint holds its box, centred where its path ahead starts: the
     # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test.
     if not near and agent.updated:
         return free_road
     ahead = _PathAhead(path.to_go(clamped), half_width)
-    own = occupancy.geometry(track)
-    if not agent.updated and not ahead.meets(own):
+    if not agent.updated and not ahead.meets(occupancy.geometry(track)):
         raise ValueError(f"vehicle {track}: its path does not meet its own footprint (the devkit asserts)")
     try:
-        nearest = _nearest_hit(track, own, ahead, near, occupancy)
+        nearest = _nearest_hit(track, ahead, near, occupancy)
     except _TreeOrderNeeded:
-        nearest = _nearest_hit_in_tree_order(track, own, ahead.buffer(), occupancy)
+        nearest = _nearest_hit_in_tree_order(track, ahead.buffer(), occupancy)
     if nearest is None:
         return free_road
+    own = occupancy.geometry(track)  # built only now: where the path ahead meets another geometry
     near_own, near_other = shapely.ops.nearest_points(own, occupancy.geometry(nearest))
     distance = float(near_own.distance(near_other))
-    heading = agent.pose()[2]
+    heading = agent.pose[2]
     if EGO in nearest:
         speed = float(np.hypot(ego_state[StateIndex.VELOCITY_X], ego_state[StateIndex.VELOCITY_Y]))
         relative_heading = float(ego_state[StateIndex.HEADING]) - heading
     else:
         speed = agents[nearest].speed
-        relative_heading = agents[nearest].pose()[2] - heading
+        relative_heading = agents[nearest].pose[2] - heading
     return nearest, Lead(distance, speed * float(np.cos(principal_value_of(relative_heading))), 0.0)
 
 
-def _nearest_hit(
-    track: str, own: shapely.Geometry, ahead: _PathAhead, near: list[str], occupancy: LazyOccupancy
-) -> str | None:
-    """Return the geometry the path `ahead` meets nearest to the vehicle's `own` (None: only its own), the
+def _nearest_hit(track: str, ahead: _PathAhead, near: list[str], occupancy: LazyOccupancy) -> str | None:
+    """Return the geometry the path `ahead` meets nearest to the vehicle's own (None: only its own), the
     devkit's choice wherever one is strictly nearest (GEOS's distance, as its STRtree's `nearest` measures)."""
     hits = [name for name in near if ahead.meets(occupancy.geometry(name))]
     if any(name in track for name in hits):
         raise _TreeOrderNeeded
     if len(hits) <= 1:
         return hits[0] if hits else None
-    distances = shapely.distance([occupancy.geometry(name) for name in hits], own)
+    distances = shapely.distance([occupancy.geometry(name) for name in hits], occupancy.geometry(track))
     nearest = np.flatnonzero(distances == distances.min())
     if len(nearest) > 1:
         raise _TreeOrderNeeded
     return hits[int(nearest[0])]
 
 
-def _nearest_hit_in_tree_order(
-    track: str, own: shapely.Geometry, ahead: shapely.Geometry, occupancy: LazyOccupancy
-) -> str:
+def _nearest_hit_in_tree_order(track: str, ahead: shapely.Geometry, occupancy: LazyOccupancy) -> str:
     """Return the devkit's lead, its STRtrees built over the same geometries in the same order: the query's
     hits over every geometry, then `nearest` over the hits not named within the vehicle's track."""
     names = occupancy.names()
     geometries = [occupancy.geometry(name) for name in names]
     hits = [names[index] for index in shapely.STRtree(geometries).query(ahead, predicate="intersects")]
     others = [name for name in hits if name not in track]
+    own = occupancy.geometry(track)
     return others[int(shapely.STRtree([occupancy.geometry(name) for name in others]).nearest(own))]
 
 
 def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: IdmTraffic) -> VehicleSteps:
     """Return the vehicles of steps 1..len(ego_states) - 1 reacting to the ego's simulated states (T, 11)."""
-    agents = {vehicle.track: _Agent(vehicle, vehicle.progress, vehicle.speed) for vehicle in start.agents}
+    agents = {vehicle.track: _Agent(vehicle) for vehicle in start.agents}
     occupancy = LazyOccupancy()
     # The ego's boxes are this simulation's own: its keys name them within it alone.
     simulation = next(_SIMULATIONS)
@@ -350,9 +346,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
             occupancy.simplify_round()
             lead_track, lead = _lead_of(agent, agents, occupancy, ego_state)
             before = (agent.progress, agent.speed)
-            agent.progress, agent.speed = idm_update(
-                agent.progress, agent.speed, lead, target_velocity[track], config, STEP_S
-            )
+            agent.move(*idm_update(agent.progress, agent.speed, lead, target_velocity[track], config, STEP_S))
             agent.updated = True
             updates.append(
                 IdmUpdate(
@@ -389,7 +383,7 @@ def _leave_range(
     ego_x, ego_y = float(ego_state[StateIndex.X]), float(ego_state[StateIndex.Y])
     leaving = []
     for track, agent in agents.items():
-        x, y, _ = agent.pose()
+        x, y, _ = agent.pose
         distance = math.sqrt((x - ego_x) * (x - ego_x) + (y - ego_y) * (y - ego_y))
         if abs(distance - radius) <= radius * RANGE_TIE:
             distance = _devkit_distance(ego_state, x, y)
@@ -416,9 +410,7 @@ def _vehicles_of_step(
 ) -> tuple[tuple[str, float, float, float, float, float], ...]:
     """Return the vehicles the scorer sees at a step: the simulated ones, then the parked ones they leave free
     (a simulated box is built only where its envelope meets a parked one's)."""
-    simulated = [
-        (agent.start.track, *agent.pose(), agent.start.length, agent.start.width) for agent in agents
-    ]
+    simulated = [(agent.start.track, *agent.pose, agent.start.length, agent.start.width) for agent in agents]
     vehicles = list(simulated)
     if config.add_open_loop_parked_vehicles and parked:
         envelopes = [_box_envelope(vehicle[1:4], *vehicle[4:]) for vehicle in simulated]
@@ -432,6 +424,6 @@ def _vehicles_of_step(
                 and around_low_y <= high_y
                 and low_y <= around_high_y
             ]
-            if not any(shapely.intersects(_box(*simulated[index][1:]), polygon) for index in near):
+            if not any(geos.intersects(_box(*simulated[index][1:]), polygon) for index in near):
                 vehicles.append((candidate.track, *candidate.box))
     return tuple(vehicles)
