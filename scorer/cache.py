@@ -139,7 +139,7 @@ def _build_cache_batch(
     # Versions that observe alike share the observation.
     observed = {key: [evaluation_observation(scene, *key) for scene in scenes] for key in dict.fromkeys(keys)}
     observations = [[observation for observation, _ in observed[key]] for key in keys]
-    reference_measures = _reference_measures(states, versions, keys, observations, drivable_maps, plans)
+    reference_measures = _reference_measures(states, versions, observations, drivable_maps, plans)
     caches: list[dict[str, MetricCache]] = [{} for _ in scenes]
     for column, version in enumerate(versions):
         version_plans = [plan[column] for plan in plans]
@@ -234,50 +234,43 @@ def observation_key(version: MetricVersion) -> ObservationKey:
 def _reference_measures(
     states: FloatArray,
     versions: Sequence[MetricVersion],
-    keys: Sequence[ObservationKey],
     observations: Sequence[Sequence[Observation]],
     drivable_maps: Sequence[DrivableMap],
     plans: Sequence[Sequence[PlannerOutput]],
 ) -> list[list[ProposalMeasures | None]]:
-    """Return each version's measures (1, 1) of each scene's simulated reference (V, S, 1, 41, 11), the
-    versions observing as `keys` say; None under reactive traffic, whose vehicles react to each submission.
+    """Return each version's measures (1, 1) of each scene's simulated reference (V, S, 1, 41, 11); None under
+    reactive traffic, whose vehicles react to each submission.
 
-    A token's measures read its own inputs only, so the versions that observe alike are measured in one call
-    (`measure_alike`), and a scene's reference they share (the same proposal selected, the same centerline
-    and route) is measured once.
+    A token's measures read its own inputs only, so every version is measured in one call (`measure_alike`:
+    what reads the ego and the map alone is measured once, what reads an observation once per observation),
+    and a scene's reference the versions share (the same proposal selected, the same centerline and route) is
+    one token.
     """
     measures: list[list[ProposalMeasures | None]] = [[None] * len(plans) for _ in versions]
-    groups: dict[ObservationKey, list[int]] = {}  # versions by how they observe (`observation_key`)
-    for column, key in enumerate(keys):
-        if versions[column].reactive_traffic is None:
-            groups.setdefault(key, []).append(column)
-    for columns in groups.values():
-        token_of: dict[tuple[int, bytes, bytes, tuple[str, ...]], int] = {}  # a scene's inputs -> token
-        tokens: list[tuple[int, int]] = []  # (column, scene) measured
-        token: dict[tuple[int, int], int] = {}
-        for column in columns:
-            for index, scene_plans in enumerate(plans):
-                plan = scene_plans[column]
-                inputs = (
-                    index,
-                    states[column, index].tobytes(),
-                    plan.centerline.tobytes(),
-                    plan.route_lane_ids,
-                )
-                if inputs not in token_of:
-                    token_of[inputs] = len(tokens)
-                    tokens.append((column, index))
-                token[column, index] = token_of[inputs]
-        measured = measure_alike(
-            np.stack([states[column, index] for column, index in tokens]),
-            [[observations[column][index] for column, index in tokens]] * len(columns),
-            [drivable_maps[index] for _, index in tokens],
-            [plans[index][column].centerline[:, :2] for column, index in tokens],
-            [plans[index][column].route_lane_ids for column, index in tokens],
-            [MeasureSettings.of(versions[column].evaluation) for column in columns],
-        )
-        for column, version_measures in zip(columns, measured, strict=True):
-            measures[column] = [version_measures.token(token[column, index]) for index in range(len(plans))]
+    columns = [column for column, version in enumerate(versions) if version.reactive_traffic is None]
+    token_of: dict[tuple[int, bytes, bytes, tuple[str, ...]], int] = {}  # a scene's inputs -> token
+    tokens: list[tuple[int, int]] = []  # (column, scene) measured
+    token: dict[tuple[int, int], int] = {}
+    for column in columns:
+        for index, scene_plans in enumerate(plans):
+            plan = scene_plans[column]
+            inputs = (index, states[column, index].tobytes(), plan.centerline.tobytes(), plan.route_lane_ids)
+            if inputs not in token_of:
+                token_of[inputs] = len(tokens)
+                tokens.append((column, index))
+            token[column, index] = token_of[inputs]
+    if not tokens:
+        return measures
+    measured = measure_alike(
+        np.stack([states[column, index] for column, index in tokens]),
+        [[observations[column][index] for _, index in tokens] for column in columns],
+        [drivable_maps[index] for _, index in tokens],
+        [plans[index][column].centerline[:, :2] for column, index in tokens],
+        [plans[index][column].route_lane_ids for column, index in tokens],
+        [MeasureSettings.of(versions[column].evaluation) for column in columns],
+    )
+    for column, version_measures in zip(columns, measured, strict=True):
+        measures[column] = [version_measures.token(token[column, index]) for index in range(len(plans))]
     return measures
 
 
