@@ -139,7 +139,7 @@ def _build_cache_batch(
     # Versions that observe alike share the observation.
     observed = {key: [evaluation_observation(scene, *key) for scene in scenes] for key in dict.fromkeys(keys)}
     observations = [[observation for observation, _ in observed[key]] for key in keys]
-    reference_measures = _reference_measures(states, versions, keys, observations, drivable_maps, plans)
+    reference_measures = _reference_measures(states, versions, observations, drivable_maps, plans)
     caches: list[dict[str, MetricCache]] = [{} for _ in scenes]
     for column, version in enumerate(versions):
         version_plans = [plan[column] for plan in plans]
@@ -234,50 +234,43 @@ def observation_key(version: MetricVersion) -> ObservationKey:
 def _reference_measures(
     states: FloatArray,
     versions: Sequence[MetricVersion],
-    keys: Sequence[ObservationKey],
     observations: Sequence[Sequence[Observation]],
     drivable_maps: Sequence[DrivableMap],
     plans: Sequence[Sequence[PlannerOutput]],
 ) -> list[list[ProposalMeasures | None]]:
-    """Return each version's measures (1, 1) of each scene's simulated reference (V, S, 1, 41, 11), the
-    versions observing as `keys` say; None under reactive traffic, whose vehicles react to each submission.
+    """Return each version's measures (1, 1) of each scene's simulated reference (V, S, 1, 41, 11); None under
+    reactive traffic, whose vehicles react to each submission.
 
-    A token's measures read its own inputs only, so the versions that observe alike are measured in one call
-    (`measure_alike`), and a scene's reference they share (the same proposal selected, the same centerline
-    and route) is measured once.
+    A token's measures read its own inputs only, so every version is measured in one call (`measure_alike`:
+    what reads the ego and the map alone is measured once, what reads an observation once per observation),
+    and a scene's reference the versions share (the same proposal selected, the same centerline and route) is
+    one token.
     """
     measures: list[list[ProposalMeasures | None]] = [[None] * len(plans) for _ in versions]
-    groups: dict[ObservationKey, list[int]] = {}  # versions by how they observe (`observation_key`)
-    for column, key in enumerate(keys):
-        if versions[column].reactive_traffic is None:
-            groups.setdefault(key, []).append(column)
-    for columns in groups.values():
-        token_of: dict[tuple[int, bytes, bytes, tuple[str, ...]], int] = {}  # a scene's inputs -> token
-        tokens: list[tuple[int, int]] = []  # (column, scene) measured
-        token: dict[tuple[int, int], int] = {}
-        for column in columns:
-            for index, scene_plans in enumerate(plans):
-                plan = scene_plans[column]
-                inputs = (
-                    index,
-                    states[column, index].tobytes(),
-                    plan.centerline.tobytes(),
-                    plan.route_lane_ids,
-                )
-                if inputs not in token_of:
-                    token_of[inputs] = len(tokens)
-                    tokens.append((column, index))
-                token[column, index] = token_of[inputs]
-        measured = measure_alike(
-            np.stack([states[column, index] for column, index in tokens]),
-            [[observations[column][index] for column, index in tokens]] * len(columns),
-            [drivable_maps[index] for _, index in tokens],
-            [plans[index][column].centerline[:, :2] for column, index in tokens],
-            [plans[index][column].route_lane_ids for column, index in tokens],
-            [MeasureSettings.of(versions[column].evaluation) for column in columns],
-        )
-        for column, version_measures in zip(columns, measured, strict=True):
-            measures[column] = [version_measures.token(token[column, index]) for index in range(len(plans))]
+    columns = [column for column, version in enumerate(versions) if version.reactive_traffic is None]
+    token_of: dict[tuple[int, bytes, bytes, tuple[str, ...]], int] = {}  # a scene's inputs -> token
+    tokens: list[tuple[int, int]] = []  # (column, scene) measured
+    token: dict[tuple[int, int], int] = {}
+    for column in columns:
+        for index, scene_plans in enumerate(plans):
+            plan = scene_plans[column]
+            inputs = (index, states[column, index].tobytes(), plan.centerline.tobytes(), plan.route_lane_ids)
+            if inputs not in token_of:
+                token_of[inputs] = len(tokens)
+                tokens.append((column, index))
+            token[column, index] = token_of[inputs]
+    if not tokens:
+        return measures
+    measured = measure_alike(
+        np.stack([states[column, index] for column, index in tokens]),
+        [[observations[column][index] for _, index in tokens] for column in columns],
+        [drivable_maps[index] for _, index in tokens],
+        [plans[index][column].centerline[:, :2] for column, index in tokens],
+        [plans[index][column].route_lane_ids for column, index in tokens],
+        [MeasureSettings.of(versions[column].evaluation) for column in columns],
+    )
+    for column, version_measures in zip(columns, measured, strict=True):
+        measures[column] = [version_measures.token(token[column, index]) for index in range(len(plans))]
     return measures
 
 
@@ -379,7 +372,8 @@ def save_caches(caches: Mapping[str, MetricCache], cache_dir: Path) -> Path:
     path = cache_path(cache_dir, first.token)
     key = {"scene_hash": first.key.scene_hash, "engine_version": first.key.engine_version}
     sections = {} if VERSIONS.keys() <= caches.keys() else _read_sections(path, key)
-    sections |= {version: _cache_section(cache) for version, cache in caches.items()}
+    shared: SharedParts = {}
+    sections |= {version: _cache_section(cache, shared) for version, cache in caches.items()}
     write_atomically(path, _pack(key, sections), durable=False)  # a lost cache file is rebuilt
     return path
 
@@ -398,24 +392,41 @@ def _read_sections(
     return sections
 
 
-def _cache_section(cache: MetricCache) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Return one version's metadata and arrays, as its section of a cache file holds them."""
+SharedParts = dict[tuple[str, int], Any]  # a token's section parts, by kind and the id of their source
+
+
+def _cache_section(cache: MetricCache, shared: SharedParts) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Return one version's metadata and arrays, as its section of a cache file holds them. What the token's
+    other sections hold alike (the same map, observation, ego and route objects) is built once, from `shared`,
+    and is then the same objects, which `_pack` stores by identity without encoding or hashing them again."""
+
+    def once(kind: str, source: object, build: Callable[[], Any]) -> Any:
+        key = (kind, id(source))  # the source outlives `shared`: the caches hold it
+        if key not in shared:
+            shared[key] = build()
+        return shared[key]
+
+    def listed(values: Sequence[Any]) -> list[Any]:
+        return once("list", values, lambda: list(values))
+
     observation, drivable_map = cache.observation, cache.drivable_map
-    map_coords, map_counts = _pack_polygons(drivable_map.polygons)
+    map_coords, map_counts = once(
+        "polygons", drivable_map.polygons, lambda: _pack_polygons(drivable_map.polygons)
+    )
     red_lights = observation.red_lights
     meta = {
         "token": cache.token,
         "log_name": cache.log_name,
         "t0_us": cache.t0_us,
-        "ego": asdict(cache.ego),
-        "route_lane_ids": list(cache.route_lane_ids),
-        "route_roadblocks": list(cache.route_roadblocks),
-        "map_tokens": list(drivable_map.tokens),
-        "map_types": list(drivable_map.types),
-        "object_tokens": list(observation.tokens),
-        "object_types": list(observation.object_types),
-        "red_light_lanes": None if red_lights is None else list(red_lights.lane_ids),
-        "dropped_tracks": list(cache.dropped_tracks),
+        "ego": once("ego", cache.ego, lambda: asdict(cache.ego)),
+        "route_lane_ids": listed(cache.route_lane_ids),
+        "route_roadblocks": listed(cache.route_roadblocks),
+        "map_tokens": listed(drivable_map.tokens),
+        "map_types": listed(drivable_map.types),
+        "object_tokens": listed(observation.tokens),
+        "object_types": listed(observation.object_types),
+        "red_light_lanes": None if red_lights is None else listed(red_lights.lane_ids),
+        "dropped_tracks": listed(cache.dropped_tracks),
         "human": cache.human,
     }
     arrays = {
@@ -427,8 +438,8 @@ def _cache_section(cache: MetricCache) -> tuple[dict[str, Any], dict[str, np.nda
         "object_present": observation.present,
         "object_is_agent": observation.is_agent,
         "object_first_speed": observation.first_speed,
-        "object_corners": observation.corners[observation.present],
-        **_red_light_arrays(red_lights),
+        "object_corners": once("corners", observation, lambda: observation.corners[observation.present]),
+        **once("red_lights", red_lights, lambda: _red_light_arrays(red_lights)),
         **({} if cache.past_states is None else {"past_states": cache.past_states}),
         **({} if cache.reference_states is None else {"reference_states": cache.reference_states}),
         **(
@@ -515,29 +526,36 @@ def _pack(key: dict[str, str], sections: Mapping[str, tuple[dict[str, Any], dict
     blobs: list[bytes] = []
     blob_at: dict[bytes, int] = {}
     size = 0
+    # A value or array that several sections hold as the same object is encoded once (`_cache_section`).
+    value_of_object: dict[int, int] = {}
+    array_of_object: dict[int, int] = {}
     versions = {}
     for version, (meta, arrays) in sections.items():
         meta_refs = {}
         for name, value in meta.items():
-            text = json.dumps(value)
-            if text not in value_at:
-                value_at[text] = len(values)
-                values.append(value)
-            meta_refs[name] = value_at[text]
+            if id(value) not in value_of_object:
+                text = json.dumps(value)
+                if text not in value_at:
+                    value_at[text] = len(values)
+                    values.append(value)
+                value_of_object[id(value)] = value_at[text]
+            meta_refs[name] = value_of_object[id(value)]
         array_refs = {}
         for name, array in arrays.items():
-            blob = np.ascontiguousarray(array).tobytes()
-            if blob not in blob_at:
-                within = next((at for stored, at in blob_at.items() if stored.startswith(blob)), None)
-                if within is None:
-                    within, size = size, size + len(blob)
-                    blobs.append(blob)
-                blob_at[blob] = within
-            entry = (np.asarray(array).dtype.str, tuple(np.shape(array)), blob_at[blob])
-            if entry not in array_at:
-                array_at[entry] = len(layout)
-                layout.append(entry)
-            array_refs[name] = array_at[entry]
+            if id(array) not in array_of_object:
+                blob = np.ascontiguousarray(array).tobytes()
+                if blob not in blob_at:
+                    within = next((at for stored, at in blob_at.items() if stored.startswith(blob)), None)
+                    if within is None:
+                        within, size = size, size + len(blob)
+                        blobs.append(blob)
+                    blob_at[blob] = within
+                entry = (np.asarray(array).dtype.str, tuple(np.shape(array)), blob_at[blob])
+                if entry not in array_at:
+                    array_at[entry] = len(layout)
+                    layout.append(entry)
+                array_of_object[id(array)] = array_at[entry]
+            array_refs[name] = array_of_object[id(array)]
         versions[version] = {"meta": meta_refs, "arrays": array_refs}
     header = json.dumps({"key": key, "values": values, "arrays": layout, "versions": versions}).encode()
     file_size = _PREFIX + len(header) + size

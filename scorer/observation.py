@@ -31,6 +31,7 @@ from scorer.scene import AGENT_CATEGORIES, FUTURE_FRAMES, Scene
 OBSERVATION_STEPS = FUTURE_FRAMES * STEPS_PER_FRAME + 1  # v1: occupancy maps at k * 0.1 s, k = 0..50
 STEP_S = 0.1
 FRAME_INTERVAL_S = 0.5  # the devkit samples the recorded boxes at 2 Hz
+_AGENT_CATEGORIES = frozenset(AGENT_CATEGORIES)
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,13 +118,20 @@ def _extents(corners: FloatArray) -> FloatArray:
     )
 
 
-def _track_indices(tracks: npt.NDArray[np.str_]) -> tuple[IntArray, IntArray]:
-    """Return each sighting's track index (tracks in first-appearance order) and each track's first row."""
-    _, first_rows, inverse = np.unique(tracks, return_index=True, return_inverse=True)
-    by_appearance = np.argsort(first_rows)
-    rank = np.empty_like(by_appearance)
-    rank[by_appearance] = np.arange(len(by_appearance))
-    return rank[inverse], first_rows[by_appearance]
+def _track_indices(tracks: Sequence[str]) -> tuple[IntArray, IntArray]:
+    """Return each sighting's track index (tracks in first-appearance order) and each track's first row.
+
+    One pass over the names in a dict: a scene has a few hundred sightings, which converting and sorting as
+    numpy strings (np.unique) took several times as long to index."""
+    index_of: dict[str, int] = {}
+    first_rows: list[int] = []
+    track_index = []
+    for row, track in enumerate(tracks):
+        index = index_of.setdefault(track, len(first_rows))
+        if index == len(first_rows):
+            first_rows.append(row)
+        track_index.append(index)
+    return np.array(track_index, dtype=np.intp), np.array(first_rows, dtype=np.intp)
 
 
 def observe_scene(scene: Scene, future_frames: int = FUTURE_FRAMES) -> Observation:
@@ -134,17 +142,18 @@ def observe_scene(scene: Scene, future_frames: int = FUTURE_FRAMES) -> Observati
     """
     frames = scene.frames[scene.current_index : scene.current_index + future_frames + 1]
     frame_of = np.concatenate([np.full(len(frame.tracks), index) for index, frame in enumerate(frames)])
-    tracks = np.array([track for frame in frames for track in frame.tracks], dtype=str)
-    categories = np.array([category for frame in frames for category in frame.categories], dtype=str)
+    tracks = [track for frame in frames for track in frame.tracks]
+    categories = [category for frame in frames for category in frame.categories]
     boxes = np.concatenate([frame.boxes for frame in frames]).reshape(-1, 7)
     velocities = np.concatenate([frame.velocities for frame in frames]).reshape(-1, 2)
     # The devkit records a velocity only for agent types; static objects keep zeros.
-    velocities = np.where(np.isin(categories, AGENT_CATEGORIES)[:, None], velocities, 0.0)
+    sighted_agent = np.array([category in _AGENT_CATEGORIES for category in categories], dtype=bool)
+    velocities = np.where(sighted_agent[:, None], velocities, 0.0)
 
     track_index, first_rows = _track_indices(tracks)
     samples = _track_samples(track_index, frame_of, boxes, velocities, len(first_rows), len(frames))
 
-    is_agent = np.isin(categories[first_rows], AGENT_CATEGORIES)
+    is_agent = sighted_agent[first_rows]
     present, states = _interpolate_tracks(*samples, future_frames * STEPS_PER_FRAME + 1)
     # A track seen once is the unchanged first sighting at every step (no interpolation, no wrap).
     single = samples[2] == 1
@@ -156,8 +165,8 @@ def observe_scene(scene: Scene, future_frames: int = FUTURE_FRAMES) -> Observati
     corners = box_corners(states[..., 0], states[..., 1], states[..., 2], half_length, half_width)
     corners[~present] = np.nan
     return Observation(
-        tokens=tuple(tracks[first_rows].tolist()),
-        object_types=tuple(category.upper() for category in categories[first_rows]),
+        tokens=tuple(tracks[row] for row in first_rows.tolist()),
+        object_types=tuple(categories[row].upper() for row in first_rows.tolist()),
         is_agent=is_agent,
         first_speed=np.where(is_agent, np.hypot(*velocities[first_rows].T), 0.0),
         present=present,

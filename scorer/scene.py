@@ -14,6 +14,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import lru_cache
+from itertools import chain
 from pathlib import Path
 from typing import Any
 
@@ -341,55 +342,102 @@ def _read_ring(reader: _Reader, raw: Any, where: str) -> FloatArray:
     return ring
 
 
-def _polygons(rings: list[FloatArray]) -> list[shapely.Polygon]:
+def _read_baseline(reader: _Reader, raw: Any, where: str) -> FloatArray:
+    baseline = reader.array(reader.get(raw, "baseline", where), f"{where}.baseline", (None, 2))
+    if len(baseline) < 2:
+        raise reader.fail(f"{where}.baseline", "a baseline needs at least 2 vertices")
+    return baseline
+
+
+PointLists = tuple[FloatArray, list[int]]  # a layer's point lists end to end (N, 2), and each list's length
+
+
+def _valid_point_lists(raw_layer: list[Any], key: str, minimum: int) -> PointLists | None:
+    """Return the point lists under `key` of a layer's objects (rings or baselines) when every one is valid
+    with at least `minimum` points, each point converted as `_Reader.array` converts it, else None: then the
+    layer's are read object by object (`_read_ring`, `_read_baseline`), to name the first invalid field. One
+    conversion per layer costs less than one per object (a third of a scene's map reading)."""
+    try:
+        lists = [raw[key] for raw in raw_layer]
+        if not set(map(type, lists)) <= {list}:
+            return None
+        counts = [len(points) for points in lists]
+        points = np.array(list(chain.from_iterable(lists)), dtype=np.float64)
+    except (TypeError, KeyError, ValueError, OverflowError):
+        return None
+    if points.shape != (sum(counts), 2) or min(counts, default=minimum) < minimum:
+        return None
+    return (points, counts) if np.isfinite(points).all() else None
+
+
+def _joined(point_lists: list[FloatArray]) -> PointLists:
+    return np.concatenate(point_lists) if point_lists else np.empty((0, 2)), [len(p) for p in point_lists]
+
+
+def _split(point_lists: PointLists) -> list[FloatArray]:
+    points, counts = point_lists
+    ends = np.cumsum(counts).tolist()
+    return [points[end - count : end] for end, count in zip(ends, counts, strict=True)]
+
+
+def _polygons(rings: PointLists) -> list[shapely.Polygon]:
     """Return a layer's polygons, the same geometries as `shapely.polygons(ring)` of each ring, built in one
     call (a call per polygon was a tenth of a scene's parsing). Used as given: each ring is closed implicitly
     and never repaired (as the reference run did)."""
-    if not rings:
+    points, counts = rings
+    if not counts:
         return []
-    ring_of = np.repeat(np.arange(len(rings)), [len(ring) for ring in rings])
-    return list(shapely.polygons(shapely.linearrings(np.concatenate(rings), indices=ring_of)))
+    ring_of = np.repeat(np.arange(len(counts)), counts)
+    return list(shapely.polygons(shapely.linearrings(points, indices=ring_of)))
 
 
 def _read_lanes(reader: _Reader, raw_layer: list[Any], layer: str) -> tuple[Lane, ...]:
-    lanes: list[dict[str, Any]] = []  # each lane's fields but its polygon, built with the layer's
-    rings = []
+    lanes: list[dict[str, Any]] = []  # each lane's fields but its polygon and baseline, read with the layer's
+    valid_rings = _valid_point_lists(raw_layer, "polygon", 3)
+    valid_baselines = _valid_point_lists(raw_layer, "baseline", 2)
+    rings, baselines = [], []  # read one by one where one of the layer's is invalid, in the fields' order
     for index, raw in enumerate(raw_layer):
         where = f"map.{layer}[{index}]"
         lane_id = reader.string(raw, "id", where)
         reader.check_id(lane_id, f"{where}.id")
         roadblock = reader.string(raw, "roadblock", where)
         reader.check_id(roadblock, f"{where}.roadblock")
-        baseline = reader.array(reader.get(raw, "baseline", where), f"{where}.baseline", (None, 2))
-        if len(baseline) < 2:
-            raise reader.fail(f"{where}.baseline", "a baseline needs at least 2 vertices")
+        if valid_baselines is None:
+            baselines.append(_read_baseline(reader, raw, where))
         speed_limit = reader.get(raw, "speed_limit_mps", where)
         if speed_limit is not None:
             speed_limit = reader.number(speed_limit, f"{where}.speed_limit_mps")
             if speed_limit <= 0:
                 raise reader.fail(f"{where}.speed_limit_mps", "must be positive or null")
-        rings.append(_read_ring(reader, raw, where))
+        if valid_rings is None:
+            rings.append(_read_ring(reader, raw, where))
         lanes.append(
             {
                 "id": lane_id,
                 "roadblock": roadblock,
-                "baseline": baseline,
                 "speed_limit_mps": speed_limit,
                 "incoming": reader.id_list(raw, "incoming", where),
                 "outgoing": reader.id_list(raw, "outgoing", where),
             }
         )
-    return tuple(Lane(polygon=polygon, **lane) for lane, polygon in zip(lanes, _polygons(rings), strict=True))
+    polygons = _polygons(_joined(rings) if valid_rings is None else valid_rings)
+    lane_baselines = baselines if valid_baselines is None else _split(valid_baselines)
+    return tuple(
+        Lane(polygon=polygon, baseline=baseline, **lane)
+        for lane, polygon, baseline in zip(lanes, polygons, lane_baselines, strict=True)
+    )
 
 
 def _read_roadblocks(reader: _Reader, raw_layer: list[Any], layer: str) -> tuple[Roadblock, ...]:
     blocks: list[dict[str, Any]] = []  # as `_read_lanes`
+    valid_rings = _valid_point_lists(raw_layer, "polygon", 3)
     rings = []
     for index, raw in enumerate(raw_layer):
         where = f"map.{layer}[{index}]"
         block_id = reader.string(raw, "id", where)
         reader.check_id(block_id, f"{where}.id")
-        rings.append(_read_ring(reader, raw, where))
+        if valid_rings is None:
+            rings.append(_read_ring(reader, raw, where))
         blocks.append(
             {
                 "id": block_id,
@@ -398,22 +446,22 @@ def _read_roadblocks(reader: _Reader, raw_layer: list[Any], layer: str) -> tuple
                 "lanes": reader.id_list(raw, "lanes", where),
             }
         )
-    return tuple(
-        Roadblock(polygon=polygon, **block) for block, polygon in zip(blocks, _polygons(rings), strict=True)
-    )
+    polygons = _polygons(_joined(rings) if valid_rings is None else valid_rings)
+    return tuple(Roadblock(polygon=polygon, **block) for block, polygon in zip(blocks, polygons, strict=True))
 
 
 def _read_areas(reader: _Reader, raw_layer: list[Any], layer: str) -> tuple[Area, ...]:
+    valid_rings = _valid_point_lists(raw_layer, "polygon", 3)
     ids, rings = [], []
     for index, raw in enumerate(raw_layer):
         where = f"map.{layer}[{index}]"
         area_id = reader.string(raw, "id", where)
         reader.check_id(area_id, f"{where}.id")
         ids.append(area_id)
-        rings.append(_read_ring(reader, raw, where))
-    return tuple(
-        Area(id=area_id, polygon=polygon) for area_id, polygon in zip(ids, _polygons(rings), strict=True)
-    )
+        if valid_rings is None:
+            rings.append(_read_ring(reader, raw, where))
+    polygons = _polygons(_joined(rings) if valid_rings is None else valid_rings)
+    return tuple(Area(id=area_id, polygon=polygon) for area_id, polygon in zip(ids, polygons, strict=True))
 
 
 def _read_map(reader: _Reader, raw: Any) -> MapExcerpt:

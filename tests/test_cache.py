@@ -125,6 +125,29 @@ def test_the_versions_share_what_they_share_on_disk(
     assert not loaded["v1.1"].observation.present.flags.writeable  # shared bytes: nothing may write them
 
 
+def test_what_the_versions_share_as_objects_is_written_as_if_each_had_its_own(
+    built: tuple[str, dict[str, MetricCache]],
+) -> None:
+    """A file's bytes depend on its sections' contents alone, not on which objects the versions share."""
+    _, caches = built
+    key = {"scene_hash": "hash", "engine_version": "engine"}
+    shared: scorer_cache.SharedParts = {}
+    sections = {version: scorer_cache._cache_section(cache, shared) for version, cache in caches.items()}
+    copies = {
+        version: (json.loads(json.dumps(meta)), {name: np.copy(array) for name, array in arrays.items()})
+        for version, (meta, arrays) in sections.items()
+    }
+    assert sections["v1.0"][1]["map_coords"] is sections["v1.1"][1]["map_coords"]
+    data = scorer_cache._pack(key, sections)
+    assert data == scorer_cache._pack(key, copies)
+    for version, (meta, arrays) in scorer_cache._unpack(data)[1].items():
+        assert json.dumps(meta) == json.dumps(copies[version][0])
+        assert arrays.keys() == copies[version][1].keys()
+        for name, array in arrays.items():
+            copy = copies[version][1][name]
+            assert (array.dtype, array.shape, array.tobytes()) == (copy.dtype, copy.shape, copy.tobytes())
+
+
 def test_scenes_built_together_get_the_caches_each_gets_alone() -> None:
     versions = list(VERSIONS.values())
     scenes = list(islice(iter_scenes(REFERENCE), 12))

@@ -128,6 +128,31 @@ def test_the_first_invalid_object_field_is_named_in_file_order(tmp_path: Path) -
         load_scene(path)
 
 
+def test_map_point_lists_read_per_layer_equal_those_read_one_by_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    path = REFERENCE / "scenes" / f"{TOKEN}.json.gz"
+    together = load_scene(path).map
+    monkeypatch.setattr(scene_module, "_valid_point_lists", lambda raw_layer, key, minimum: None)
+    alone = load_scene(path).map
+    for layer in scene_module.MapExcerpt.__dataclass_fields__:
+        first, second = getattr(together, layer), getattr(alone, layer)
+        assert [item.polygon.wkb for item in first] == [item.polygon.wkb for item in second]
+        if layer in ("lanes", "lane_connectors"):
+            assert [lane.baseline.tobytes() for lane in first] == [lane.baseline.tobytes() for lane in second]
+            assert all(lane.baseline.shape == (len(lane.baseline), 2) for lane in first)
+    assert sum(len(getattr(together, layer)) for layer in scene_module.AREA_LAYERS) > 0
+
+
+def test_the_first_invalid_map_field_is_named_in_file_order(tmp_path: Path) -> None:
+    raw = _raw_scene()
+    lanes = raw["map"]["lanes"]
+    lanes[0]["polygon"] = lanes[0]["polygon"][:2]  # a ring too short, found before the next lane's id
+    lanes[1]["id"] = "01"
+    lanes[1]["baseline"] = [[0.0, "x"]]
+    path = _write(tmp_path, raw)
+    with pytest.raises(SceneFormatError, match=r"map\.lanes\[0\]\.polygon: a polygon needs at least 3"):
+        load_scene(path)
+
+
 def test_duplicate_map_id_is_rejected(tmp_path: Path) -> None:
     raw = _raw_scene()
     raw["map"]["crosswalks"].append(copy.deepcopy(raw["map"]["crosswalks"][0]))
