@@ -18,7 +18,7 @@ import math
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import shapely
@@ -51,8 +51,7 @@ _MEASURES = tuple(f.name for f in fields(ProposalMeasures))
 _PREFIX = 16  # a cache file's first bytes: its header's length and its own, 8 bytes each
 
 
-@dataclass(frozen=True)
-class CacheKey:
+class CacheKey(NamedTuple):
     """What a cache file was built from; any change invalidates it."""
 
     scene_hash: str
@@ -407,7 +406,7 @@ def _cache_section(cache: MetricCache) -> tuple[dict[str, Any], dict[str, np.nda
         "token": cache.token,
         "log_name": cache.log_name,
         "t0_us": cache.t0_us,
-        "ego": asdict(cache.ego),
+        "ego": cache.ego._asdict(),
         "route_lane_ids": list(cache.route_lane_ids),
         "route_roadblocks": list(cache.route_roadblocks),
         "map_tokens": list(drivable_map.tokens),

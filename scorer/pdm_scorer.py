@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, fields
 from functools import cached_property
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -138,8 +138,7 @@ class ProposalMeasures:
         )
 
 
-@dataclass(frozen=True)
-class MeasureSettings:
+class MeasureSettings(NamedTuple):
     """What `measure_batch` reads of a `ScorerConfig`: configs that agree here measure proposals alike and
     differ only in `score_measures`, so they can share one measurement (PDM-Closed's planner configs of v1.0
     and v1.1 do)."""

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import shapely
@@ -40,8 +40,7 @@ class SceneFormatError(ValueError):
     """A scene file breaks a rule of the format; the message names the file and the field."""
 
 
-@dataclass(frozen=True)
-class EgoStatus:
+class EgoStatus(NamedTuple):
     """Rear-axle pose (global frame) and rear-axle dynamics (ego frame; float32-rounded as NAVSIM holds them)."""
 
     x: float
@@ -212,10 +211,7 @@ def _shape_text(shape: tuple[int | None, ...]) -> str:
 
 
 def _read_ego(reader: _Reader, raw: Any, where: str) -> EgoStatus:
-    values = {
-        key: reader.number(reader.get(raw, key, where), f"{where}.{key}")
-        for key in EgoStatus.__dataclass_fields__
-    }
+    values = {key: reader.number(reader.get(raw, key, where), f"{where}.{key}") for key in EgoStatus._fields}
     if not -math.pi <= values["heading"] <= math.pi:
         raise reader.fail(f"{where}.heading", f"angle {values['heading']} outside [-pi, pi]")
     # NAVSIM holds the ego dynamics as float32 (Scene._build_ego_status); the last bits decide NC/TTC.

@@ -111,12 +111,12 @@ def test_configs_measured_together_get_what_each_gets_alone() -> None:
     v1 = MeasureSettings.of(get_version("v1.1").evaluation)
     settings = [
         v1,
-        replace(v1, ttc_evaluated_steps=32),  # v2.2's TTC horizon: a prefix of v1's contacts
-        replace(v1, ttc_evaluated_steps=12, stopped_speed_threshold=1.0),
-        replace(v1, ddc_excludes_intersections=True, comfort_at_centre=True, lane_keeping=(0.5, 2.0)),
+        v1._replace(ttc_evaluated_steps=32),  # v2.2's TTC horizon: a prefix of v1's contacts
+        v1._replace(ttc_evaluated_steps=12, stopped_speed_threshold=1.0),
+        v1._replace(ddc_excludes_intersections=True, comfort_at_centre=True, lane_keeping=(0.5, 2.0)),
         v1,
         v1,  # the last two observe no object
-        replace(v1, ttc_evaluated_steps=32),
+        v1._replace(ttc_evaluated_steps=32),
     ]
     # Another way of observing (as v2.2 drops the tracks on the ego): each token's observation emptied.
     empty = [
@@ -157,8 +157,8 @@ def test_ttc_horizons_are_those_of_the_settings_reading_each_observation() -> No
     v1 = MeasureSettings.of(get_version("v1.1").evaluation)
     readers = [
         (v1, (1, 2)),
-        (replace(v1, ttc_evaluated_steps=32), (1, 2)),
-        (replace(v1, ttc_evaluated_steps=12), (3, 4)),
+        (v1._replace(ttc_evaluated_steps=32), (1, 2)),
+        (v1._replace(ttc_evaluated_steps=12), (3, 4)),
         (v1, (1, 2)),
     ]
     assert ttc_horizons(readers) == {(1, 2): [32, v1.ttc_evaluated_steps], (3, 4): [12]}
