@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -47,7 +47,7 @@ if TYPE_CHECKING:
 # version from its cache never loads it (start-up of `navsim-lb score`).
 
 _MEASURES_PREFIX = "reference_"
-_MEASURES = tuple(f.name for f in fields(ProposalMeasures))
+_MEASURES = ProposalMeasures._fields
 _PREFIX = 16  # a cache file's first bytes: its header's length and its own, 8 bytes each
 
 
@@ -59,8 +59,7 @@ class CacheKey(NamedTuple):
     metric_version: str
 
 
-@dataclass(frozen=True, eq=False)
-class MetricCache:
+class MetricCache(NamedTuple):
     """Everything the scorer needs about one token under one metric version (NAVSIM's MetricCache)."""
 
     token: str
@@ -611,7 +610,7 @@ def load_caches(
             continue
         version_key = CacheKey(scene_hash, key["engine_version"], version)
         if source in of_source:
-            caches[version] = replace(of_source[source], key=version_key)
+            caches[version] = of_source[source]._replace(key=version_key)
             continue
         meta, arrays = sections[source]
         try:

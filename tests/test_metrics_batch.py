@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import gzip
 import json
-from dataclasses import fields, replace
+from dataclasses import replace
 from functools import cache
 from pathlib import Path
 
@@ -136,7 +136,7 @@ def test_configs_measured_together_get_what_each_gets_alone() -> None:
     together = measure_alike(np.stack(states), observed, *rest, settings)
     for setting, seen, measures in zip(settings, observed, together, strict=True):
         (alone,) = measure_alike(np.stack(states), [seen], *rest, [setting])
-        for name in (field.name for field in fields(ProposalMeasures)):
+        for name in ProposalMeasures._fields:
             assert np.array_equal(getattr(measures, name), getattr(alone, name)), (setting, name)
     assert any(0.0 in measures.time_to_collision_within_bound for measures in together)  # TTC is exercised
     # Without objects TTC finds nothing: the two observations were measured apart.
