@@ -12,7 +12,7 @@ import itertools
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -78,8 +78,7 @@ class TokenResult:
     detail: dict[str, Any] = field(default_factory=dict)  # what a team may read of how the row came about
 
 
-@dataclass(frozen=True, eq=False)
-class ScoredToken:
+class ScoredToken(NamedTuple):
     """A valid row before the split-level step (v2.2's EC), with what that step reads."""
 
     result: TokenResult
