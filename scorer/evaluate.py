@@ -632,8 +632,7 @@ def score_seeds(
 ScoredRows = dict[tuple[int | None, str], list[TokenResult | ScoredToken]]
 
 
-@dataclass(frozen=True)
-class SceneFiles:
+class SceneFiles(NamedTuple):
     """A split's scene files as scoring reads them: token -> file, and, for a split whose files are fetched
     on demand (a worker's mirror of a stored split), each file's sha256 as registered and how to fetch files.
     A token's cache is then found by its registered sha256, and only the scenes of caches to build are

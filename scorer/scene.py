@@ -12,7 +12,7 @@ import re
 import stat
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -52,8 +52,7 @@ class EgoStatus(NamedTuple):
     ay: float
 
 
-@dataclass(frozen=True)
-class Frame:
+class Frame(NamedTuple):
     """One 2 Hz frame. Objects are column arrays (one row per object, annotation order)."""
 
     token: str
@@ -92,16 +91,14 @@ class Roadblock:
     lanes: tuple[str, ...]
 
 
-@dataclass(frozen=True, eq=False)
-class Area:
+class Area(NamedTuple):
     """A polygon-only map object (intersection, car park, generic drivable area, crosswalk, walkway)."""
 
     id: str
     polygon: shapely.Polygon
 
 
-@dataclass(frozen=True, eq=False)
-class MapExcerpt:
+class MapExcerpt(NamedTuple):
     """Map layers in file order (the order decides the devkit's tie-breaks)."""
 
     lanes: tuple[Lane, ...]
@@ -115,8 +112,7 @@ class MapExcerpt:
     walkways: tuple[Area, ...] = ()
 
 
-@dataclass(frozen=True, eq=False)
-class Scene:
+class Scene(NamedTuple):
     """A hidden-log scene: frames in time order, the current frame index and the map excerpt."""
 
     token: str
@@ -126,7 +122,7 @@ class Scene:
     current_index: int
     frames: tuple[Frame, ...]
     map: MapExcerpt
-    content_hash: str = field(default="")
+    content_hash: str = ""
 
     @property
     def current_frame(self) -> Frame:

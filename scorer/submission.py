@@ -18,7 +18,6 @@ import pickle
 import re
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
 from typing import IO, Any, NamedTuple, Protocol, cast
 
 import numpy as np
@@ -59,8 +58,7 @@ PICKLE_METADATA_KEYS = {
 _HTML_LINK = r"""^\s*<a\s+href\s*=\s*["']?([^"'>\s]+)["']?[^>]*>(.*?)</a>\s*$"""
 
 
-@dataclass(frozen=True)
-class Problem:
+class Problem(NamedTuple):
     """One thing wrong with a submission; `token` and `field` say where (None when not about one)."""
 
     token: str | None
