@@ -128,7 +128,6 @@ def _set_up(
 def _demo_entry(split_dir: Path, out: Path, two_stage: bool = False) -> Path:
     """Write the demo entry of a split (in its form, one-stage or two-stage): the human trajectories with
     seeded noise (a plausible, imperfect method)."""
-    from dataclasses import replace
 
     import numpy as np
 
@@ -146,14 +145,14 @@ def _demo_entry(split_dir: Path, out: Path, two_stage: bool = False) -> Path:
     method = DEMO_METHODS[two_stage]
     if two_stage:
         stages = two_stage_baseline_submission(split_dir, "human", method)
-        metadata = replace(stages.metadata, team_name=TEAM, authors="Demo Member", institution="Demo Lab")
+        metadata = stages.metadata._replace(team_name=TEAM, authors="Demo Member", institution="Demo Lab")
         entry = TwoStageSubmission(
             metadata, (noisy(stages.first_stage[0]),), (noisy(stages.second_stage[0]),)
         )
         out.write_bytes(dump_two_stage_submission_json(entry))
         return out
     human = baseline_submission(split_dir, "human", method)
-    metadata = replace(human.metadata, team_name=TEAM, authors="Demo Member", institution="Demo Lab")
+    metadata = human.metadata._replace(team_name=TEAM, authors="Demo Member", institution="Demo Lab")
     out.write_bytes(dump_submission_json(Predictions(metadata, (noisy(human.seeds[0]),))))
     return out
 

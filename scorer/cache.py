@@ -16,9 +16,9 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import shapely
@@ -47,12 +47,11 @@ if TYPE_CHECKING:
 # version from its cache never loads it (start-up of `navsim-lb score`).
 
 _MEASURES_PREFIX = "reference_"
-_MEASURES = tuple(f.name for f in fields(ProposalMeasures))
+_MEASURES = ProposalMeasures._fields
 _PREFIX = 16  # a cache file's first bytes: its header's length and its own, 8 bytes each
 
 
-@dataclass(frozen=True)
-class CacheKey:
+class CacheKey(NamedTuple):
     """What a cache file was built from; any change invalidates it."""
 
     scene_hash: str
@@ -60,8 +59,7 @@ class CacheKey:
     metric_version: str
 
 
-@dataclass(frozen=True, eq=False)
-class MetricCache:
+class MetricCache(NamedTuple):
     """Everything the scorer needs about one token under one metric version (NAVSIM's MetricCache)."""
 
     token: str
@@ -418,7 +416,7 @@ def _cache_section(cache: MetricCache, shared: SharedParts) -> tuple[dict[str, A
         "token": cache.token,
         "log_name": cache.log_name,
         "t0_us": cache.t0_us,
-        "ego": once("ego", cache.ego, lambda: asdict(cache.ego)),
+        "ego": once("ego", cache.ego, cache.ego._asdict),
         "route_lane_ids": listed(cache.route_lane_ids),
         "route_roadblocks": listed(cache.route_roadblocks),
         "map_tokens": listed(drivable_map.tokens),
@@ -630,7 +628,7 @@ def load_caches(
             continue
         version_key = CacheKey(scene_hash, key["engine_version"], version)
         if source in of_source:
-            caches[version] = replace(of_source[source], key=version_key)
+            caches[version] = of_source[source]._replace(key=version_key)
             continue
         meta, arrays = sections[source]
         try:

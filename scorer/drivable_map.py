@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -31,8 +32,7 @@ DRIVABLE_TYPES = (ROADBLOCK, INTERSECTION, DRIVABLE_AREA, CARPARK_AREA)
 LANE_TYPES = (LANE, LANE_CONNECTOR)
 
 
-@dataclass(frozen=True, eq=False)
-class DrivableMap:
+class DrivableMap(NamedTuple):
     """Map polygons with their map object ids and nuPlan layer names, in the devkit's order."""
 
     tokens: tuple[str, ...]

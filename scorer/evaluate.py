@@ -12,7 +12,7 @@ import itertools
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -78,8 +78,7 @@ class TokenResult:
     detail: dict[str, Any] = field(default_factory=dict)  # what a team may read of how the row came about
 
 
-@dataclass(frozen=True, eq=False)
-class ScoredToken:
+class ScoredToken(NamedTuple):
     """A valid row before the split-level step (v2.2's EC), with what that step reads."""
 
     result: TokenResult
@@ -633,8 +632,7 @@ def score_seeds(
 ScoredRows = dict[tuple[int | None, str], list[TokenResult | ScoredToken]]
 
 
-@dataclass(frozen=True)
-class SceneFiles:
+class SceneFiles(NamedTuple):
     """A split's scene files as scoring reads them: token -> file, and, for a split whose files are fetched
     on demand (a worker's mirror of a stored split), each file's sha256 as registered and how to fetch files.
     A token's cache is then found by its registered sha256, and only the scenes of caches to build are

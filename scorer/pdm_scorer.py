@@ -12,9 +12,9 @@ version does not score are 1.
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -53,8 +53,7 @@ RESULT_COLUMN_OF_ROW = {
 }
 
 
-@dataclass(frozen=True, eq=False)
-class ProposalScores:
+class ProposalScores(NamedTuple):
     """Per-proposal results, (P,) for one token or (B, P) for a batch: the devkit's result columns, raw
     progress, infraction indices and its metric rows."""
 
@@ -83,7 +82,7 @@ class ProposalScores:
 
     def token(self, index: int) -> ProposalScores:
         """Return the (P,) results of token `index` of a batch."""
-        values = {field.name: getattr(self, field.name) for field in fields(self)}
+        values = self._asdict()
         row_of_token: dict[str, Any] = {
             name: {row: array[index] for row, array in value.items()}
             if isinstance(value, dict)
@@ -100,8 +99,7 @@ class ProposalScores:
         }
 
 
-@dataclass(frozen=True, eq=False)
-class ProposalMeasures:
+class ProposalMeasures(NamedTuple):
     """What each proposal earns on its own, (B, P) arrays: all but the steps that compare proposals (the
     v1.0 DDC window, EP normalisation, comfort's filters, aggregation). A proposal's measures do not depend
     on the others it is scored with, so a reference proposal can be measured once and joined with others
@@ -128,19 +126,16 @@ class ProposalMeasures:
 
     def token(self, index: int) -> ProposalMeasures:
         """Return the measures of token `index` as a batch of one (1, P)."""
-        return ProposalMeasures(
-            **{field.name: getattr(self, field.name)[index : index + 1] for field in fields(self)}
-        )
+        return ProposalMeasures(**{name: value[index : index + 1] for name, value in self._asdict().items()})
 
     def proposal(self, index: int) -> ProposalMeasures:
         """Return the measures of every token's proposal `index` as proposals of their own (B, 1)."""
         return ProposalMeasures(
-            **{field.name: getattr(self, field.name)[:, index : index + 1] for field in fields(self)}
+            **{name: value[:, index : index + 1] for name, value in self._asdict().items()}
         )
 
 
-@dataclass(frozen=True)
-class MeasureSettings:
+class MeasureSettings(NamedTuple):
     """What `measure_batch` reads of a `ScorerConfig`: configs that agree here measure proposals alike and
     differ only in `score_measures`, so they can share one measurement (PDM-Closed's planner configs of v1.0
     and v1.1 do)."""
@@ -174,8 +169,8 @@ def join_measures(parts: Sequence[ProposalMeasures], axis: int = 1) -> ProposalM
     """Return the measures of `parts` side by side: as more proposals (axis 1) or more tokens (axis 0)."""
     return ProposalMeasures(
         **{
-            field.name: np.concatenate([getattr(part, field.name) for part in parts], axis=axis)
-            for field in fields(ProposalMeasures)
+            name: np.concatenate([getattr(part, name) for part in parts], axis=axis)
+            for name in ProposalMeasures._fields
         }
     )
 

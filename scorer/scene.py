@@ -12,11 +12,11 @@ import re
 import stat
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 from itertools import chain
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import shapely
@@ -41,8 +41,7 @@ class SceneFormatError(ValueError):
     """A scene file breaks a rule of the format; the message names the file and the field."""
 
 
-@dataclass(frozen=True)
-class EgoStatus:
+class EgoStatus(NamedTuple):
     """Rear-axle pose (global frame) and rear-axle dynamics (ego frame; float32-rounded as NAVSIM holds them)."""
 
     x: float
@@ -54,8 +53,7 @@ class EgoStatus:
     ay: float
 
 
-@dataclass(frozen=True)
-class Frame:
+class Frame(NamedTuple):
     """One 2 Hz frame. Objects are column arrays (one row per object, annotation order)."""
 
     token: str
@@ -94,16 +92,14 @@ class Roadblock:
     lanes: tuple[str, ...]
 
 
-@dataclass(frozen=True, eq=False)
-class Area:
+class Area(NamedTuple):
     """A polygon-only map object (intersection, car park, generic drivable area, crosswalk, walkway)."""
 
     id: str
     polygon: shapely.Polygon
 
 
-@dataclass(frozen=True, eq=False)
-class MapExcerpt:
+class MapExcerpt(NamedTuple):
     """Map layers in file order (the order decides the devkit's tie-breaks)."""
 
     lanes: tuple[Lane, ...]
@@ -117,8 +113,7 @@ class MapExcerpt:
     walkways: tuple[Area, ...] = ()
 
 
-@dataclass(frozen=True, eq=False)
-class Scene:
+class Scene(NamedTuple):
     """A hidden-log scene: frames in time order, the current frame index and the map excerpt."""
 
     token: str
@@ -128,7 +123,7 @@ class Scene:
     current_index: int
     frames: tuple[Frame, ...]
     map: MapExcerpt
-    content_hash: str = field(default="")
+    content_hash: str = ""
 
     @property
     def current_frame(self) -> Frame:
@@ -213,10 +208,7 @@ def _shape_text(shape: tuple[int | None, ...]) -> str:
 
 
 def _read_ego(reader: _Reader, raw: Any, where: str) -> EgoStatus:
-    values = {
-        key: reader.number(reader.get(raw, key, where), f"{where}.{key}")
-        for key in EgoStatus.__dataclass_fields__
-    }
+    values = {key: reader.number(reader.get(raw, key, where), f"{where}.{key}") for key in EgoStatus._fields}
     if not -math.pi <= values["heading"] <= math.pi:
         raise reader.fail(f"{where}.heading", f"angle {values['heading']} outside [-pi, pi]")
     # NAVSIM holds the ego dynamics as float32 (Scene._build_ego_status); the last bits decide NC/TTC.

@@ -18,7 +18,6 @@ import pickle
 import re
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, fields
 from typing import IO, Any, NamedTuple, Protocol, cast
 
 import numpy as np
@@ -59,8 +58,7 @@ PICKLE_METADATA_KEYS = {
 _HTML_LINK = r"""^\s*<a\s+href\s*=\s*["']?([^"'>\s]+)["']?[^>]*>(.*?)</a>\s*$"""
 
 
-@dataclass(frozen=True)
-class Problem:
+class Problem(NamedTuple):
     """One thing wrong with a submission; `token` and `field` say where (None when not about one)."""
 
     token: str | None
@@ -94,8 +92,7 @@ class SubmissionError(Exception):
         super().__init__("; ".join(str(problem) for problem in self.problems))
 
 
-@dataclass(frozen=True)
-class SubmissionMetadata:
+class SubmissionMetadata(NamedTuple):
     """Who submitted what; every field is optional text."""
 
     team_name: str = ""
@@ -108,16 +105,14 @@ class SubmissionMetadata:
     code_url: str = ""
 
 
-@dataclass(frozen=True)
-class Submission:
+class Submission(NamedTuple):
     """Metadata and one token -> (8, 3) ego-frame poses mapping per seed."""
 
     metadata: SubmissionMetadata
     seeds: tuple[dict[str, FloatArray], ...]
 
 
-@dataclass(frozen=True)
-class TwoStageSubmission:
+class TwoStageSubmission(NamedTuple):
     """Metadata and, per seed, the stage-one and the stage-two token -> (8, 3) ego-frame poses mappings."""
 
     metadata: SubmissionMetadata
@@ -268,7 +263,7 @@ JSON_HEADER_FIELDS = {
     "format",
     "version",
     "trajectory_sampling",
-    *(f.name for f in fields(SubmissionMetadata)),
+    *SubmissionMetadata._fields,
 }
 
 
@@ -315,7 +310,7 @@ def _json_header(
     for key in sorted(set(document) - JSON_HEADER_FIELDS - set(prediction_fields)):
         problems.add(None, key, "unknown field")
     metadata = SubmissionMetadata(
-        **{f.name: _text(document.get(f.name), f.name, problems) for f in fields(SubmissionMetadata)}
+        **{name: _text(document.get(name), name, problems) for name in SubmissionMetadata._fields}
     )
     sampling = document.get(
         "trajectory_sampling", {"time_horizon": TIME_HORIZON_S, "interval_length": INTERVAL_LENGTH_S}
@@ -1028,7 +1023,7 @@ def _dump_json(metadata: SubmissionMetadata, format_name: str, fields_: dict[str
     document = {
         "format": format_name,
         "version": FORMAT_VERSION,
-        **{f.name: getattr(metadata, f.name) for f in fields(SubmissionMetadata)},
+        **metadata._asdict(),
         "trajectory_sampling": {"time_horizon": TIME_HORIZON_S, "interval_length": INTERVAL_LENGTH_S},
         **fields_,
     }

@@ -3,14 +3,16 @@
 
 Adding a version means adding a `MetricVersion` here; code branches only where a metric truly differs,
 and then on a field of this config (e.g. `ddc_window_axis`), never on the version name.
+
+The configs are named tuples rather than frozen dataclasses: as immutable and compared by value alike, and
+built in a tenth of the time at import, which every command's start-up pays (docs/engine.md, "Start-up").
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass, replace
 from enum import StrEnum
-from typing import Literal
+from typing import Literal, NamedTuple
 
 DdcWindowAxis = Literal["proposal", "time"]
 ProgressNormalisation = Literal["masked", "clipped"]
@@ -31,8 +33,7 @@ DEFAULT_VERSION = VersionName.V1_1  # NAVSIM's current release: what a leaderboa
 OFFICIAL_REPOSITORY = "https://github.com/autonomousvision/navsim"
 
 
-@dataclass(frozen=True)
-class ScorerConfig:
+class ScorerConfig(NamedTuple):
     """The devkit's `PDMScorerConfig` of a release, with the rows it scores and the structural choices that
     changed between releases.
 
@@ -64,8 +65,7 @@ class ScorerConfig:
         return dict(self.weighted_rows)
 
 
-@dataclass(frozen=True)
-class IdmTraffic:
+class IdmTraffic(NamedTuple):
     """NAVSIM's reactive traffic (`NavsimIDMTrafficAgents`, `navsim_IDM_traffic_agents.yaml` at v2.2): the
     current frame's vehicles follow their starting lane or connector under an IDM and react to the ego
     (`scorer.reactive`; docs/engine.md, "Reactive traffic")."""
@@ -80,8 +80,7 @@ class IdmTraffic:
     add_open_loop_parked_vehicles: bool = True  # vehicles that are not simulated stay at their recorded pose
 
 
-@dataclass(frozen=True)
-class MetricVersion:
+class MetricVersion(NamedTuple):
     """A NAVSIM metric release: the evaluation scorer, PDM-Closed's internal scorer, what the metric cache
     observes and the result columns."""
 
@@ -215,7 +214,7 @@ VERSIONS: dict[VersionName, MetricVersion] = {
     VersionName.V1_0: MetricVersion(
         name=VersionName.V1_0,
         evaluation=_V1_0_SCORER,
-        planner=replace(_V1_0_SCORER, progress_distance_threshold=0.1),
+        planner=_V1_0_SCORER._replace(progress_distance_threshold=0.1),
         result_columns=METRIC_COLUMNS,
         official_code="NAVSIM v1.0 (tag v1.0), nuplan-devkit v1.2",
         official_ref="v1.0",
@@ -241,8 +240,7 @@ VERSIONS: dict[VersionName, MetricVersion] = {
     VersionName.V2_2: _V2_2,
     # The v2.2 tree before the human-filter fix, whose results papers published before 2025-09-29 report: the same
     # cache (the fix changes how a row's score is formed, nothing cached), the score unfiltered.
-    VersionName.V2_2_PREFIX: replace(
-        _V2_2,
+    VersionName.V2_2_PREFIX: _V2_2._replace(
         name=VersionName.V2_2_PREFIX,
         official_code=(
             "NAVSIM v2.2 before the human-filter fix (commit 8021f918b907360ac5ae6fbc252b5f96f04db966, the parent of "

@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import tempfile
 import uuid
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -28,7 +27,7 @@ from pathlib import Path
 from typing import IO, Any, Protocol
 from urllib.parse import urlsplit
 
-from scorer.files import write_atomically
+from scorer.files import create_temporary_beside, write_atomically
 
 log = logging.getLogger(__name__)
 S3_SCHEME = "s3"
@@ -175,7 +174,7 @@ class _LocalStaged:
 def _temporary_beside(path: Path) -> Iterator[tuple[IO[bytes], str]]:
     """Yield an open temporary file in `path`'s directory and its name; it is removed unless renamed."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
+    fd, temporary = create_temporary_beside(path)
     try:
         with os.fdopen(fd, "wb") as handle:
             yield handle, temporary

@@ -51,10 +51,10 @@ def assert_same_cache(loaded: MetricCache, cache: MetricCache) -> None:
     assert np.array_equal(loaded.observation.present, cache.observation.present)
     assert np.array_equal(loaded.observation.corners, cache.observation.corners, equal_nan=True)
     assert (loaded.reference_measures is None) == (cache.reference_measures is None)
-    for field in fields(ProposalMeasures) if cache.reference_measures is not None else ():
+    for name in ProposalMeasures._fields if cache.reference_measures is not None else ():
         assert np.array_equal(
-            getattr(loaded.reference_measures, field.name), getattr(cache.reference_measures, field.name)
-        ), field.name
+            getattr(loaded.reference_measures, name), getattr(cache.reference_measures, name)
+        ), name
     assert (loaded.reference_states is None) == (cache.reference_states is None)
     if cache.reference_states is not None:
         assert np.array_equal(loaded.reference_states, cache.reference_states)

@@ -139,6 +139,7 @@ finally:
     engines = ("scorer.reactive", "scorer.two_stage")
     print("engines imported:", sorted({name for name in sys.modules for e in engines if name.startswith(e)}))
     print("rich imported:", "rich" in sys.modules)
+    print("tempfile imported:", "tempfile" in sys.modules)
 """
 
 
@@ -146,8 +147,8 @@ def test_scoring_a_log_replay_version_does_not_import_reactive_or_two_stage_engi
     tmp_path: Path, one_token_split: tuple[Path, Path]
 ) -> None:
     """Reactive traffic and the two-stage aggregation serve other versions: the default version's
-    `navsim-lb score ... --out` from its cache never loads them; in a pipe it prints plain text, without rich
-    (start-up)."""
+    `navsim-lb score ... --out` from its cache never loads them; in a pipe it prints plain text, without rich,
+    and it writes the CSV without tempfile (start-up)."""
     arguments = [*(str(path) for path in one_token_split), "--cache-dir", str(tmp_path / "cache")]
     arguments += ["--out", str(tmp_path / "results.csv")]
     cold, warm = (
@@ -157,6 +158,10 @@ def test_scoring_a_log_replay_version_does_not_import_reactive_or_two_stage_engi
         for _ in range(2)
     )
     assert cold.returncode == warm.returncode == 0, cold.stderr + warm.stderr
-    assert warm.stdout.splitlines()[-2:] == ["engines imported: []", "rich imported: False"]
+    assert warm.stdout.splitlines()[-3:] == [
+        "engines imported: []",
+        "rich imported: False",
+        "tempfile imported: False",
+    ]
     assert "(PDMS v1.1)" in warm.stdout and f"wrote {tmp_path / 'results.csv'}" in warm.stderr
     assert (tmp_path / "results.csv").read_text().count("\n") >= 2

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import shapely
 
@@ -105,8 +103,8 @@ def test_the_centre_follows_the_heading() -> None:
     # Heading pi: the box centre is 1.461 m behind the origin along -x, so the square reaches x = -101.461.
     excerpt = MapExcerpt((), (), (block("west", -101.461 - 0.001, -101.0), block("east", 98.6, 99.0)), ())
     scene = scene_on(excerpt)
-    turned = dataclasses.replace(scene.frames[0], ego=EgoStatus(0.0, 0.0, np.pi, 0.0, 0.0, 0.0, 0.0))
-    drivable_map = build_drivable_map(dataclasses.replace(scene, frames=(turned,) * 11))
+    turned = scene.frames[0]._replace(ego=EgoStatus(0.0, 0.0, np.pi, 0.0, 0.0, 0.0, 0.0))
+    drivable_map = build_drivable_map(scene._replace(frames=(turned,) * 11))
     assert drivable_map.tokens == ("west",)
 
 

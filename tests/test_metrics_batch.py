@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import gzip
 import json
-from dataclasses import fields, replace
+from dataclasses import replace
 from functools import cache
 from pathlib import Path
 
@@ -111,12 +111,12 @@ def test_configs_measured_together_get_what_each_gets_alone() -> None:
     v1 = MeasureSettings.of(get_version("v1.1").evaluation)
     settings = [
         v1,
-        replace(v1, ttc_evaluated_steps=32),  # v2.2's TTC horizon: a prefix of v1's contacts
-        replace(v1, ttc_evaluated_steps=12, stopped_speed_threshold=1.0),
-        replace(v1, ddc_excludes_intersections=True, comfort_at_centre=True, lane_keeping=(0.5, 2.0)),
+        v1._replace(ttc_evaluated_steps=32),  # v2.2's TTC horizon: a prefix of v1's contacts
+        v1._replace(ttc_evaluated_steps=12, stopped_speed_threshold=1.0),
+        v1._replace(ddc_excludes_intersections=True, comfort_at_centre=True, lane_keeping=(0.5, 2.0)),
         v1,
         v1,  # the last two observe no object
-        replace(v1, ttc_evaluated_steps=32),
+        v1._replace(ttc_evaluated_steps=32),
     ]
     # Another way of observing (as v2.2 drops the tracks on the ego): each token's observation emptied.
     empty = [
@@ -136,7 +136,7 @@ def test_configs_measured_together_get_what_each_gets_alone() -> None:
     together = measure_alike(np.stack(states), observed, *rest, settings)
     for setting, seen, measures in zip(settings, observed, together, strict=True):
         (alone,) = measure_alike(np.stack(states), [seen], *rest, [setting])
-        for name in (field.name for field in fields(ProposalMeasures)):
+        for name in ProposalMeasures._fields:
             assert np.array_equal(getattr(measures, name), getattr(alone, name)), (setting, name)
     assert any(0.0 in measures.time_to_collision_within_bound for measures in together)  # TTC is exercised
     # Without objects TTC finds nothing: the two observations were measured apart.
@@ -157,8 +157,8 @@ def test_ttc_horizons_are_those_of_the_settings_reading_each_observation() -> No
     v1 = MeasureSettings.of(get_version("v1.1").evaluation)
     readers = [
         (v1, (1, 2)),
-        (replace(v1, ttc_evaluated_steps=32), (1, 2)),
-        (replace(v1, ttc_evaluated_steps=12), (3, 4)),
+        (v1._replace(ttc_evaluated_steps=32), (1, 2)),
+        (v1._replace(ttc_evaluated_steps=12), (3, 4)),
         (v1, (1, 2)),
     ]
     assert ttc_horizons(readers) == {(1, 2): [32, v1.ttc_evaluated_steps], (3, 4): [12]}

@@ -8,7 +8,6 @@ devkit's filter group, are our simulation of the cached trajectory.
 
 from __future__ import annotations
 
-import dataclasses
 from functools import cache
 from pathlib import Path
 
@@ -138,10 +137,10 @@ def _jittered(source: Scene, offsets_us: tuple[int, int, int]) -> Scene:
     first = source.current_index - 3
     frames = list(source.frames)
     for frame_index, offset in zip(range(first, source.current_index), offsets_us, strict=True):
-        frames[frame_index] = dataclasses.replace(
-            frames[frame_index], timestamp_us=frames[frame_index].timestamp_us + offset
+        frames[frame_index] = frames[frame_index]._replace(
+            timestamp_us=frames[frame_index].timestamp_us + offset
         )
-    return dataclasses.replace(source, frames=tuple(frames))
+    return source._replace(frames=tuple(frames))
 
 
 def test_jittered_past_frames_are_sampled_as_the_interpolated_trajectory() -> None:
@@ -184,7 +183,7 @@ def test_jittered_past_frames_are_sampled_as_the_interpolated_trajectory() -> No
 def test_the_past_needs_three_frames_and_one_sampled_state() -> None:
     source = scene(rows()[0].scene_path)
     with pytest.raises(ValueError, match="3 past frames"):
-        past_states(dataclasses.replace(source, current_index=2))
+        past_states(source._replace(current_index=2))
     squeezed = _jittered(source, (1_400_000, 950_000, 480_000))  # t_-3 is 0.1 s before t_0
     with pytest.raises(ValueError, match="no past state"):
         past_states(squeezed)

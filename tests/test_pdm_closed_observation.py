@@ -22,8 +22,7 @@ def _scene_with(objects: list[tuple[str, str, list[float], list[float]]], lights
     """The reference scene with the current frame's objects replaced by (track, category, box, velocity)."""
     scene = load_scene(SCENE)
     frame = scene.current_frame
-    replaced = dataclasses.replace(
-        frame,
+    replaced = frame._replace(
         tracks=tuple(track for track, _, _, _ in objects),
         categories=tuple(category for _, category, _, _ in objects),
         boxes=np.array([box for _, _, box, _ in objects], dtype=np.float64).reshape(-1, 7),
@@ -32,7 +31,7 @@ def _scene_with(objects: list[tuple[str, str, list[float], list[float]]], lights
     )
     frames = list(scene.frames)
     frames[scene.current_index] = replaced
-    return dataclasses.replace(scene, frames=tuple(frames))
+    return scene._replace(frames=tuple(frames))
 
 
 def _ahead(scene: Scene, distance: float, lateral: float = 0.0) -> tuple[float, float, float]:

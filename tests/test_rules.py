@@ -4,7 +4,6 @@ words, the official code and the papers, and a link to the rules from every page
 from __future__ import annotations
 
 import html
-from dataclasses import replace
 
 from server_testing import World, submit_scored, uniform
 
@@ -19,9 +18,8 @@ def test_formulas_are_the_papers_and_follow_the_version_data() -> None:
         "EPDMS = NC × DAC × TLC × DDC × (5·EP + 5·TTC + 2·LK + 2·HC + 2·EC) / 16"
     )
     version = VERSIONS[VersionName.V1_0]
-    heavier = replace(
-        version, evaluation=replace(version.evaluation, weighted_rows=(("progress", 7.0), ("ttc", 1.0)))
-    )
+    weights = (("progress", 7.0), ("ttc", 1.0))
+    heavier = version._replace(evaluation=version.evaluation._replace(weighted_rows=weights))
     assert formula(heavier) == "PDMS = NC × DAC × DDC × (7·EP + 1·TTC) / 8"
 
 

@@ -13,7 +13,7 @@ import tracemalloc
 import types
 import zipfile
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -318,9 +318,7 @@ def _json_as_read(data: bytes) -> Submission:
     """What the standard library reads from a JSON file. All but the metadata and the poses must be as written
     (format, version, sampling): the loader refuses a change to any of them."""
     document = json.loads(data)
-    text = {
-        field.name: (document.pop(field.name, None) or "").strip() for field in fields(SubmissionMetadata)
-    }
+    text = {name: (document.pop(name, None) or "").strip() for name in SubmissionMetadata._fields}
     predictions = document.pop("predictions")
     written = _document()
     assert document == {key: written[key] for key in ("format", "version", "trajectory_sampling")}

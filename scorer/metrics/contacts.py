@@ -9,7 +9,7 @@ contact counts iff it comes before the first not-at-fault contact of the same (p
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import cast
+from typing import NamedTuple, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -30,8 +30,7 @@ AHEAD_ANGLE = float(np.deg2rad(30.0))  # nuPlan `is_agent_ahead`
 BEHIND_ANGLE = float(np.deg2rad(150.0))  # nuPlan `is_agent_behind`
 
 
-@dataclass(frozen=True, eq=False)
-class Contacts:
+class Contacts(NamedTuple):
     """Intersecting (ego box, object) pairs; touching counts."""
 
     row: IntArray  # (K,) proposal row
