@@ -21,8 +21,8 @@ p99 at most 100 ms, the upload routes below 1 s, while 2 workers score on the sa
 With --storage local,s3: each configuration also with its uploads, its split's scenes and the metric caches in
 an S3 object store (moto's server with keep-alive, benchmarks/keepalive_s3.py, started here, or the endpoint
 AWS_ENDPOINT_URL names): the split registered from the store, and each worker's caches cold (an earlier worker
-published them: it fetches them, and no scene, a token whose cache is in the store needing none), against the
-local directory with the cache built.
+published them, each token's and its blocks' packs: it fetches them, and no scene, a token whose cache is in
+the store needing none), against the local directory with the cache built.
 
 With --two-stage GROUPS (and --pairs P): a synthetic two-stage split of GROUPS groups, each an original and
 its previous frame (stage one) with P synthetic pairs (stage two), scorer.synth.two_stage; navhard's size is
@@ -77,7 +77,7 @@ from navsim_lb.processes import api_command, child_process
 from scorer.baselines import baseline_submission
 from scorer.evaluate import build_split_cache, score_seeds, score_versions
 from scorer.geometry import FloatArray
-from scorer.scene import scene_paths
+from scorer.scene import scene_paths, scene_start
 from scorer.submission import (
     Submission,
     SubmissionMetadata,
@@ -95,11 +95,12 @@ from server.migrate import upgrade
 from server.models import Approval, Scope, Summary, TokenResultRow
 from server.models import Submission as SubmissionRow
 from server.object_store import open_store
+from server.runs import split_blocks
 from server.services.splits import create_phase, register_split, scene_starts
 from server.services.teams import create_team
 from server.services.tokens import create_token
 from server.settings import Settings, get_settings
-from server.shared_caches import publish_caches, scene_hashes
+from server.shared_caches import publish_caches, publish_packs, scene_hashes
 from worker import SCORING_NICENESS
 from worker.cli import worker_command
 
@@ -286,7 +287,11 @@ def storage(
         scenes = open_store(f"{location}/split/scenes")
         for path in scene_paths(split).values():
             scenes.put_bytes(path.name, path.read_bytes())
-        publish_caches(open_store(f"{location}/metric-cache"), cache, scene_hashes(split))
+        # What the workers of an earlier run published: each token's cache, and the packs of the split's blocks.
+        caches, hashes = open_store(f"{location}/metric-cache"), scene_hashes(split)
+        publish_caches(caches, cache, hashes)
+        starts = {token: scene_start(path) for token, path in scene_paths(split).items()}
+        publish_packs(caches, cache, hashes, split_blocks(starts))
         os.environ["DATA_DIR"] = str(root / "organiser")  # where registering copies the split
         get_settings.cache_clear()
         variables = {key: os.environ[key] for key in os.environ if key.startswith("AWS_")}

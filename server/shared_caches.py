@@ -7,13 +7,25 @@ fetched from the store when there (its key checked: a damaged or foreign object 
 ones the store lacks are built by the engine as before, then published with a conditional write, so of two
 workers building the same entry at once one stores it and the other's identical build is dropped. Publishing
 is best effort: a cache that could not be published is only built again elsewhere.
+
+One object per token costs a GET per token, and a GET's cost is CPU (the client's under the interpreter's
+lock, the store's), about as much as scoring the token. So the caches of a block of tokens are also published
+as one pack, `<engine key>/packs/<sha256 of the members' scene hashes>.nlp`: the blocks are the split's tokens
+in the order chunks are planned, cut every PACK_TOKENS (server.runs._plan, which plans chunks of whole
+blocks), so the packs one run publishes are those every later run fetches. A chunk reads a block's pack when it
+holds every member and lacks the caches of at least half of them; each member is checked as a single cache is
+(a damaged pack, or member, falls back to the single objects). The worker that ends a chunk holding every
+member of a block whose pack the store lacked publishes it, with the same conditional write.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
-from collections.abc import Mapping
+import struct
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from scorer.blas import engine_provenance
@@ -23,6 +35,9 @@ from server.object_store import ObjectStore, StoreUnavailable, get_many
 
 log = logging.getLogger(__name__)
 
+_PACK_MAGIC = b"NLPACK1\n"
+_PACK_HEADER = struct.Struct("<I")  # the length of the JSON list of (scene hash, size) that follows
+
 
 def engine_key() -> str:
     """Return the short name of the engine that computes what is cached (its version and OpenBLAS kernels)."""
@@ -31,6 +46,34 @@ def engine_key() -> str:
 
 def _key(scene_hash: str) -> str:
     return f"{engine_key()}/{scene_hash}.nlc"
+
+
+def _pack_key(block: Mapping[str, str]) -> str:
+    members = hashlib.sha256("\n".join(block.values()).encode()).hexdigest()
+    return f"{engine_key()}/packs/{members}.nlp"
+
+
+def _pack(caches: Sequence[tuple[str, bytes]]) -> bytes:
+    """Return the pack of the caches (scene hash, cache file bytes), in block order."""
+    header = json.dumps([[scene_hash, len(data)] for scene_hash, data in caches]).encode()
+    return b"".join([_PACK_MAGIC, _PACK_HEADER.pack(len(header)), header, *(data for _, data in caches)])
+
+
+def _members(pack: bytes) -> dict[str, bytes]:
+    """Return scene hash -> cache file bytes of a pack; empty when the pack is not whole (each member is still
+    to be checked: `_holds`)."""
+    start = len(_PACK_MAGIC) + _PACK_HEADER.size
+    try:
+        if not pack.startswith(_PACK_MAGIC):
+            return {}
+        (length,) = _PACK_HEADER.unpack_from(pack, len(_PACK_MAGIC))
+        members, offset = {}, start + length
+        for scene_hash, size in json.loads(pack[start : start + length]):
+            members[str(scene_hash)] = pack[offset : offset + int(size)]
+            offset += int(size)
+    except (ValueError, TypeError, struct.error):
+        return {}
+    return members if offset == len(pack) else {}
 
 
 def _holds(data: bytes, scene_hash: str) -> bool:
@@ -53,14 +96,51 @@ def scene_hashes(split_dir: Path) -> dict[str, str]:
     return {token: scene_file_hash(path) for token, path in scene_paths(split_dir).items()}
 
 
-def fetch_caches(store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str]) -> list[str]:
+@dataclass(frozen=True)
+class FetchedCaches:
+    """What fetching a chunk's caches left to do: the tokens whose cache the engine builds (`publish_caches`),
+    and the blocks whose pack the store lacked (`publish_packs`, once the chunk is scored)."""
+
+    unbuilt: list[str]
+    unpacked: list[tuple[str, ...]]
+
+
+def fetch_caches(
+    store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str], blocks: Sequence[Sequence[str]] = ()
+) -> FetchedCaches:
     """Bring the store's caches of the scenes (token -> the scene file's sha256) that lack a valid local one
-    into `cache_dir`; return the tokens the store had none for (the engine builds them: `publish_caches`)."""
+    into `cache_dir`, a block's from its pack when the chunk holds every member (`blocks`, each a block of
+    `hashes`' tokens) and lacks at least half of them, the others one object each."""
     wanted = {
         token: scene_hash
         for token, scene_hash in hashes.items()
         if not _holds(_local(cache_dir, token), scene_hash)
     }
+    packed = [
+        {token: hashes[token] for token in block}
+        for block in blocks
+        if hashes.keys() >= {*block} and 2 * sum(token in wanted for token in block) >= len(block)
+    ]
+    packs = get_many(store, (_pack_key(block) for block in packed))
+    unpacked = []
+    for block in packed:
+        pack = packs[_pack_key(block)]
+        members = _members(pack) if pack is not None else {}
+        if pack is not None and not members:
+            log.warning("metric cache pack %s/%s is damaged: read one by one", store.url, _pack_key(block))
+        for token, scene_hash in block.items():
+            data = members.get(scene_hash, b"")
+            if token in wanted and _holds(data, scene_hash):
+                write_atomically(cache_path(cache_dir, token), data, durable=False)
+                del wanted[token]
+        if pack is None:  # a damaged pack stays (the write is conditional): its blocks are read singly
+            unpacked.append(tuple(block))
+    return FetchedCaches(_fetch_singly(store, cache_dir, wanted), unpacked)
+
+
+def _fetch_singly(store: ObjectStore, cache_dir: Path, wanted: Mapping[str, str]) -> list[str]:
+    """Bring the store's cache of each scene into `cache_dir`, one object each; return the tokens it had
+    none (or a damaged one) for."""
     fetched = get_many(store, (_key(scene_hash) for scene_hash in wanted.values()))
     unbuilt = []
     for token, scene_hash in wanted.items():
@@ -88,5 +168,24 @@ def publish_caches(store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str
             published += store.put_if_absent(_key(scene_hash), data)
         except StoreUnavailable as error:
             log.warning("metric caches not published (built again elsewhere): %s", error)
+            break
+    return published
+
+
+def publish_packs(
+    store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str], blocks: Iterable[Sequence[str]]
+) -> int:
+    """Publish the pack of each block (its tokens, of `hashes`: token -> the scene file's sha256) whose every
+    member has a valid local cache; return how many this call stored."""
+    published = 0
+    for tokens in blocks:
+        block = {token: hashes[token] for token in tokens}
+        caches = [(scene_hash, _local(cache_dir, token)) for token, scene_hash in block.items()]
+        if not all(_holds(data, scene_hash) for scene_hash, data in caches):
+            continue  # a member the engine could not build: its chunks read the others one by one
+        try:
+            published += store.put_if_absent(_pack_key(block), _pack(caches))
+        except StoreUnavailable as error:
+            log.warning("metric cache packs not published (published by a later chunk): %s", error)
             break
     return published

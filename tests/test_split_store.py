@@ -145,7 +145,7 @@ def test_a_metric_cache_built_once_is_read_by_the_other_workers(
     scenes = dict(list(scene_hashes(synthetic_split.directory).items())[:2])
     builder, readers = tmp_path / "builder", [tmp_path / f"reader{n}" for n in range(2)]
     builder.mkdir()
-    assert fetch_caches(caches, builder, scenes) == list(scenes)  # the store has none yet
+    assert fetch_caches(caches, builder, scenes).unbuilt == list(scenes)  # the store has none yet
     for token in scenes:  # as the engine builds them
         shutil.copy(cache_path(synthetic_split.cache_dir, token), cache_path(builder, token))
     # Two workers that built the same entries publish at once: each entry is stored once.
@@ -154,14 +154,14 @@ def test_a_metric_cache_built_once_is_read_by_the_other_workers(
     assert sum(published) == len(scenes)
     for reader in readers:
         reader.mkdir()
-        assert fetch_caches(caches, reader, scenes) == []
+        assert fetch_caches(caches, reader, scenes).unbuilt == []
         for token in scenes:
             assert cache_path(reader, token).read_bytes() == cache_path(builder, token).read_bytes()
     damaged = tmp_path / "damaged"
     damaged.mkdir()
     key = next(iter(caches.keys("")))
     caches.put_bytes(key, b"not a cache file")
-    assert len(fetch_caches(caches, damaged, scenes)) == 1  # rebuilt, not read
+    assert len(fetch_caches(caches, damaged, scenes).unbuilt) == 1  # rebuilt, not read
 
 
 def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: World, machine: Path) -> None:
@@ -230,7 +230,7 @@ def test_a_token_whose_cache_is_in_the_store_is_scored_without_its_scene(
     fetched = {path.name for path in (mirror_dir(content_hash) / "scenes").iterdir()}
     assert fetched == {scene_paths(REFERENCE_DIR)[tokens[2]].name}
     (tmp_path / "reader").mkdir()
-    assert fetch_caches(caches, tmp_path / "reader", hashes) == []  # the cache built was published
+    assert fetch_caches(caches, tmp_path / "reader", hashes).unbuilt == []  # the cache built was published
 
 
 def _stored_two_stage_split() -> S3Store:

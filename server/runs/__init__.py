@@ -22,7 +22,7 @@ from server.runs._after import check_integrity_after_run, chunks_waiting
 from server.runs._chunks import POISON_DEATHS, ChunkStart, StartAction, beat_chunk, start_chunk
 from server.runs._finish import mark_scored
 from server.runs._job import ChunkInputs, Rejected, ScoringJob, chunk_inputs
-from server.runs._plan import Plan, plan_run
+from server.runs._plan import Plan, plan_run, split_blocks
 from server.runs._reaper import Reaped, reap_dead_chunks, reap_lost_work
 from server.runs._rows import write_chunk, write_chunk_results
 from server.runs._run import BOARD_VERSIONS, RUN_VERSIONS, run_versions
@@ -55,6 +55,7 @@ __all__ = [
     "reset_for_rerun",
     "run_versions",
     "score_chunk",
+    "split_blocks",
     "start_chunk",
     "write_chunk",
     "write_chunk_results",

@@ -20,6 +20,7 @@ from scorer.geometry import FloatArray
 from server.models import FailureKind, SplitKind, Submission
 from server.object_store import ObjectStore
 from server.runs._chunks import ChunkStart, StartAction
+from server.runs._plan import token_blocks
 from server.runs._run import completed_tokens, run_versions
 from server.services.errors import NotFound
 from server.split_store import split_stages, split_tokens
@@ -65,6 +66,8 @@ class ChunkInputs:
     todo: tuple[str, ...]  # the chunk's tokens without every row
     context: tuple[str, ...]  # scored for EC to pair with, not written
     poisoned: bool  # its one token killed its workers: written as failed, not scored
+    # The blocks of the split it holds whole (server.runs._plan): their metric caches are fetched as packs.
+    packs: tuple[tuple[str, ...], ...] = ()
 
 
 def load_job(session: Session, submission_id: int) -> ScoringJob:
@@ -94,13 +97,24 @@ def chunk_inputs(session: Session, submission_id: int, run: int, start: ChunkSta
     if done is None:
         return None
     todo = tuple(token for token in start.tokens if token not in done)
+    job = load_job(session, submission_id)
     return ChunkInputs(
         chunk_id=start.chunk_id,
-        job=load_job(session, submission_id),
+        job=job,
         todo=todo,
         context=(*start.context, *(token for token in start.tokens if token in done)),
         poisoned=start.action == StartAction.poisoned and bool(todo),
+        packs=_whole_blocks(session, submission_id, {*start.tokens, *start.context}),
     )
+
+
+def _whole_blocks(session: Session, submission_id: int, tokens: set[str]) -> tuple[tuple[str, ...], ...]:
+    """Return the blocks of the split (`token_blocks`) whose every token is among `tokens`."""
+    submission = session.get(Submission, submission_id)
+    assert submission is not None  # load_job found it
+    blocks = token_blocks(session, submission.split)
+    held = dict.fromkeys(blocks[token] for token in tokens if token in blocks)
+    return tuple(block for block in held if tokens.issuperset(block))
 
 
 def _stored_file(job: ScoringJob, store: ObjectStore) -> bytes:

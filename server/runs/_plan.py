@@ -7,11 +7,16 @@ prev and every now2 and prev2): each token's comfort partner is then in its chun
 scored too, after the groups. A chunk whose process died is planned again one token per chunk
 (`split_chunk`), so that a token that kills its worker cannot take the others with it; its comfort partner
 then comes as its context.
+
+A log-replay split's tokens in that order are cut into blocks of PACK_TOKENS, whose metric caches the object
+store keeps together as one pack (server.shared_caches: one GET for a block instead of one per token); chunks
+are planned of whole blocks, so that they fetch whole packs. The blocks depend on the split alone (never on
+the run's tokens still to score), so the packs one run publishes are those every later run reads.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import TYPE_CHECKING
@@ -19,13 +24,18 @@ from typing import TYPE_CHECKING
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.models import LIVE_CHUNK_STATES, ChunkState, ScoringChunk, SplitKind, Submission, utc_now
+from server.models import LIVE_CHUNK_STATES, ChunkState, ScoringChunk, Split, SplitKind, Submission, utc_now
 from server.runs._finish import finish_if_complete
 from server.runs._run import completed_tokens
 from server.services.splits import scene_starts, split_tokens, stage_mapping
 
 if TYPE_CHECKING:
     from scorer.two_stage.split import TwoStageSplit
+
+
+PACK_TOKENS = 64  # a block's tokens: chunks of 384, 192 and 128 tokens (1, 2 and 3 seeds) are whole blocks
+_BLOCKS_KEPT = 8  # splits whose blocks a worker process keeps (a navtest split's: ~1 MB)
+_blocks_of_split: dict[str, Mapping[str, tuple[str, ...]]] = {}
 
 
 @dataclass(frozen=True)
@@ -90,12 +100,44 @@ def _whole_groups(stages: TwoStageSplit, tokens: Sequence[str], size: int) -> li
     grouped = {token for group in groups for token in group.tokens}
     units = [[token for token in group.tokens if token in todo] for group in groups]
     units = [unit for unit in units if unit] + [[token] for token in tokens if token not in grouped]
+    return _packed(units, size)
+
+
+def _packed(units: Sequence[list[str]], size: int) -> list[list[str]]:
+    """Return chunks of about `size` tokens, each of whole `units` (a larger unit is a chunk of its own)."""
     chunks: list[list[str]] = []
     for unit in units:
         if not chunks or len(chunks[-1]) + len(unit) > size:
             chunks.append([])
         chunks[-1] += unit
     return chunks
+
+
+def log_order(tokens: Sequence[str], starts: Mapping[str, tuple[str, int]]) -> list[str]:
+    """Return a log-replay split's `tokens` in log and time order (a scene that cannot be read first)."""
+    return sorted(tokens, key=lambda token: (starts.get(token, ("", 0)), token))
+
+
+def split_blocks(starts: Mapping[str, tuple[str, int]]) -> list[tuple[str, ...]]:
+    """Return the blocks of a log-replay split whose readable scenes start at `starts` (`scene_starts`), in log
+    order (a scene that cannot be read is in none: its token is read one by one)."""
+    ordered = log_order(list(starts), starts)
+    return [tuple(ordered[start : start + PACK_TOKENS]) for start in range(0, len(ordered), PACK_TOKENS)]
+
+
+def token_blocks(session: Session, split: Split) -> Mapping[str, tuple[str, ...]]:
+    """Return token -> its block for a log-replay split whose index of log frames planning built (none for a
+    two-stage split, whose chunks keep groups whole instead), kept per split content: a worker reads the index
+    once, not for every chunk, and never the object store (the index is in the database)."""
+    blocks = _blocks_of_split.get(split.content_hash)
+    if blocks is None:
+        if split.kind == SplitKind.two_stage or split.scene_starts is None:
+            return {}
+        blocks = {token: block for block in split_blocks(scene_starts(session, split)) for token in block}
+        if len(_blocks_of_split) >= _BLOCKS_KEPT:
+            _blocks_of_split.pop(next(iter(_blocks_of_split)))
+        _blocks_of_split[split.content_hash] = blocks
+    return blocks
 
 
 def plan_chunks(
@@ -116,10 +158,13 @@ def plan_chunks(
     todo = [token for token in tokens if token not in held]
     if submission.split.kind == SplitKind.two_stage:
         groups = _whole_groups(stage_mapping(submission.split), todo, size)
-    else:
-        starts = scene_starts(session, submission.split)
-        todo.sort(key=lambda token: (starts.get(token, ("", 0)), token))
-        groups = [todo[start : start + size] for start in range(0, len(todo), size)]
+    else:  # whole blocks when a chunk holds one (the tokens of a block still to score, in log order)
+        starts = scene_starts(session, submission.split)  # first: the blocks are cut from it
+        blocks = token_blocks(session, submission.split)
+        units: dict[object, list[str]] = {}
+        for token in log_order(todo, starts):
+            units.setdefault(blocks.get(token, token) if size >= PACK_TOKENS else token, []).append(token)
+        groups = _packed(list(units.values()), size)
     chunks = _with_contexts(session, submission, groups)
     for chunk in chunks:
         chunk.sent_at = now or utc_now()

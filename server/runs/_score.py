@@ -54,7 +54,7 @@ def score_chunk(
     # The engine is heavy: the API imports this package without it.
     from scorer.evaluate import SceneFiles, TokenResult, score_seeds
     from scorer.scene import scene_paths
-    from server.shared_caches import fetch_caches, publish_caches
+    from server.shared_caches import fetch_caches, publish_caches, publish_packs
 
     job = inputs.job
     if inputs.poisoned:
@@ -80,10 +80,9 @@ def score_chunk(
             scenes = SceneFiles(scene_paths(split_dir))
         else:
             split_dir, scenes = _one_stage_scenes(job)
-    unbuilt: list[str] = []
     if cache_store is not None:
         hashes = {token: scenes.file_hash(token) for token in scored if token in scenes.paths}
-        unbuilt = fetch_caches(cache_store, cache_dir, hashes)
+        fetched = fetch_caches(cache_store, cache_dir, hashes, inputs.packs)
     started = perf_counter()
     with _split_read():  # the scenes of the caches to build are fetched as the engine needs them
         if stages is not None:
@@ -96,7 +95,8 @@ def score_chunk(
                 split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context, scenes=scenes
             )
     if cache_store is not None:
-        publish_caches(cache_store, cache_dir, {token: scenes.file_hash(token) for token in unbuilt})
+        publish_caches(cache_store, cache_dir, {token: hashes[token] for token in fetched.unbuilt})
+        publish_packs(cache_store, cache_dir, hashes, fetched.unpacked)
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))
 
 
