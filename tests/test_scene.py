@@ -133,7 +133,7 @@ def test_map_point_lists_read_per_layer_equal_those_read_one_by_one(monkeypatch:
     together = load_scene(path).map
     monkeypatch.setattr(scene_module, "_valid_point_lists", lambda raw_layer, key, minimum: None)
     alone = load_scene(path).map
-    for layer in scene_module.MapExcerpt.__dataclass_fields__:
+    for layer in scene_module.MapExcerpt._fields:
         first, second = getattr(together, layer), getattr(alone, layer)
         assert [item.polygon.wkb for item in first] == [item.polygon.wkb for item in second]
         if layer in ("lanes", "lane_connectors"):
