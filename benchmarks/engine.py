@@ -21,7 +21,9 @@ Prints, under a header that describes the host (benchmarks/host.py):
   per token and seed, `floor ratio, scoring (all versions, 3 seeds)`;
 - apart from those, the start-up of `navsim-lb score` (a one-token split, warm cache) with and without
   `--out results.csv`, and of `navsim-lb --help`, against bare `python -c "import numpy, shapely"` (target: at
-  most 1.5x in CPU time, the wall time beside it), and peak RSS.
+  most 1.5x in CPU time, the wall time beside it), each command run in turn with bare Python, pair by pair,
+  and the ratio the median of the pairs' (on a shared host the speed drifts between two separate series of
+  runs; within a pair much less), and peak RSS.
 Every process runs one OpenBLAS thread (OPENBLAS_NUM_THREADS=1 unless set), as the workers do and as the
 devkit is timed.
 CPU time counts this process and its finished children (the process pool's), every thread of each. Cache
@@ -79,6 +81,7 @@ SCORE_TARGET = 2.0  # v2.2's scoring time per token against v1.1's
 OFFICIAL_REACTIVE_SECONDS = 1.0  # the official two-stage script per token, one process (issue 25's figure)
 REACTIVE_TARGET = 100.0  # at least this many times the official script's speed per token
 STARTUP_TARGET = 1.5  # a one-token `navsim-lb score` against bare Python importing numpy and shapely
+STARTUP_PAIRS = 15
 SCORE_FLOOR_TARGET = 1.5  # the log-replay versions at once per token and seed against their SVDs' CPU time
 CACHE_FLOOR_TARGET = 2.0  # the log-replay versions' cache per scene against its SVDs' CPU time
 # Every version whose floor is its SVDs: the reactive version's IDM traffic has a floor of its own.
@@ -204,32 +207,51 @@ def _score_part(args: tuple[Path, Path, dict, str, list[str]]) -> int:
 
 @dataclass(frozen=True)
 class Startup:
-    """Medians of a command's runs as a whole process: wall time and CPU time (user + system; under load the
-    wall time measures the host's other work too)."""
+    """A command's runs as a whole process, each paired with a run of bare Python right after it: the medians
+    of the command's wall and CPU times (user + system; under load the wall time measures the host's other work
+    too), of bare Python's, and of the pairs' ratios."""
 
     wall: float
     cpu: float
+    bare_wall: float
+    bare_cpu: float
+    wall_ratio: float
+    cpu_ratio: float
 
-    def against(self, bare: Startup) -> str:
-        ratio = self.cpu / bare.cpu
-        verdict = "within" if ratio <= STARTUP_TARGET else "OVER"
+    def against_bare(self) -> str:
+        verdict = "within" if self.cpu_ratio <= STARTUP_TARGET else "OVER"
         return (
-            f"{self.wall:.3f} s, {self.wall / bare.wall:.2f}x bare Python; CPU {self.cpu:.3f} s, {ratio:.2f}x"
-            f" ({verdict} {STARTUP_TARGET:g}x)"
+            f"{self.wall:.3f} s, {self.wall_ratio:.2f}x bare Python; CPU {self.cpu:.3f} s, {self.cpu_ratio:.2f}x"
+            f" ({verdict} {STARTUP_TARGET:g}x; bare Python in the same pairs {self.bare_wall:.3f} s,"
+            f" CPU {self.bare_cpu:.3f} s)"
         )
 
 
-def _median_startup(command: list[str], runs: int = 5) -> Startup:
-    """Return the medians of `command`'s runs, run once first untimed (the file system's caches)."""
+def _run_timed(command: list[str]) -> tuple[float, float]:
+    """Run `command` as a whole process; return its wall and CPU seconds."""
+    before, start = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
     subprocess.run(command, check=True, capture_output=True)
-    walls, cpus = [], []
-    for _ in range(runs):
-        before, start = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
-        subprocess.run(command, check=True, capture_output=True)
-        walls.append(time.perf_counter() - start)
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        cpus.append(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)
-    return Startup(statistics.median(walls), statistics.median(cpus))
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+
+
+def _paired_startup(command: list[str], pairs: int = STARTUP_PAIRS) -> Startup:
+    """Time `command` and bare Python in turn, `pairs` times each, after one untimed run of both (the file
+    system's caches)."""
+    bare = [sys.executable, "-c", "import numpy, shapely"]
+    subprocess.run(command, check=True, capture_output=True)
+    subprocess.run(bare, check=True, capture_output=True)
+    runs = [(_run_timed(command), _run_timed(bare)) for _ in range(pairs)]
+    median = statistics.median
+    return Startup(
+        wall=median(own[0] for own, _ in runs),
+        cpu=median(own[1] for own, _ in runs),
+        bare_wall=median(other[0] for _, other in runs),
+        bare_cpu=median(other[1] for _, other in runs),
+        wall_ratio=median(own[0] / other[0] for own, other in runs),
+        cpu_ratio=median(own[1] / other[1] for own, other in runs),
+    )
 
 
 def _startup(split: Path, predictions: dict, out: bool) -> Startup:
@@ -247,7 +269,7 @@ def _startup(split: Path, predictions: dict, out: bool) -> Startup:
     command = [str(Path(sys.executable).with_name("navsim-lb")), "score", str(one), str(submission)]
     command += ["--cache-dir", str(DATA / "cache_one")]
     command += ["--out", str(DATA / "one_token.csv")] if out else []
-    return _median_startup(command)  # its first, untimed run builds the one-token cache
+    return _paired_startup(command)  # its first, untimed run builds the one-token cache
 
 
 def build_cache(split: Path, cache_dir: Path, versions: Sequence[str], workers: int, count: int) -> Timing:
@@ -380,16 +402,17 @@ def main() -> None:
     print(_floor(seeded, seeded.svd_cpu_seconds or 0.0, "token and seed"))
     print(_floor_verdict("the log-replay versions at once, per token and seed", at_once, SCORE_FLOOR_TARGET))
 
-    print("\nstart-up, medians of 5 runs:")
-    bare = _median_startup([sys.executable, "-c", "import numpy, shapely"])
+    print(
+        f"\nstart-up, each run paired with one of bare Python (python -c 'import numpy, shapely'), {STARTUP_PAIRS}"
+        " pairs, medians:"
+    )
     navsim_lb = str(Path(sys.executable).with_name("navsim-lb"))
     for label, startup in (
         ("navsim-lb score of a one-token split (warm cache)", _startup(split, predictions, out=False)),
         ("the same with --out results.csv", _startup(split, predictions, out=True)),
-        ("navsim-lb --help", _median_startup([navsim_lb, "--help"])),
+        ("navsim-lb --help", _paired_startup([navsim_lb, "--help"])),
     ):
-        print(f"  {label}: {startup.against(bare)}")
-    print(f"  bare Python: python -c 'import numpy, shapely' takes {bare.wall:.3f} s, CPU {bare.cpu:.3f} s")
+        print(f"  {label}: {startup.against_bare()}")
     print(
         f"peak RSS: {_peak_rss_mib(resource.RUSAGE_SELF):.0f} MiB this process,"
         f" {_peak_rss_mib(resource.RUSAGE_CHILDREN):.0f} MiB its largest child (a pool process or navsim-lb)"
