@@ -90,6 +90,57 @@ def test_the_script_leaves_its_objects_to_the_os_at_exit() -> None:
     assert frozen > 10_000  # numpy's, typer's and rich's objects and ours
 
 
+TEARDOWN_PROBE = """
+import os, sys, threading, time
+from navsim_lb.cli import main
+
+
+class TornDown:
+    def __del__(self, write=os.write) -> None:  # os itself may be gone by then
+        write(2, b"torn down\\n")
+
+
+sys.kept = TornDown()  # freed by the interpreter's teardown (it clears sys), which a finished command skips
+if sys.argv[1] == "thread":  # a thread still running: Python's exit waits for it, and tears down
+    threading.Thread(target=lambda: (time.sleep(0.2), os.write(2, b"thread done\\n"))).start()
+sys.argv = ["navsim-lb", *sys.argv[2:]]
+main()
+"""
+
+
+def test_the_script_ends_without_the_interpreters_teardown_keeping_the_exit_status(
+    tmp_path: Path, one_token_split: tuple[Path, Path]
+) -> None:
+    """A finished command's process ends without tearing the interpreter down, with the command's exit status
+    and all it printed; where a thread still runs, Python exits as usual (it waits for the thread)."""
+
+    def probe(*arguments: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-c", TEARDOWN_PROBE, *arguments], check=False, capture_output=True, text=True
+        )
+
+    version = probe("alone", "--version")
+    assert version.returncode == 0 and version.stdout.splitlines() == [f"navsim-lb {_version()}"]
+    assert version.stderr == ""
+    arguments = [*(str(path) for path in one_token_split), "--cache-dir", str(tmp_path / "cache")]
+    scored = probe("alone", "score", *arguments, "--out", str(tmp_path / "results.csv"))
+    assert scored.returncode == 0, scored.stderr
+    assert "torn down" not in scored.stderr and "(PDMS v1.1)" in scored.stdout
+    assert (tmp_path / "results.csv").read_text().count("\n") == 3  # the header, the token, the average
+    failing = probe("alone", "score", "/no/such/split", "x.json")
+    assert failing.returncode == 2 and "/no/such/split" in failing.stderr
+    assert "torn down" not in failing.stderr
+    waited = probe("thread", "--version")
+    assert waited.returncode == 0 and waited.stdout.splitlines() == [f"navsim-lb {_version()}"]
+    assert waited.stderr.splitlines() == ["thread done", "torn down"]
+
+
+def _version() -> str:
+    from importlib.metadata import version
+
+    return f"{version('navsim-leaderboard')} (engine {ENGINE_VERSION})"
+
+
 def test_the_command_runs_the_cycle_collector_less_often() -> None:
     """Importing the command's package raises the collector's threshold (start-up), and only the first one."""
     probe = "import gc, navsim_lb; print(gc.get_threshold(), navsim_lb.COLLECTION_ALLOCATIONS)"
@@ -98,16 +149,20 @@ def test_the_command_runs_the_cycle_collector_less_often() -> None:
 
 
 WARM_SCORE_PROBE = """
-import sys
+import atexit, sys
 from navsim_lb.cli import main
-sys.argv = ["navsim-lb", "score", *sys.argv[1:]]
-try:
-    main()
-finally:
+
+
+@atexit.register
+def imported() -> None:
     rooms = ("navsim_lb.client", "navsim_lb.demo", "navsim_lb.openscene_cli", "server.cli", "worker.cli")
     print("other rooms imported:", [name for name in rooms if name in sys.modules])
     builders = ("scorer.pdm_closed", "scorer.planner_observation", "scorer.route")
     print("cache builders imported:", [name for name in builders if name in sys.modules])
+
+
+sys.argv = ["navsim-lb", "score", *sys.argv[1:]]
+main()
 """
 
 
@@ -130,16 +185,20 @@ def test_scoring_from_a_warm_cache_does_not_import_the_cache_builders(
 
 
 LOG_REPLAY_PROBE = """
-import sys
+import atexit, sys
 from navsim_lb.cli import main
-sys.argv = ["navsim-lb", "score", *sys.argv[1:]]
-try:
-    main()
-finally:
+
+
+@atexit.register
+def imported() -> None:
     engines = ("scorer.reactive", "scorer.two_stage")
     print("engines imported:", sorted({name for name in sys.modules for e in engines if name.startswith(e)}))
     print("rich imported:", "rich" in sys.modules)
     print("tempfile imported:", "tempfile" in sys.modules)
+
+
+sys.argv = ["navsim-lb", "score", *sys.argv[1:]]
+main()
 """
 
 
