@@ -38,6 +38,7 @@ from scorer.geometry import (
     EGO_HALF_WIDTH,
     EGO_LENGTH,
     EGO_WIDTH,
+    BoolArray,
     FloatArray,
     IntArray,
     box_corners,
@@ -45,7 +46,7 @@ from scorer.geometry import (
     normalize_angle,
     rear_axle_round_trip,
 )
-from scorer.pdm_scorer import MeasureSettings, measure_alike, score_measures
+from scorer.pdm_scorer import MeasureSettings, comfort_of, measure_alike, score_measures
 from scorer.planner_observation import PlannerObservation, observe_for_planner, scoring_observation
 from scorer.route import (
     Route,
@@ -438,6 +439,7 @@ def best_proposals(
 
     A token's measures do not depend on the tokens measured with it, so the scenes are measured together, and
     once for all configs (`measure_alike`): only what a config's `MeasureSettings` change is measured apart.
+    Likewise v1's comfort is judged once per series (`comfort_of`), which both v1 configs read.
     """
     observations = [scoring_observation(plan.observation) for plan in plans]
     inputs = (
@@ -448,8 +450,10 @@ def best_proposals(
     )
     measured = measure_alike(states, *inputs, [MeasureSettings.of(config) for config in configs])
     best = np.empty((len(plans), len(configs)), dtype=np.intp)
+    known: list[tuple[FloatArray, BoolArray]] = []  # v1.0's and v1.1's planners judge the same series
     for column, (config, measures) in enumerate(zip(configs, measured, strict=True)):
-        best[:, column] = np.argmax(score_measures(measures, config).score, axis=1)
+        comfortable = comfort_of(measures.comfort_series, known) if "comfortable" in config.weights else None
+        best[:, column] = np.argmax(score_measures(measures, config, comfortable=comfortable).score, axis=1)
     return best
 
 

@@ -87,10 +87,17 @@ BROKEN = [
     (_set(["token"], "ffffffffffffffff"), "token"),
     (_set(["map", "lanes", 0, "baseline"], [[1.0, 2.0]]), "map.lanes[0].baseline"),
     (_set(["map", "lanes", 0, "polygon"], [[1.0, 2.0], [3.0, 4.0]]), "map.lanes[0].polygon"),
+    (_set(["map", "lanes", 0, "polygon"], [[1.0, 2.0], [3.0, 4.0, 5.0], [6.0, 7.0]]), "map.lanes[0].polygon"),
+    (_set(["map", "lanes", 0, "polygon"], [[[1.0, 2.0], [3.0, 4.0]]] * 3), "map.lanes[0].polygon"),
+    (_set(["map", "lanes", 0, "baseline"], ["12", "34"]), "map.lanes[0].baseline"),
+    (_set(["map", "lanes", 0, "baseline"], [{"1": 0, "2": 0}, {"3": 0, "4": 0}]), "map.lanes[0].baseline"),
     (_set(["map", "lanes", 0, "speed_limit_mps"], -1), "map.lanes[0].speed_limit_mps"),
     (_set(["map", "lanes", 0, "outgoing"], []), "map.lanes[0].outgoing"),
     (_set(["map", "lane_connectors", 0, "incoming"], ["1", "2"]), "map.lane_connectors[0].incoming"),
     (_set(["map", "roadblocks", 0, "lanes"], []), "map.roadblocks[0].lanes"),
+    (_set(["map", "roadblocks", 1, "outgoing"], ["007"]), "map.roadblocks[1].outgoing"),
+    (_set(["map", "lanes", 1, "incoming"], "12"), "map.lanes[1].incoming"),
+    (_set(["map", "lane_connectors", 0, "outgoing"], [12]), "map.lane_connectors[0].outgoing"),
     (_set(["map", "hovercraft_lanes"], []), "map"),
     (_delete(["map", "roadblocks"]), "map.roadblocks"),
 ]
@@ -227,3 +234,15 @@ def test_a_scene_hash_is_remembered_only_while_its_file_is_unchanged(
     os.utime(path, ns=(modified, modified))  # and modification time; the change time moves
     second = scene_module.scene_file_hash(path)
     assert second != first and second == file_hash(path) and len(reads) == 4
+
+
+def test_map_id_lists_read_per_layer_equal_those_read_one_by_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    path = REFERENCE / "scenes" / f"{TOKEN}.json.gz"
+    together = load_scene(path).map
+    monkeypatch.setattr(scene_module, "_valid_id_lists", lambda raw_layer, keys: None)
+    alone = load_scene(path).map
+    for layer in ("lanes", "lane_connectors", "roadblocks", "roadblock_connectors"):
+        for first, second in zip(getattr(together, layer), getattr(alone, layer), strict=True):
+            keys = ("id", "incoming", "outgoing") + (("lanes",) if hasattr(first, "lanes") else ())
+            assert [getattr(first, key) for key in keys] == [getattr(second, key) for key in keys]
+            assert all(type(getattr(first, key)) is tuple for key in keys[1:])
