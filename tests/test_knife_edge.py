@@ -22,6 +22,7 @@ from engine_process import run_python, score_in_process
 from scorer.blas import DEVKIT_KERNELS, KEEP_VARIABLE, cpu_runs_devkit_kernels
 from scorer.metrics import contacts
 from scorer.metrics.contacts import AHEAD_ANGLE, BEHIND_ANGLE, SIDE_MARGIN, contact_sides, relative_angle
+from scorer.svml_acos import arccos_avx512
 from scorer.versions import METRIC_COLUMNS
 
 KNIFE_EDGE = Path(__file__).parent / "fixtures" / "knife-edge"
@@ -117,6 +118,31 @@ def test_relative_angles_of_plain_cases() -> None:
     assert angles[1] == np.pi  # exactly behind: dot product exactly -1
     assert np.isnan(angles[2])  # the target on the rear axle: 0 / 0, as nuPlan's
     assert angles[3] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_relative_angles_are_the_devkits_per_contact_expression_to_the_bit() -> None:
+    """Cosines and sines taken on arrays and the norm as the square root of a `ddot` give the bits of nuPlan's
+    expression, contact by contact: targets anywhere, almost exactly behind (where `ddot` passes -1 or not) and
+    on the rear axle."""
+    rng = np.random.default_rng(2)
+    count = 3000
+    rear_axle = np.column_stack(
+        [rng.uniform(3e5, 4e5, count), rng.uniform(1e5, 2e5, count), rng.uniform(-7.0, 7.0, count)]
+    )
+    targets = rear_axle[:, :2] + rng.uniform(-30.0, 30.0, (count, 2))
+    behind = slice(0, 1000)
+    targets[behind] = _targets_at(rear_axle[behind], np.full(1000, np.pi), rng.uniform(1.0, 20.0, 1000))
+    targets[1000:1010] = rear_axle[1000:1010, :2]
+    offsets = targets - rear_axle[:, :2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosines = [
+            np.dot(np.array([np.cos(heading), np.sin(heading)]), offset / np.linalg.norm(offset))
+            for offset, heading in zip(offsets, rear_axle[:, 2].tolist(), strict=True)
+        ]
+        expected = arccos_avx512(np.array(cosines))
+    angles = relative_angle(rear_axle, targets)
+    assert angles.tobytes() == expected.tobytes()
+    assert np.isnan(angles[behind]).any() and not np.isnan(angles[behind]).all()  # both sides of -1 occur
 
 
 def _exact_sides(rear_axle: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -120,16 +120,19 @@ def relative_angle(rear_axle: FloatArray, targets: FloatArray) -> FloatArray:
     The devkit takes `np.dot` of two 2-vectors and `np.linalg.norm` of one; both are BLAS `ddot`, whose
     rounding belongs to the OpenBLAS kernel. For a target almost exactly behind, that last bit decides
     whether the dot product passes -1 (arccos NaN: "behind" and "ahead" are both false) or not, so each
-    contact makes the same calls on the same 2-vectors rather than an array expression (`contact_sides` asks it
-    only where the comparisons hang on such bits).
-    A target on the rear axle gives NaN too (0 / 0), as in the devkit.
+    contact makes the same `ddot` calls on the same 2-vectors rather than an array expression (`contact_sides`
+    asks it only where the comparisons hang on such bits). The heading vectors' cosines and sines are taken on
+    arrays (numpy's elementwise loops give each value the bits of its scalar call), and the norm as
+    `np.linalg.norm` takes it of a 1-D vector, the square root of the vector dotted with itself: the calls
+    left per contact are the two `ddot`s and a division. A target on the rear axle gives NaN too (0 / 0), as
+    in the devkit.
     """
     cosines = np.empty(len(targets))
     offsets = targets - rear_axle[:, :2]  # elementwise, as the devkit's scalar differences
+    heading_vectors = np.stack([np.cos(rear_axle[:, 2]), np.sin(rear_axle[:, 2])], axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        for contact, (offset, heading) in enumerate(zip(offsets, rear_axle[:, 2].tolist(), strict=True)):
-            heading_vector = np.array([np.cos(heading), np.sin(heading)])
-            cosines[contact] = np.dot(heading_vector, offset / np.linalg.norm(offset))
+        for contact, (offset, heading_vector) in enumerate(zip(offsets, heading_vectors, strict=True)):
+            cosines[contact] = heading_vector.dot(offset / np.sqrt(offset.dot(offset)))
         return arccos_avx512(cosines)  # SVML's, as the devkit's numpy on AVX-512 (`scorer.svml_acos`)
 
 
