@@ -654,6 +654,19 @@ def load_cache(cache_dir: Path, version: str, token: str, scene_hash: str) -> Me
     return load_caches(cache_dir, [version], token, scene_hash).get(version)
 
 
+_BOX_BYTES = np.dtype((np.void, 8 * np.dtype(np.float64).itemsize))  # a box's 4 corners as one item
+
+
+def _boxes_where_present(present: np.ndarray, boxes: FloatArray) -> FloatArray:
+    """Return the corners (T, n, 4, 2) of the boxes (k, 4, 2) stored for the True entries of `present` (T, n), in
+    its C order, NaN where absent. Each box's 8 values move as one item: numpy copies an indexed item several
+    times faster than an indexed row of 8 floats (a third of a token's cache reading)."""
+    corners = np.full((*present.shape, 4, 2), np.nan)
+    as_items = corners.reshape(-1, 8).view(_BOX_BYTES).reshape(-1)
+    as_items[present.reshape(-1)] = np.ascontiguousarray(boxes).reshape(-1, 8).view(_BOX_BYTES).reshape(-1)
+    return corners
+
+
 def _cache_of(
     key: CacheKey,
     meta: dict[str, Any],
@@ -673,8 +686,7 @@ def _cache_of(
 
     def observation() -> Observation:
         present = arrays["object_present"]
-        corners = np.full((*present.shape, 4, 2), np.nan)
-        corners[present] = arrays["object_corners"]
+        corners = _boxes_where_present(present, arrays["object_corners"])
         red_lights = None
         if meta["red_light_lanes"] is not None:
             red_lights = RedLights(

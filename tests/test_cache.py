@@ -49,7 +49,7 @@ def assert_same_cache(loaded: MetricCache, cache: MetricCache) -> None:
     assert shapely.equals_exact(loaded.drivable_map.polygons, cache.drivable_map.polygons, 0.0).all()
     assert loaded.observation.tokens == cache.observation.tokens
     assert np.array_equal(loaded.observation.present, cache.observation.present)
-    assert np.array_equal(loaded.observation.corners, cache.observation.corners, equal_nan=True)
+    assert loaded.observation.corners.tobytes() == cache.observation.corners.tobytes()  # NaN and -0.0 too
     assert (loaded.reference_measures is None) == (cache.reference_measures is None)
     for name in ProposalMeasures._fields if cache.reference_measures is not None else ():
         assert np.array_equal(
@@ -88,6 +88,21 @@ def test_round_trip_is_exact(tmp_path: Path, built: tuple[str, dict[str, MetricC
     together = load_caches(tmp_path, list(caches), token, scene_file_hash(path))
     for version, cache in caches.items():
         assert_same_cache(together[version], cache)
+
+
+@pytest.mark.parametrize("shape", [(51, 7), (41, 0), (3, 4)])
+def test_present_boxes_land_where_a_mask_assignment_puts_them(shape: tuple[int, int]) -> None:
+    """The boxes moved as items hold the bits a boolean-mask assignment gives: -0.0 kept, NaN where absent."""
+    rng = np.random.default_rng(7)
+    present = rng.random(shape) < 0.6
+    boxes = rng.standard_normal((int(present.sum()), 4, 2))
+    boxes[:, 0, 1] = -0.0
+    expected = np.full((*shape, 4, 2), np.nan)
+    expected[present] = boxes
+    stored = np.frombuffer(b"\0" + boxes.tobytes(), dtype=np.float64, offset=1).reshape(
+        boxes.shape
+    )  # unaligned
+    assert scorer_cache._boxes_where_present(present, stored).tobytes() == expected.tobytes()
 
 
 def test_a_file_is_read_before_it_is_written_only_to_keep_versions_not_rewritten(

@@ -20,7 +20,9 @@ from devkit_kernels import V1_VERSIONS
 from engine_process import run_python, score_in_process
 
 from scorer.blas import DEVKIT_KERNELS, KEEP_VARIABLE, cpu_runs_devkit_kernels
-from scorer.metrics.contacts import BEHIND_ANGLE, relative_angle
+from scorer.metrics import contacts
+from scorer.metrics.contacts import AHEAD_ANGLE, BEHIND_ANGLE, SIDE_MARGIN, contact_sides, relative_angle
+from scorer.svml_acos import arccos_avx512
 from scorer.versions import METRIC_COLUMNS
 
 KNIFE_EDGE = Path(__file__).parent / "fixtures" / "knife-edge"
@@ -116,3 +118,95 @@ def test_relative_angles_of_plain_cases() -> None:
     assert angles[1] == np.pi  # exactly behind: dot product exactly -1
     assert np.isnan(angles[2])  # the target on the rear axle: 0 / 0, as nuPlan's
     assert angles[3] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_relative_angles_are_the_devkits_per_contact_expression_to_the_bit() -> None:
+    """Cosines and sines taken on arrays and the norm as the square root of a `ddot` give the bits of nuPlan's
+    expression, contact by contact: targets anywhere, almost exactly behind (where `ddot` passes -1 or not) and
+    on the rear axle."""
+    rng = np.random.default_rng(2)
+    count = 3000
+    rear_axle = np.column_stack(
+        [rng.uniform(3e5, 4e5, count), rng.uniform(1e5, 2e5, count), rng.uniform(-7.0, 7.0, count)]
+    )
+    targets = rear_axle[:, :2] + rng.uniform(-30.0, 30.0, (count, 2))
+    behind = slice(0, 1000)
+    targets[behind] = _targets_at(rear_axle[behind], np.full(1000, np.pi), rng.uniform(1.0, 20.0, 1000))
+    targets[1000:1010] = rear_axle[1000:1010, :2]
+    offsets = targets - rear_axle[:, :2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosines = [
+            np.dot(np.array([np.cos(heading), np.sin(heading)]), offset / np.linalg.norm(offset))
+            for offset, heading in zip(offsets, rear_axle[:, 2].tolist(), strict=True)
+        ]
+        expected = arccos_avx512(np.array(cosines))
+    angles = relative_angle(rear_axle, targets)
+    assert angles.tobytes() == expected.tobytes()
+    assert np.isnan(angles[behind]).any() and not np.isnan(angles[behind]).all()  # both sides of -1 occur
+
+
+def _exact_sides(rear_axle: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    angles = relative_angle(rear_axle, targets)
+    return angles < AHEAD_ANGLE, angles > BEHIND_ANGLE
+
+
+def _targets_at(rear_axle: np.ndarray, angles: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """Return targets at `angles` (signed, radians) from each rear axle's heading, `distance` (m) away."""
+    bearing = rear_axle[:, 2] + angles
+    return rear_axle[:, :2] + distance[:, None] * np.stack([np.cos(bearing), np.sin(bearing)], axis=-1)
+
+
+def test_contact_sides_are_the_exact_angles_compared_with_the_thresholds() -> None:
+    rng = np.random.default_rng(5)
+    count = 4000
+    rear_axle = np.column_stack(
+        [rng.uniform(3e5, 4e5, count), rng.uniform(1e5, 2e5, count), rng.uniform(-np.pi, np.pi, count)]
+    )
+    targets = rear_axle[:, :2] + rng.uniform(-60.0, 60.0, (count, 2))
+    ahead, behind = contact_sides(rear_axle, targets)
+    expected_ahead, expected_behind = _exact_sides(rear_axle, targets)
+    assert np.array_equal(ahead, expected_ahead) and np.array_equal(behind, expected_behind)
+    assert ahead.any() and behind.any() and not (ahead | behind).all()
+
+
+@pytest.mark.parametrize("threshold", [AHEAD_ANGLE, BEHIND_ANGLE])
+def test_contact_sides_at_near_ties_are_the_exact_ones(threshold: float) -> None:
+    """Targets at the threshold angle nudged by a few ulps, where the arrays' cosine and the devkit's fall on
+    either side of the threshold's by turns (the exact calls decide), and targets just beyond the margin either
+    way (the arrays decide): every comparison is the exact one."""
+    rng = np.random.default_rng(3)
+    count = 4000
+    # Near the origin, an ulp of a coordinate moves the angle far less than the margin.
+    rear_axle = np.column_stack(
+        [rng.uniform(-50.0, 50.0, count), rng.uniform(-50.0, 50.0, count), rng.uniform(-np.pi, np.pi, count)]
+    )
+    sign, distance = rng.choice([-1.0, 1.0], count), rng.uniform(1.0, 20.0, count)
+    at_threshold = _targets_at(rear_axle, sign * threshold, distance)
+    nudged = at_threshold + rng.integers(-3, 4, (count, 2)) * np.spacing(at_threshold)
+    # Twice the margin in the cosine, either way: arccos's slope at both thresholds is -1 / sin = -2.
+    beyond = [
+        _targets_at(rear_axle, sign * (threshold + side * 4.0 * SIDE_MARGIN), distance) for side in (-1, 1)
+    ]
+    for targets in (at_threshold, nudged, *beyond):
+        sides = contact_sides(rear_axle, targets)
+        expected = _exact_sides(rear_axle, targets)
+        assert np.array_equal(sides[0], expected[0]) and np.array_equal(sides[1], expected[1])
+
+
+def test_contact_sides_take_the_exact_calls_only_near_a_tie(monkeypatch: pytest.MonkeyPatch) -> None:
+    exact: list[int] = []
+
+    def counted(rear_axle: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        exact.append(len(targets))
+        return relative_angle(rear_axle, targets)
+
+    monkeypatch.setattr(contacts, "relative_angle", counted)
+    rear_axle = np.array([[0.0, 0.0, 0.0]] * 3 + [list(BEHIND_REAR_AXLE)])
+    targets = np.array([[5.0, 1.0], [-5.0, 1.0], [0.0, 0.0], list(BEHIND_TARGET)])
+    ahead, behind = contact_sides(rear_axle, targets)
+    # The target on the rear axle (0 / 0) is neither ahead nor behind, as its NaN angle compares in the devkit;
+    # the knife-edge one (a cosine at -1 to the last bit, which the kernels decide) as the exact calls say.
+    assert ahead[:3].tolist() == [True, False, False] and behind[:3].tolist() == [False, True, False]
+    expected = _exact_sides(rear_axle[3:], targets[3:])
+    assert ahead[3] == expected[0][0] and behind[3] == expected[1][0]
+    assert exact == [2]

@@ -14,14 +14,13 @@ import numpy.typing as npt
 
 from scorer.geometry import FloatArray, IntArray
 from scorer.metrics.contacts import (
-    BEHIND_ANGLE,
     FirstInfraction,
     centroids,
+    contact_sides,
     counted_contacts,
     find_contacts,
     first_infraction,
     no_contacts,
-    relative_angle,
     segments_meet,
 )
 from scorer.metrics.ego_areas import EgoArea
@@ -54,13 +53,12 @@ def no_at_fault_collisions(
     ego_stopped = np.hypot(state[:, StateIndex.VELOCITY_X], state[:, StateIndex.VELOCITY_Y]) <= STOPPED_SPEED
     # nuPlan's `is_track_stopped`: anything that is not an Agent counts as stopped.
     track_stopped = ~observations.is_agent[obj] | (observations.first_speed[obj] <= STOPPED_SPEED)
-    # The devkit asks for the angle only when neither is stopped; each angle costs BLAS calls (contacts.py).
+    # The devkit asks for the angle only when neither is stopped.
     behind = np.zeros(len(row), dtype=bool)
     moving = ~ego_stopped & ~track_stopped
-    behind[moving] = (
-        relative_angle(state[moving, : StateIndex.HEADING + 1], centroids(contacts.polygons[moving]))
-        > BEHIND_ANGLE
-    )
+    behind[moving] = contact_sides(
+        state[moving, : StateIndex.HEADING + 1], centroids(contacts.polygons[moving])
+    )[1]
     ego = points[row, step]
     front = segments_meet(
         ego[:, BoxPoint.FRONT_LEFT], ego[:, BoxPoint.FRONT_RIGHT], ego_corners(ego), contacts

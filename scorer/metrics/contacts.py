@@ -120,16 +120,62 @@ def relative_angle(rear_axle: FloatArray, targets: FloatArray) -> FloatArray:
     The devkit takes `np.dot` of two 2-vectors and `np.linalg.norm` of one; both are BLAS `ddot`, whose
     rounding belongs to the OpenBLAS kernel. For a target almost exactly behind, that last bit decides
     whether the dot product passes -1 (arccos NaN: "behind" and "ahead" are both false) or not, so each
-    contact makes the same calls on the same 2-vectors rather than an array expression: contacts are few.
-    A target on the rear axle gives NaN too (0 / 0), as in the devkit.
+    contact makes the same `ddot` calls on the same 2-vectors rather than an array expression (`contact_sides`
+    asks it only where the comparisons hang on such bits). The heading vectors' cosines and sines are taken on
+    arrays (numpy's elementwise loops give each value the bits of its scalar call), and the norm as
+    `np.linalg.norm` takes it of a 1-D vector, the square root of the vector dotted with itself: the calls
+    left per contact are the two `ddot`s and a division. A target on the rear axle gives NaN too (0 / 0), as
+    in the devkit.
     """
     cosines = np.empty(len(targets))
     offsets = targets - rear_axle[:, :2]  # elementwise, as the devkit's scalar differences
+    heading_vectors = np.stack([np.cos(rear_axle[:, 2]), np.sin(rear_axle[:, 2])], axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        for contact, (offset, heading) in enumerate(zip(offsets, rear_axle[:, 2].tolist(), strict=True)):
-            heading_vector = np.array([np.cos(heading), np.sin(heading)])
-            cosines[contact] = np.dot(heading_vector, offset / np.linalg.norm(offset))
+        for contact, (offset, heading_vector) in enumerate(zip(offsets, heading_vectors, strict=True)):
+            cosines[contact] = heading_vector.dot(offset / np.sqrt(offset.dot(offset)))
         return arccos_avx512(cosines)  # SVML's, as the devkit's numpy on AVX-512 (`scorer.svml_acos`)
+
+
+# How far from a threshold's cosine (and from +-1) the array arithmetic of `contact_sides` decides a side.
+SIDE_MARGIN = 1e-12
+_AHEAD_COSINE = float(np.cos(AHEAD_ANGLE))
+_BEHIND_COSINE = float(np.cos(BEHIND_ANGLE))
+
+
+def contact_sides(rear_axle: FloatArray, targets: FloatArray) -> tuple[BoolArray, BoolArray]:
+    """Return whether each target (K, 2) is ahead of the ego (rear axle x, y, heading (K, 3)) and whether it is
+    behind: `relative_angle`'s angle < AHEAD_ANGLE and > BEHIND_ANGLE (both False where it is NaN), to the bit
+    of those comparisons, with `relative_angle`'s per-contact BLAS calls only for the few contacts near a tie.
+
+    The others are decided on arrays by the cosine c' = (cos h dx + sin h dy) / hypot(dx, dy). Proof that such a
+    decision is the devkit's: c' and the devkit's cosine c (its heading vector dotted with the offset over its
+    norm: two `ddot`s, a square root and a division) each lie within 20 eps (4.5e-15) of the true cosine: the
+    heading's cosine and sine are within a few ulps, every other operation rounds once (a fused multiply-add
+    once), and the operands are at most 1 in magnitude once divided by the norm. A decided contact has c' more
+    than SIDE_MARGIN (1e-12) from the cosine of each threshold angle (the rounded cos, within an ulp of the
+    true one) and |c'| < 1 - SIDE_MARGIN; so c lies in (-1, 1) (no NaN), on the side of c', more than 1e-12 -
+    1e-14 from the threshold's cosine. arccos has slope at least 1 in magnitude, so the true arccos(c) lies
+    that far from the threshold angle: hundreds of times the error of the AVX-512 arccos (`scorer.svml_acos`, a
+    few ulps of an angle below 4). The devkit's comparison falls as c' says. The rest (near a tie, the target
+    on the rear axle: 0 / 0, a non-finite value) take the exact calls.
+    """
+    offsets = targets - rear_axle[:, :2]
+    heading = rear_axle[:, 2]
+    distance = np.hypot(offsets[:, 0], offsets[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosines = (np.cos(heading) * offsets[:, 0] + np.sin(heading) * offsets[:, 1]) / distance
+    ahead, behind = cosines > _AHEAD_COSINE, cosines < _BEHIND_COSINE
+    # NaN fails every comparison, so it goes to the exact calls; so do distances whose squares (the devkit's
+    # norm) could underflow or overflow, where the rounding above does not bound its cosine.
+    decided = (np.abs(cosines) < 1.0 - SIDE_MARGIN) & (distance > 1e-100) & (distance < 1e100)
+    decided &= (np.abs(cosines - _AHEAD_COSINE) > SIDE_MARGIN) & (
+        np.abs(cosines - _BEHIND_COSINE) > SIDE_MARGIN
+    )
+    near = ~decided
+    if near.any():
+        angles = relative_angle(rear_axle[near], targets[near])
+        ahead[near], behind[near] = angles < AHEAD_ANGLE, angles > BEHIND_ANGLE
+    return ahead, behind
 
 
 def centroids(polygons: npt.NDArray[np.object_]) -> FloatArray:

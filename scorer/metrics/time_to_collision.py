@@ -18,15 +18,13 @@ import numpy.typing as npt
 from scorer.drivable_map import MapBatch
 from scorer.geometry import FloatArray, IntArray
 from scorer.metrics.contacts import (
-    AHEAD_ANGLE,
-    BEHIND_ANGLE,
     FirstInfraction,
     centroids,
+    contact_sides,
     counted_contacts,
     find_contacts,
     first_infraction,
     no_contacts,
-    relative_angle,
 )
 from scorer.metrics.ego_areas import EgoArea, in_intersection
 from scorer.metrics.ego_box import ego_corners
@@ -87,7 +85,7 @@ def time_to_collision(
     row, step, order, obj = row[moving], step[moving], contacts.step[moving], contacts.obj[moving]
     state = states[row, step]
 
-    angle = relative_angle(state[:, : StateIndex.HEADING + 1], centroids(contacts.polygons[moving]))
+    ahead, behind = contact_sides(state[:, : StateIndex.HEADING + 1], centroids(contacts.polygons[moving]))
     rear_axle_in_intersection = in_intersection(
         state[:, StateIndex.X], state[:, StateIndex.Y], row_token[row], maps
     )
@@ -97,7 +95,7 @@ def time_to_collision(
         | ego_area[:, EgoArea.NON_DRIVABLE_AREA]
         | rear_axle_in_intersection
     )
-    at_fault = (angle < AHEAD_ANGLE) | (exposed & ~(angle > BEHIND_ANGLE))
+    at_fault = ahead | (exposed & ~behind)
 
     results: list[tuple[FloatArray, FirstInfraction]] = []
     for horizon in evaluated_steps:
