@@ -1,7 +1,9 @@
 """The reactive simulation's shortcuts against the plain computations they replace, bit for bit: the capsules
 of a path ahead and of a footprint's path (slices of a path's memoised segments) against the segments of the
 points `to_go` and `between` give, a box polygon's corners against `box_corners`, whether a path ahead meets
-a box against GEOS's buffer of it, and a path's memoised states against fresh ones."""
+a box against GEOS's buffer of it, and a path's memoised states against fresh ones; and the bounds against
+what they bound: a box's capsule holds the box, a box taken as its own simplification is GEOS's, a path ahead
+taken to meet the box it starts in meets it."""
 
 from __future__ import annotations
 
@@ -12,11 +14,20 @@ import numpy as np
 import pytest
 import shapely
 
-from scorer.geometry import box_corners
+from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, box_corners
 from scorer.reactive.agents import box_polygon
-from scorer.reactive.occupancy import BUFFER_REACH, bound_of, path_between_bound, path_to_go_bound
+from scorer.reactive.occupancy import (
+    BOUND_SLACK,
+    BUFFER_REACH,
+    SIMPLIFY_TOLERANCE,
+    bound_of,
+    box_capsule,
+    box_is_simplified,
+    path_between_bound,
+    path_to_go_bound,
+)
 from scorer.reactive.paths import LanePath
-from scorer.reactive.traffic import _PathAhead
+from scorer.reactive.traffic import _inside_box, _PathAhead
 
 HALF_WIDTH = 0.9
 
@@ -93,3 +104,80 @@ def test_memoised_states_are_fresh_ones(path: LanePath) -> None:
     assert states == [
         LanePath(path.progress, path.points, path.unwrapped_heading).state_at(p) for p in progresses
     ]
+
+
+def _boxes(count: int, seed: int) -> list[tuple[float, float, float, float, float]]:
+    """Boxes (x, y, heading, length, width) at map coordinates, of vehicle sizes and of slivers."""
+    rng = np.random.default_rng(seed)
+    boxes = []
+    for index in range(count):
+        x, y = rng.uniform(-7e5, 7e5, 2).tolist()
+        heading = float(rng.uniform(-math.pi, math.pi)) if index % 10 else index / 10 * math.pi / 8
+        length, width = (10.0 ** rng.uniform(-5.0, 1.5, 2)).tolist()
+        boxes.append((x, y, heading, length, width))
+    return boxes
+
+
+def test_a_box_capsule_holds_its_box() -> None:
+    for x, y, heading, length, width in _boxes(3000, 17):
+        x0, y0, x1, y1, radius = box_capsule(x, y, heading, length, width)
+        corners = shapely.points(shapely.get_coordinates(box_polygon(x, y, heading, length, width)))
+        reach = shapely.distance(shapely.linestrings([[x0, y0], [x1, y1]]), corners) - radius
+        assert reach.max() < BOUND_SLACK / 1000
+
+
+def test_a_box_taken_as_its_own_simplification_is_it() -> None:
+    boxes = _boxes(3000, 19)
+    # About the threshold: the corner's height over the diagonal a thousand tolerances, nudged either way.
+    for length in (0.011, 0.02, 1.0):
+        width = 1 / math.sqrt(1 / (1000 * SIMPLIFY_TOLERANCE) ** 2 - 1 / length**2)
+        boxes += [(12.5, -3.0, 0.3, length, math.nextafter(width, side)) for side in (0.0, math.inf)]
+    ego = box_corners(664_000.0, 3_997_000.0, 0.7, EGO_HALF_LENGTH, EGO_HALF_WIDTH)
+    simplified = 0
+    for x, y, heading, length, width in boxes:
+        if box_is_simplified(length, width):
+            simplified += 1
+            box = box_polygon(x, y, heading, length, width)
+            once = shapely.simplify(box, SIMPLIFY_TOLERANCE, preserve_topology=True)
+            assert shapely.equals_exact(once, box, tolerance=0.0)
+    assert 0 < simplified < len(boxes)
+    assert box_is_simplified(2 * EGO_HALF_LENGTH, 2 * EGO_HALF_WIDTH)
+    ego_box = shapely.polygons(ego)
+    assert shapely.equals_exact(shapely.simplify(ego_box, SIMPLIFY_TOLERANCE), ego_box, tolerance=0.0)
+    # Where the shortcut does not claim it, simplifying may well change the box.
+    sliver = box_polygon(1.0, 2.0, 0.5, 3.0, 1e-6)
+    assert not box_is_simplified(3.0, 1e-6)
+    assert not shapely.equals_exact(shapely.simplify(sliver, SIMPLIFY_TOLERANCE), sliver, tolerance=0.0)
+
+
+def test_a_path_ahead_starting_inside_a_box_meets_it() -> None:
+    rng = np.random.default_rng(23)
+    claimed = refused = 0
+    for x, y, heading, length, width in _boxes(400, 29):
+        length, width = length + 0.5, width + 0.5
+        box = shapely.simplify(box_polygon(x, y, heading, length, width), SIMPLIFY_TOLERANCE)
+        cos, sin = math.cos(heading), math.sin(heading)
+        # First points about a side, within and beyond the margin, at it and an ulp either side.
+        for side, sign, offset in itertools.product(
+            ("along", "across"), (-1.0, 1.0), (-2.0, -1.0, -0.5, 0.5, 1.0)
+        ):
+            half, other = (length / 2, width / 2) if side == "along" else (width / 2, length / 2)
+            reach = half + offset * BOUND_SLACK
+            for at in (reach, math.nextafter(reach, 0.0), math.nextafter(reach, math.inf)):
+                free = float(rng.uniform(-other + 2 * BOUND_SLACK, other - 2 * BOUND_SLACK))
+                along, across = (sign * at, free) if side == "along" else (free, sign * at)
+                start = (x + along * cos - across * sin, y + along * sin + across * cos)
+                # The path ahead leaves through that side.
+                outward = heading + (0.0 if side == "along" else math.pi / 2) + (sign < 0) * math.pi
+                direction = outward + rng.uniform(-0.3, 0.3)
+                second = (start[0] + 0.3 * math.cos(direction), start[1] + 0.3 * math.sin(direction))
+                points = np.array([start, second, (second[0] + 1.0, second[1])])
+                if not _inside_box(*start, (x, y, heading), length, width):
+                    refused += 1
+                    continue
+                claimed += 1
+                # Whatever the buffer's width: narrow, where the box's side alone decides.
+                for half_width in (width / 2, 1e-3):
+                    buffer = shapely.buffer(shapely.linestrings(points), half_width, cap_style="flat")
+                    assert shapely.intersects(box, buffer)
+    assert claimed > 1000 and refused > 1000

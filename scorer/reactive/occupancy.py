@@ -17,7 +17,8 @@ A geometry a search needs is built then and simplified as many times as the devk
 (the rounds since its insertion), stopping early at a fixed point: when `simplify` gives back the same
 coordinates in the same structure (`equals_exact` with tolerance 0), every later round gives them back too.
 So every geometry a lead search reads is the one the devkit reads, bit for bit, and none is simplified more
-than twice. A vehicle standing still gets the same footprint at every step: it is built once.
+than twice; a box (a vehicle's at the start, the ego's) is its own simplification (`box_is_simplified`) and is
+not simplified at all. A vehicle standing still gets the same footprint at every step: it is built once.
 
 What is built is shared by the process's simulations: a geometry's key names it (the numbers it is built
 from), and every simulation that holds a geometry of that key (the other simulation of the token, or a token
@@ -41,7 +42,6 @@ import numpy as np
 import shapely
 
 from scorer.reactive import geos
-from scorer.reactive.agents import box_trigonometry
 from scorer.reactive.paths import LanePath
 
 SIMPLIFY_TOLERANCE = 1e-5
@@ -59,6 +59,9 @@ Capsules = list[Capsule]
 Envelope = tuple[float, float, float, float]  # min x, min y, max x, max y
 Bound = tuple[Capsules, list[Envelope]]  # capsules holding a geometry and the envelope of each
 T = TypeVar("T")
+# A box is its own simplification where each corner lies farther than this many tolerances from the diagonal
+# between its neighbours (`box_is_simplified`).
+BOX_SIMPLIFY_MARGIN = 1000.0
 # Where the capsule test's own distance decides (`_end_within`): beyond a billionth of the reach, Python's
 # hypot and numpy's (each within an ulp of the true distance) agree on the side.
 HYPOT_TIE = 1e-9
@@ -103,8 +106,11 @@ def path_between_bound(path: LanePath, start: float, end: float, distance: float
 
 
 def box_capsule(x: float, y: float, heading: float, length: float, width: float) -> Capsule:
-    """Return the capsule holding a box: its long axis and half its width."""
-    _, cos, _, sin = box_trigonometry(heading)
+    """Return the capsule holding a box: its long axis and half its width. The axis turned by Python's cosine
+    and sine, not numpy's that place the box's corners (`box_trigonometry`): they differ by an ulp or so, which
+    moves the capsule by about 1e-15 m per metre of the box, nothing against `BOUND_SLACK`; and numpy's cost a
+    few microseconds for every heading not met before, most of them for boxes never built."""
+    cos, sin = math.cos(heading), math.sin(heading)
     half_x, half_y = length / 2 * cos, length / 2 * sin
     return (x - half_x, y - half_y, x + half_x, y + half_y, width / 2)
 
@@ -167,21 +173,32 @@ def bound_of(capsules: Capsules) -> Bound:
 
 def envelope_of(envelopes: list[Envelope]) -> Envelope:
     """Return the envelope of the union of capsules, given their envelopes."""
-    return (
-        min(envelope[0] for envelope in envelopes),
-        min(envelope[1] for envelope in envelopes),
-        max(envelope[2] for envelope in envelopes),
-        max(envelope[3] for envelope in envelopes),
-    )
+    low_x, low_y, high_x, high_y = zip(*envelopes, strict=True)
+    return min(low_x), min(low_y), max(high_x), max(high_y)
+
+
+def box_is_simplified(length: float, width: float) -> bool:
+    """Return whether GEOS's `simplify(box, SIMPLIFY_TOLERANCE, preserve_topology=True)` of a box of `length` x
+    `width` (a polygon of 4 corners, `box_polygon`'s or the ego's) surely gives back the same coordinates in the
+    same order, and so does every further round.
+
+    GEOS's topology-preserving simplifier runs Douglas-Peucker on the ring, from its first corner to the same
+    corner again: the vertex farthest from that corner is the opposite one (at the diagonal's length), kept;
+    each of the two others lies at the height length * width / diagonal from the diagonal between its
+    neighbours, kept where that exceeds the tolerance; the ring's first corner is dropped only where it lies
+    within the tolerance of the segment between its neighbours, the other diagonal, at the same height. The
+    corners' rounding moves these distances by ulps of the coordinates, nothing against a margin of a thousand
+    tolerances (1 cm)."""
+    return length * width / math.hypot(length, width) > BOX_SIMPLIFY_MARGIN * SIMPLIFY_TOLERANCE
 
 
 class _Simplified:
     """A geometry and its simplifications, round by round, up to a fixed point."""
 
-    def __init__(self, build: Callable[[], shapely.Geometry]) -> None:
+    def __init__(self, build: Callable[[], shapely.Geometry], fixed: bool) -> None:
         self._build = build
         self._rounds: list[shapely.Geometry] = []  # the geometry after 0, 1, ... rounds
-        self._fixed = False  # the last one is a fixed point of the simplification
+        self._fixed = fixed  # the last one is a fixed point of the simplification
 
     def after(self, rounds: int) -> shapely.Geometry:
         """Return the geometry simplified `rounds` times."""
@@ -193,22 +210,6 @@ class _Simplified:
             self._fixed = geos.equals_exactly(simplified, last)
             self._rounds.append(simplified)
         return self._rounds[min(rounds, len(self._rounds) - 1)]
-
-
-class _Shape:
-    """A geometry's capsules and its simplifications: what every occupancy holding the same geometry shares."""
-
-    def __init__(self, bound: Callable[[], Bound], build: Callable[[], shapely.Geometry]) -> None:
-        self._bound = bound
-        self.simplified = _Simplified(build)
-        self._capsules: tuple[Capsules, list[Envelope], Envelope] | None = None
-
-    def capsules(self) -> tuple[Capsules, list[Envelope], Envelope]:
-        """Return the capsules holding the geometry, their envelopes and the envelope of them all."""
-        if self._capsules is None:
-            capsules, envelopes = self._bound()
-            self._capsules = capsules, envelopes, envelope_of(envelopes)
-        return self._capsules
 
 
 class Recent(OrderedDict[Hashable, T]):
@@ -239,7 +240,7 @@ class Recent(OrderedDict[Hashable, T]):
 # another simulation of the scene, or of a scene that starts from the same recorded traffic, as the
 # synthetic scenes of one stage-one frame do), and the same question gets the same answer. Bounded, so
 # that a worker's memory does not grow with its tokens.
-_SHAPES: Recent[_Shape] = Recent(2048)  # by key identity
+_SHAPES: Recent[_Simplified] = Recent(2048)  # by key identity
 _ANSWERS: Recent[list[str]] = Recent(8192)
 # Each key's identity, a number no other key ever gets: a memo keyed by identities hashes integers, not the
 # key's numbers (a forgotten key gets a new identity, and what was kept under its old one is not read).
@@ -255,8 +256,10 @@ class _Entry:
     bound: Callable[[], Bound]
     build: Callable[[], shapely.Geometry]
     inserted_round: int
+    fixed: bool  # what `build` gives is its own simplification
     _identity: int | None = None
-    _shape: _Shape | None = None
+    _simplified: _Simplified | None = None
+    _capsules: tuple[Capsules, list[Envelope], Envelope] | None = None
 
     def identity(self) -> int:
         """Return the key's identity (looked up only when a search first needs it: most keys never are)."""
@@ -264,11 +267,22 @@ class _Entry:
             self._identity = _IDENTITIES.get_or_make(self.key, _NEXT_IDENTITY.__next__)
         return self._identity
 
-    def shape(self) -> _Shape:
-        """Return the shared shape of the key, made from `bound` and `build` where no other holds it."""
-        if self._shape is None:
-            self._shape = _SHAPES.get_or_make(self.identity(), partial(_Shape, self.bound, self.build))
-        return self._shape
+    def simplified(self) -> _Simplified:
+        """Return the shared simplifications of the key's geometry, made from `build` where no other holds
+        them."""
+        if self._simplified is None:
+            self._simplified = _SHAPES.get_or_make(
+                self.identity(), partial(_Simplified, self.build, self.fixed)
+            )
+        return self._simplified
+
+    def capsules(self) -> tuple[Capsules, list[Envelope], Envelope]:
+        """Return the capsules holding the geometry, their envelopes and the envelope of them all (the entry's
+        own: computed in microseconds, most geometries are asked about in one simulation only)."""
+        if self._capsules is None:
+            capsules, envelopes = self.bound()
+            self._capsules = capsules, envelopes, envelope_of(envelopes)
+        return self._capsules
 
 
 class LazyOccupancy:
@@ -285,9 +299,11 @@ class LazyOccupancy:
         envelope: Envelope,
         bound: Callable[[], Bound],
         build: Callable[[], shapely.Geometry],
+        fixed: bool = False,
     ) -> None:
         """Insert or replace the geometry of `name`, held within `envelope` and within the capsules `bound`
-        gives (a replaced name keeps its place, as in a dict). `key` names the geometry process-wide: what
+        gives (a replaced name keeps its place, as in a dict); `fixed`: what `build` gives is its own
+        simplification, every round. `key` names the geometry process-wide: what
         was built and simplified of a geometry of the same key (a vehicle standing still, the same vehicle in
         another simulation) serves again: the devkit builds the same coordinates anew and simplifies them from
         the start, and so do its rounds here."""
@@ -295,7 +311,7 @@ class LazyOccupancy:
         if previous is not None and previous.key == key:
             previous.inserted_round = self._rounds
         else:
-            self._entries[name] = _Entry(key, envelope, bound, build, self._rounds)
+            self._entries[name] = _Entry(key, envelope, bound, build, self._rounds, fixed)
 
     def remove(self, name: str) -> None:
         """Remove `name` (a vehicle that left the radius)."""
@@ -333,7 +349,7 @@ class LazyOccupancy:
     def _near(self, names: list[str], capsules: Capsules, pieces: list[Envelope]) -> list[str]:
         # The (piece, owner, capsule) triples whose envelopes meet, as numpy's (piece, capsule) grid listed
         # them: the first piece among them is the origin every capsule test measures from.
-        held = [self._entries[name].shape().capsules() for name in names]
+        held = [self._entries[name].capsules() for name in names]
         # One comprehension, the envelopes' overlap test written out: this is most of the pre-check's Python.
         # A piece meets a capsule's envelope only where it meets the envelope of all of the owner's: tested
         # first.
@@ -365,4 +381,4 @@ class LazyOccupancy:
     def geometry(self, name: str) -> shapely.Geometry:
         """Return the geometry of `name` as the devkit holds it now: built, and simplified once per round."""
         entry = self._entries[name]
-        return entry.shape().simplified.after(self._rounds - entry.inserted_round)
+        return entry.simplified().after(self._rounds - entry.inserted_round)

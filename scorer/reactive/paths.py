@@ -121,6 +121,11 @@ class LanePath:
         x, y, _ = self.state_at(progress)
         return (x, y), ahead
 
+    def to_go_start(self, progress: float) -> tuple[float, float]:
+        """Return the first point of `to_go(progress)`."""
+        start, first = self.to_go_parts(progress)
+        return start if start is not None else self.vertices[first]
+
     @cached_property
     def vertices(self) -> list[tuple[float, float]]:
         """Return the vertices' x, y in Python floats."""

@@ -55,6 +55,7 @@ from scorer.reactive.occupancy import (
     Recent,
     bound_of,
     box_capsule,
+    box_is_simplified,
     envelope_of,
     path_between_bound,
     path_to_go_bound,
@@ -69,6 +70,7 @@ _SIMULATIONS = itertools.count()
 # Where the range filter's own distance decides (`_leave_range`): beyond a millionth of the radius.
 RANGE_TIE = 1e-6
 _BOXES: Recent[shapely.Polygon] = Recent(4096)
+_EGO_IS_SIMPLIFIED = box_is_simplified(2 * EGO_HALF_LENGTH, 2 * EGO_HALF_WIDTH)
 
 
 class IdmUpdate(NamedTuple):
@@ -228,6 +230,23 @@ class _PathAhead:
         return self._inner
 
 
+def _inside_box(x: float, y: float, box: tuple[float, float, float], length: float, width: float) -> bool:
+    """Return whether (x, y) lies inside the box of `length` x `width` centred at the pose `box` by more than
+    `BOUND_SLACK` across and along it: then a path ahead starting there surely meets the box as the devkit's
+    lead search holds it (the box, simplified; GEOS's buffer of the path ahead).
+
+    The points of the path ahead near its first point lie inside the box too, and all but its ends lie inside
+    the buffer (`_PathAhead`). The box's corners and this test round their products and sums by ulps of the
+    coordinates (this test turns by Python's cosine and sine, the box by numpy's: an ulp apart, as in
+    `box_capsule`), and simplifying the box moves its sides by at most the tolerance (it moves none,
+    `box_is_simplified`): nothing against the margin."""
+    center_x, center_y, heading = box
+    cos, sin = math.cos(heading), math.sin(heading)
+    offset_x, offset_y = x - center_x, y - center_y
+    along, across = offset_x * cos + offset_y * sin, offset_y * cos - offset_x * sin
+    return abs(along) < length / 2 - BOUND_SLACK and abs(across) < width / 2 - BOUND_SLACK
+
+
 class _TreeOrderNeeded(Exception):
     """Equally near leads (or an odd name): only the devkit's STRtrees can say which one it follows."""
 
@@ -246,11 +265,15 @@ def _lead_of(
         near = occupancy.near(near, ahead_key, partial(path_to_go_bound, path, clamped, half_width))
     free_road = None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
     # After its first update a vehicle's footprint holds its box, centred where its path ahead starts: the
-    # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test.
-    if not near and agent.updated:
+    # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test; before,
+    # it holds where the path ahead starts well inside the box at the start.
+    meets_own = agent.updated or _inside_box(
+        *path.to_go_start(clamped), agent.start.pose, agent.start.length, agent.start.width
+    )
+    if not near and meets_own:
         return free_road
     ahead = _PathAhead(path.to_go(clamped), half_width)
-    if not agent.updated and not ahead.meets(occupancy.geometry(track)):
+    if not meets_own and not ahead.meets(occupancy.geometry(track)):
         raise ValueError(f"vehicle {track}: its path does not meet its own footprint (the devkit asserts)")
     try:
         nearest = _nearest_hit(track, ahead, near, occupancy)
@@ -311,6 +334,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
             envelope_of(bound[1]),
             partial(_given, bound),
             partial(box_polygon, *vehicle.pose, vehicle.length, vehicle.width),
+            box_is_simplified(vehicle.length, vehicle.width),
         )
     target_velocity = {vehicle.track: vehicle.target_velocity for vehicle in start.agents}
     parked = [
@@ -340,6 +364,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
             envelope_of(bound[1]),
             partial(_given, bound),
             partial(_given, ego[step - 1]),
+            _EGO_IS_SIMPLIFIED,
         )
         _leave_range(agents, occupancy, ego_state, config.radius, step, out_of_range)
         for track, agent in agents.items():
