@@ -174,7 +174,9 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
 
     def score() -> str:
         with sessions() as session:
-            inputs = runs.chunk_inputs(session, submission_id, run, start)
+            inputs = runs.chunk_inputs(
+                session, submission_id, run, start, packs=settings.cache_store is not None
+            )
         if inputs is None:
             return "dropped"
         with beating(sessions, chunk_id, worker):
