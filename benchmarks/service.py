@@ -38,8 +38,11 @@ processes: its supervisor, and the others of its session (the scoring consumers 
 from /proc just before the worker is stopped. (RUSAGE_CHILDREN would give one maximum over every process this
 benchmark ever waited for, API and workers alike.)
 
+With --no-engine the engine-alone reference is skipped (its columns read nan): what the store costs against
+the local directory needs only the two services' runs.
+
 Usage: .venv/bin/python benchmarks/service.py [--tokens 2000] [--seeds 1] [--rate 200] [--seconds 10]
-       [--backends embedded,services] [--workers 1,2] [--storage local,s3] [--load 6] [--nice 10]
+       [--backends embedded,services] [--workers 1,2] [--storage local,s3] [--no-engine] [--load 6] [--nice 10]
        [--two-stage 225 --pairs 12]
 (Uploads are rate-limited to 30 a minute per token: with --load, keep 2N uploads per minute below that.)
 """
@@ -53,6 +56,7 @@ import scorer  # noqa: F401 - before numpy, so that numpy loads the official res
 import argparse
 import asyncio
 import itertools
+import math
 import multiprocessing
 import os
 import socket
@@ -729,6 +733,9 @@ def main() -> None:
         "--nice", type=int, default=SCORING_NICENESS, help="the workers' `navsim-lb worker --nice`"
     )
     parser.add_argument("--storage", default="local", help="local,s3: uploads, scenes and caches where")
+    parser.add_argument(
+        "--no-engine", action="store_true", help="skip the engine-alone reference (storage ratios only)"
+    )
     parser.add_argument("--two-stage", type=int, default=0, help="groups of a two-stage split (navhard: 225)")
     parser.add_argument("--pairs", type=int, default=12, help="synthetic pairs of each two-stage group")
     args = parser.parse_args()
@@ -767,7 +774,10 @@ def main() -> None:
             )
         return
     entry = entry_file(split, DATA / f"entry_{args.tokens}_{SPLIT_SEED}_{args.seeds}.json", seeds=args.seeds)
-    engine = {workers: engine_only(split, cache, entry, workers) for workers in sizes}
+    engine = {
+        workers: (math.nan, math.nan) if args.no_engine else engine_only(split, cache, entry, workers)
+        for workers in sizes
+    }
     print(
         f"{args.tokens} tokens x {args.seeds} seeds, the board's metric versions ({', '.join(LOG_REPLAY_VERSIONS)}): seconds from"
         " POST to its scored status and to its leaderboard row, against the engine alone on as many processes"

@@ -23,7 +23,7 @@ from server.body_limit import BodySizeLimit
 from server.db import make_engine, make_session_factory, transaction
 from server.migrate import require_migrated
 from server.models import Split
-from server.object_store import StoreUnavailable
+from server.object_store import StoreUnavailable, connect
 from server.queue import broker_status, enqueue_submission, live_workers
 from server.rate_limits import RateLimits
 from server.routes import admin, monitoring, public, submissions, web
@@ -165,6 +165,7 @@ def create_app(settings: Settings | None = None, enqueue: Callable[[int], None] 
     app.include_router(monitoring.router)
     app.mount("/static", StaticFiles(directory=web.WEB_DIR / "static"), name="static")
     register_configured_splits(app)
+    connect(settings.submission_store)
     return app
 
 

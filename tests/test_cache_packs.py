@@ -173,6 +173,8 @@ def test_chunks_are_planned_of_whole_blocks_cut_from_the_whole_split(
         chunks = [session.get(ScoringChunk, chunk_id) for chunk_id in chunk_ids]
         assert [chunk.tokens for chunk in chunks if chunk] == [[*blocks[0][2:], *blocks[1]], list(blocks[2])]
         started = start_chunk(session, chunk_ids[0], 1, "host/1")
-        inputs = chunk_inputs(session, submission.id, 1, started)
+        inputs = chunk_inputs(session, submission.id, 1, started, packs=True)
         assert inputs is not None
         assert inputs.packs == (blocks[1],)  # the first block's is not whole in the chunk
+        without_store = chunk_inputs(session, submission.id, 1, started)
+        assert without_store is not None and without_store.packs == ()  # a local cache reads no pack

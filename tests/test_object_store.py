@@ -20,7 +20,9 @@ from server.object_store import (
     ObjectStore,
     S3Store,
     StoreUnavailable,
+    _client_of,
     child,
+    connect,
     open_store,
 )
 
@@ -85,6 +87,20 @@ def test_an_s3_endpoint_that_does_not_answer_is_unavailable(monkeypatch: pytest.
             call()
     with pytest.raises(StoreUnavailable):
         store.put("big", io.BytesIO(b"x" * 10))
+
+
+def test_connecting_makes_the_s3_client_at_once_and_reaches_nothing(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    endpoint = f"http://127.0.0.1:{free_port()}"  # nothing listens: connecting must not call the store
+    monkeypatch.setenv("AWS_ENDPOINT_URL", endpoint)
+    _client_of.cache_clear()
+    connect(LocalStore(tmp_path / "store"))
+    assert _client_of.cache_info().currsize == 0
+    connect(S3Store("bucket", "prefix"))
+    made = _client_of(endpoint)
+    assert _client_of.cache_info().hits == 1  # the call above found the client connect made
+    assert made.meta.endpoint_url == endpoint
 
 
 def _leftovers(store: ObjectStore) -> list[str]:

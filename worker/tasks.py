@@ -34,7 +34,7 @@ from scorer.blas import engine_provenance, kernel_warning
 from server import runs
 from server.db import make_engine, make_session_factory, transaction
 from server.models import FailureKind, utc_now
-from server.object_store import StoreUnavailable
+from server.object_store import StoreUnavailable, connect
 from server.queue import SCORE_TASK, prune_embedded_broker, waiting_tasks
 from server.services.errors import NotFound
 from server.settings import get_settings
@@ -67,6 +67,11 @@ def _warn_about_kernels(**_: object) -> None:
     warning = kernel_warning()
     if warning is not None:
         log.warning("%s (results record their kernels: %s)", warning, engine_provenance())
+
+
+@worker_ready.connect
+def _connect_to_the_store(**_: object) -> None:
+    connect(get_settings().submission_store)  # the caches' store, if any, is the same one
 
 
 @lru_cache(maxsize=2)
@@ -174,7 +179,9 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
 
     def score() -> str:
         with sessions() as session:
-            inputs = runs.chunk_inputs(session, submission_id, run, start)
+            inputs = runs.chunk_inputs(
+                session, submission_id, run, start, packs=settings.cache_store is not None
+            )
         if inputs is None:
             return "dropped"
         with beating(sessions, chunk_id, worker):

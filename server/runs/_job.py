@@ -91,8 +91,11 @@ def load_job(session: Session, submission_id: int) -> ScoringJob:
     )
 
 
-def chunk_inputs(session: Session, submission_id: int, run: int, start: ChunkStart) -> ChunkInputs | None:
-    """Return what the chunk `start` took has left to score; None when the run is no longer wanted."""
+def chunk_inputs(
+    session: Session, submission_id: int, run: int, start: ChunkStart, packs: bool = False
+) -> ChunkInputs | None:
+    """Return what the chunk `start` took has left to score; None when the run is no longer wanted. With
+    `packs` (the metric caches come from an object store), the blocks it holds whole as well."""
     done = completed_tokens(session, submission_id, run, among=start.tokens)
     if done is None:
         return None
@@ -104,7 +107,7 @@ def chunk_inputs(session: Session, submission_id: int, run: int, start: ChunkSta
         todo=todo,
         context=(*start.context, *(token for token in start.tokens if token in done)),
         poisoned=start.action == StartAction.poisoned and bool(todo),
-        packs=_whole_blocks(session, submission_id, {*start.tokens, *start.context}),
+        packs=_whole_blocks(session, submission_id, {*start.tokens, *start.context}) if packs else (),
     )
 
 
