@@ -444,8 +444,16 @@ def test_a_redis_broker_flushed_then_restarted_under_load_loses_nothing(
             ids = [service.upload(entry) for entry in entries]
             _running_chunk(service, ids[0])
             broker.client().flushall()  # a broker that lost its queue: the others wait in SQL only
-            # Work goes on from SQL: whichever of the others the workers planned first may be done already.
-            _running_chunk(service, *ids[1:])
+            # Work goes on from SQL. The workers may have planned and scored the others before the first one's
+            # chunk ran (their chunks then all done before the flush): a chunk of theirs running or done shows it.
+            wait_for(
+                lambda: any(
+                    c.state in (ChunkState.running, ChunkState.done)
+                    for s in ids[1:]
+                    for c in _chunks(service, s)
+                ),
+                f"a chunk of submission {ids[1]} or {ids[2]} to run or be done",
+            )
             restarted = time.monotonic()
             broker.restart()
             for submission_id in ids:
