@@ -37,6 +37,11 @@ AREA_LAYERS = ("intersections", "carpark_areas", "drivable_areas", "crosswalks",
 _LEADING_ZERO = r"(?:^| )0[^ ]"
 
 
+def _canonical_ids(ids: list[str]) -> bool:
+    """Return whether every map id is a canonical decimal integer (`_Reader.check_id`), in two calls."""
+    return all(map(str.isdigit, ids)) and re.search(_LEADING_ZERO, " ".join(ids)) is None
+
+
 class SceneFormatError(ValueError):
     """A scene file breaks a rule of the format; the message names the file and the field."""
 
@@ -188,7 +193,7 @@ class _Reader:
         ):
             raise self.fail(self.path(where, key), "expected a list of id strings")
         # Most lists pass: checked in two calls; otherwise item by item, to name the first bad one.
-        if not (all(map(str.isdigit, value)) and re.search(_LEADING_ZERO, " ".join(value)) is None):
+        if not _canonical_ids(value):
             for item in value:
                 self.check_id(item, self.path(where, key))
         return tuple(value)
@@ -378,9 +383,7 @@ def _valid_id_lists(raw_layer: list[Any], keys: tuple[str, ...]) -> list[tuple[t
     if not set(map(type, values)) <= {list}:
         return None
     ids = list(chain.from_iterable(values))
-    if not (set(map(type, ids)) <= {str} and all(map(str.isdigit, ids))):
-        return None
-    if re.search(_LEADING_ZERO, " ".join(ids)) is not None:
+    if not (set(map(type, ids)) <= {str} and _canonical_ids(ids)):
         return None
     return [tuple(map(tuple, object_lists)) for object_lists in lists]
 
