@@ -8,8 +8,8 @@ connector (connector polygons themselves are left out); the intersections; the c
 keeps the order of the excerpt's layer list, as nuPlan's map tables do (docs/engine.md, "Drivable-area map").
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -57,7 +57,7 @@ class MapBatch:
     count: IntArray  # (B,)
 
     @classmethod
-    def of(cls, maps: Sequence[DrivableMap], route_lane_ids: Sequence[Collection[str]]) -> MapBatch:
+    def of(cls, maps: Sequence[DrivableMap], route_lane_ids: Sequence[Collection[str]]) -> "MapBatch":
         """Return the batch of `maps`, each with its token's route lane ids, in one pass over their polygons."""
         count = np.array([len(drivable_map.tokens) for drivable_map in maps], dtype=np.intp)
         polygons = np.concatenate([drivable_map.polygons for drivable_map in maps])

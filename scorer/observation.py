@@ -13,8 +13,8 @@ linearly; length, width and type come from the first sighting. Interpolated head
 the AVX-512 arctan2 of the machine that made the official results (`geometry.normalize_angle`).
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -76,7 +76,7 @@ class ObservationBatch:
     count: IntArray  # (B,) objects of each token
 
     @classmethod
-    def of(cls, observations: Sequence[Observation]) -> ObservationBatch:
+    def of(cls, observations: Sequence[Observation]) -> "ObservationBatch":
         """Return the batch of `observations`, in order."""
         count = np.array([len(observation.tokens) for observation in observations], dtype=np.intp)
 

@@ -9,8 +9,8 @@ in v2), and a few fields hold the structural choices that changed between releas
 version does not score are 1.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -80,7 +80,7 @@ class ProposalScores(NamedTuple):
     multiplier_rows: dict[str, FloatArray]  # the devkit's multi-metric rows, by its names, in order
     weighted_rows: dict[str, FloatArray]  # its weighted-metric rows, by its names, in order
 
-    def token(self, index: int) -> ProposalScores:
+    def token(self, index: int) -> "ProposalScores":
         """Return the (P,) results of token `index` of a batch."""
         values = self._asdict()
         row_of_token: dict[str, Any] = {
@@ -124,11 +124,11 @@ class ProposalMeasures(NamedTuple):
     lane_keeping_index: IntArray
     lane_keeping_run: IntArray
 
-    def token(self, index: int) -> ProposalMeasures:
+    def token(self, index: int) -> "ProposalMeasures":
         """Return the measures of token `index` as a batch of one (1, P)."""
         return ProposalMeasures(**{name: value[index : index + 1] for name, value in self._asdict().items()})
 
-    def proposal(self, index: int) -> ProposalMeasures:
+    def proposal(self, index: int) -> "ProposalMeasures":
         """Return the measures of every token's proposal `index` as proposals of their own (B, 1)."""
         return ProposalMeasures(
             **{name: value[:, index : index + 1] for name, value in self._asdict().items()}
@@ -148,7 +148,7 @@ class MeasureSettings(NamedTuple):
     comfort_at_centre: bool  # v2's history comfort reads the longitudinal acceleration at the centre
 
     @classmethod
-    def of(cls, config: ScorerConfig) -> MeasureSettings:
+    def of(cls, config: ScorerConfig) -> "MeasureSettings":
         """Return what `config` sets of the measures."""
         uses = set(config.multiplier_rows) | set(config.weights)
         return cls(
@@ -239,7 +239,7 @@ class EgoRows:
         drivable_maps: Sequence[DrivableMap],
         centerlines: Sequence[FloatArray],
         route_lane_ids: Sequence[Collection[str]],
-    ) -> EgoRows:
+    ) -> "EgoRows":
         """Return the rows of `states` (B, P, 41, 11), each token with its map, centerline and route."""
         states = np.asarray(states, dtype=np.float64)
         if states.ndim != 4 or states.shape[2:] != (SCORING_POSES + 1, STATE_SIZE):

@@ -6,8 +6,8 @@ not at fault puts its token on the list for the rest of the horizon. Resolved on
 contact counts iff it comes before the first not-at-fault contact of the same (proposal, object).
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from dataclasses import dataclass
 from typing import NamedTuple, cast
 
