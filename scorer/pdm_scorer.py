@@ -453,10 +453,10 @@ def _setting_measures(
     return ProposalMeasures(
         **per_token,
         no_at_fault_collisions=ego.per_token(seen.collisions),
-        collision_index=ego.per_token(seen.collision.index),
+        collision_index=ego.per_token(seen.collision.time_index),
         collision_object=ego.per_token(seen.local_object(seen.collision.obj)),
         time_to_collision_within_bound=ego.per_token(ttc_within_bound),
-        ttc_index=ego.per_token(ttc_infraction.index),
+        ttc_index=ego.per_token(ttc_infraction.time_index),
         ttc_object=ego.per_token(seen.local_object(ttc_infraction.obj)),
         traffic_light_compliance=ego.per_token(light[0]),
         red_light_index=ego.per_token(light[1]),
