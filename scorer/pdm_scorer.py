@@ -11,9 +11,8 @@ version does not score are 1.
 
 # Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
 # compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
-from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass
-from functools import cached_property
+from collections.abc import Callable, Collection, Mapping, Sequence
+from functools import cache
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -215,8 +214,7 @@ TrafficLights = tuple[FloatArray, IntArray, IntArray]
 LaneKeeping = tuple[FloatArray, IntArray, IntArray]
 
 
-@dataclass(frozen=True, eq=False)
-class EgoRows:
+class EgoRows(NamedTuple):
     """B tokens' simulated proposals (B, P, 41, 11) as rows (R = B·P), and what reads only them and the maps
     (the ego's box points, the map areas they lie in): every setting and every observation shares these."""
 
@@ -273,15 +271,12 @@ class EgoRows:
         """The box centres (R, 41, 2)."""
         return self.points[..., BoxPoint.CENTER, :]
 
-    @cached_property
-    def centre_in_intersection(self) -> BoolArray:
-        """Whether each box centre is inside an intersection of its token's map (R, 41): v2's DDC and LK read
-        it, so it is found once, and only when a setting reads it."""
-        num_rows, num_steps = self.rows.shape[:2]
-        x, y = self.centers[..., 0].reshape(-1), self.centers[..., 1].reshape(-1)
-        return in_intersection(x, y, np.repeat(self.row_token, num_steps), self.maps).reshape(
-            num_rows, num_steps
-        )
+
+def centre_in_intersection(ego: EgoRows) -> BoolArray:
+    """Return whether each box centre is inside an intersection of its token's map (R, 41)."""
+    num_rows, num_steps = ego.rows.shape[:2]
+    x, y = ego.centers[..., 0].reshape(-1), ego.centers[..., 1].reshape(-1)
+    return in_intersection(x, y, np.repeat(ego.row_token, num_steps), ego.maps).reshape(num_rows, num_steps)
 
 
 class _Observed:
@@ -360,14 +355,14 @@ def _traffic_lights(
 
 
 def _lane_keeping(
-    ego: EgoRows, settings: Sequence[MeasureSettings]
+    ego: EgoRows, settings: Sequence[MeasureSettings], centres_inside: Callable[[], BoolArray]
 ) -> dict[tuple[float, float], LaneKeeping]:
     """Return LK by (deviation limit, horizon window), measured once for each pair a setting reads."""
     limits = dict.fromkeys(setting.lane_keeping for setting in settings if setting.lane_keeping is not None)
     return {
         (limit, window): lane_keeping(
             ego.centers,
-            ego.centre_in_intersection,
+            centres_inside(),
             ego.centerlines,
             ego.row_token,
             limit,
@@ -400,14 +395,20 @@ def measure_alike(
     readers = list(zip(settings, keys, strict=True))
     ttc = _time_to_collision(ego, observed, readers)
     lights = _traffic_lights(ego, observed, readers)
-    keeping = _lane_keeping(ego, settings)
+
+    # v2's DDC and LK read which box centres are inside an intersection: found once, where a setting reads it.
+    @cache
+    def centres_inside() -> BoolArray:
+        return centre_in_intersection(ego)
+
+    keeping = _lane_keeping(ego, settings, centres_inside)
     comfort = {
         at_centre: ego.per_token(comfort_series(ego.rows, at_centre=at_centre))
         for at_centre in dict.fromkeys(setting.comfort_at_centre for setting in settings)
     }
     off_route = {
         excludes: ego.per_token(
-            off_route_steps(ego.points, ego.areas, ego.centre_in_intersection if excludes else None)
+            off_route_steps(ego.points, ego.areas, centres_inside() if excludes else None)
         )
         for excludes in dict.fromkeys(setting.ddc_excludes_intersections for setting in settings)
     }
