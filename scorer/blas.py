@@ -58,6 +58,7 @@ def select_devkit_kernels(cpu_flags: frozenset[str] | None = None) -> None:
 _ONE_THREAD_PACKAGES = frozenset({"scipy"})  # whose OpenBLAS the engine loads with one thread
 
 
+@cache  # the kernel check and the comfort filters both ask for SciPy's: finding it takes 0.2-0.5 ms
 def _bundled_openblas(package: str, prefix: str) -> ctypes.CDLL | None:
     """Return the OpenBLAS a package's manylinux wheel bundles in `<package>.libs` as `<prefix><hash>.so`
     (auditwheel's layout), loaded without importing the package; None when there is not exactly one.

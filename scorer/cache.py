@@ -11,8 +11,8 @@ otherwise it is rebuilt. Every scene is built in isolation: PDM-Closed's collide
 for each scene, unlike the devkit, whose planner instance carries it across the scenes of a worker batch.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 import json
 import math
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
@@ -85,7 +85,7 @@ class MetricCache(NamedTuple):
     human: dict[str, float] | None = None
     past_states: FloatArray | None = None  # v2's history comfort: the logged past (n, 11)
     reference_states: FloatArray | None = None  # reactive traffic: PDM-Closed's simulated states (41, 11)
-    starting_traffic: StartingTraffic | None = None  # reactive traffic: the vehicles at the start
+    starting_traffic: "StartingTraffic | None" = None  # reactive traffic: the vehicles at the start
 
 
 def build_caches(scene: Scene, versions: Sequence[MetricVersion]) -> dict[str, MetricCache]:
@@ -196,7 +196,7 @@ def _human_observations(
     humans: Sequence[int],
     states: FloatArray,
     observations: Sequence[Observation],
-    traffic: Sequence[StartingTraffic | None],
+    traffic: "Sequence[StartingTraffic | None]",
     version: MetricVersion,
 ) -> list[Observation]:
     """Return what the logged human of each scene is scored against: under reactive traffic, a second
@@ -234,7 +234,7 @@ def _reference_measures(
     versions: Sequence[MetricVersion],
     observations: Sequence[Sequence[Observation]],
     drivable_maps: Sequence[DrivableMap],
-    plans: Sequence[Sequence[PlannerOutput]],
+    plans: "Sequence[Sequence[PlannerOutput]]",
 ) -> list[list[ProposalMeasures | None]]:
     """Return each version's measures (1, 1) of each scene's simulated reference (V, S, 1, 41, 11); None under
     reactive traffic, whose vehicles react to each submission.
@@ -452,7 +452,7 @@ def _cache_section(cache: MetricCache, shared: SharedParts) -> tuple[dict[str, A
     return meta, arrays
 
 
-def _traffic_meta(traffic: StartingTraffic) -> dict[str, Any]:
+def _traffic_meta(traffic: "StartingTraffic") -> dict[str, Any]:
     """Return the vehicles at the start as JSON (floats round-trip exactly through their shortest repr)."""
     from scorer.reactive.agents import IdmVehicle
 
@@ -474,7 +474,7 @@ def _traffic_meta(traffic: StartingTraffic) -> dict[str, Any]:
     }
 
 
-def _traffic_of(meta: dict[str, Any]) -> StartingTraffic:
+def _traffic_of(meta: dict[str, Any]) -> "StartingTraffic":
     """Invert `_traffic_meta`."""
     from scorer.reactive.agents import IdmVehicle, ParkingCandidate, Rejection, StartingTraffic
     from scorer.reactive.paths import LanePath

@@ -8,10 +8,9 @@ connector (connector polygons themselves are left out); the intersections; the c
 keeps the order of the excerpt's layer list, as nuPlan's map tables do (docs/engine.md, "Drivable-area map").
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from collections.abc import Collection, Sequence
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -40,8 +39,7 @@ class DrivableMap(NamedTuple):
     polygons: npt.NDArray[np.object_]  # (m,) shapely Polygons
 
 
-@dataclass(frozen=True, eq=False)
-class MapBatch:
+class MapBatch(NamedTuple):
     """The drivable-area maps of several scene tokens side by side, with each polygon's role for the scorer.
 
     Polygon j of token b is entry start[b] + j.
@@ -54,10 +52,10 @@ class MapBatch:
     is_intersection: BoolArray
     is_route: BoolArray  # a lane of the token's route
     start: IntArray  # (B,)
-    count: IntArray  # (B,)
+    counts: IntArray  # (B,)
 
     @classmethod
-    def of(cls, maps: Sequence[DrivableMap], route_lane_ids: Sequence[Collection[str]]) -> MapBatch:
+    def of(cls, maps: Sequence[DrivableMap], route_lane_ids: Sequence[Collection[str]]) -> "MapBatch":
         """Return the batch of `maps`, each with its token's route lane ids, in one pass over their polygons."""
         count = np.array([len(drivable_map.tokens) for drivable_map in maps], dtype=np.intp)
         polygons = np.concatenate([drivable_map.polygons for drivable_map in maps])
@@ -75,7 +73,7 @@ class MapBatch:
             is_intersection=np.array([kind == INTERSECTION for kind in types], dtype=bool),
             is_route=is_lane & np.array(listed, dtype=bool),
             start=np.cumsum(count) - count,
-            count=count,
+            counts=count,
         )
 
 

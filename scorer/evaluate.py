@@ -5,8 +5,8 @@ text. Summaries count such a token as 0 (the devkit's average row skips it) and 
 (docs/engine.md, "Split results").
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 import hashlib
 import itertools
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
@@ -91,7 +91,7 @@ class TokenError(Exception):
     """A token that cannot be scored; the message is safe to show to the submitting team."""
 
 
-def _log() -> logging.Logger:
+def _log() -> "logging.Logger":
     """Return the organisers' log; logging (1 ms of a score's start-up) loads where a cache is not built."""
     import logging
 
@@ -599,7 +599,7 @@ def score_seeds(
     tokens: Sequence[str] | None = None,
     progress: Callable[[int], None] | None = None,
     context: Sequence[str] = (),
-    scenes: SceneFiles | None = None,
+    scenes: "SceneFiles | None" = None,
 ) -> dict[str, list[TokenResult]]:
     """Return, per metric version, one result per token (all tokens of the split by default) and seed, seed by
     seed in the order of `seeds` (seed -> predictions), building whatever the cache lacks (`score_rows`), with

@@ -13,12 +13,12 @@ linearly; length, width and type come from the first sighting. Interpolated head
 the AVX-512 arctan2 of the machine that made the official results (`geometry.normalize_angle`).
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import cast
+from typing import NamedTuple, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -63,8 +63,7 @@ class Observation:
         return np.array([RED_LIGHT_TOKEN in token for token in self.tokens], dtype=bool)
 
 
-@dataclass(frozen=True, eq=False)
-class ObservationBatch:
+class ObservationBatch(NamedTuple):
     """The observations of several scene tokens side by side: object j of token b is column start[b] + j."""
 
     corners: FloatArray  # (T, N, 4, 2) box corners, NaN where absent
@@ -73,10 +72,10 @@ class ObservationBatch:
     first_speed: FloatArray  # (N,)
     is_red_light: BoolArray  # (N,)
     start: IntArray  # (B,) first column of each token
-    count: IntArray  # (B,) objects of each token
+    counts: IntArray  # (B,) objects of each token
 
     @classmethod
-    def of(cls, observations: Sequence[Observation]) -> ObservationBatch:
+    def of(cls, observations: Sequence[Observation]) -> "ObservationBatch":
         """Return the batch of `observations`, in order."""
         count = np.array([len(observation.tokens) for observation in observations], dtype=np.intp)
 
@@ -91,7 +90,7 @@ class ObservationBatch:
             first_speed=joined("first_speed").astype(np.float64),
             is_red_light=joined("is_red_light").astype(bool),
             start=np.cumsum(count) - count,
-            count=count,
+            counts=count,
         )
 
 

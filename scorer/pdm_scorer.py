@@ -9,11 +9,10 @@ in v2), and a few fields hold the structural choices that changed between releas
 version does not score are 1.
 """
 
-from __future__ import annotations
-
-from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass
-from functools import cached_property
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
+from collections.abc import Callable, Collection, Mapping, Sequence
+from functools import cache
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -80,7 +79,7 @@ class ProposalScores(NamedTuple):
     multiplier_rows: dict[str, FloatArray]  # the devkit's multi-metric rows, by its names, in order
     weighted_rows: dict[str, FloatArray]  # its weighted-metric rows, by its names, in order
 
-    def token(self, index: int) -> ProposalScores:
+    def token(self, index: int) -> "ProposalScores":
         """Return the (P,) results of token `index` of a batch."""
         values = self._asdict()
         row_of_token: dict[str, Any] = {
@@ -124,11 +123,11 @@ class ProposalMeasures(NamedTuple):
     lane_keeping_index: IntArray
     lane_keeping_run: IntArray
 
-    def token(self, index: int) -> ProposalMeasures:
+    def token(self, index: int) -> "ProposalMeasures":
         """Return the measures of token `index` as a batch of one (1, P)."""
         return ProposalMeasures(**{name: value[index : index + 1] for name, value in self._asdict().items()})
 
-    def proposal(self, index: int) -> ProposalMeasures:
+    def proposal(self, index: int) -> "ProposalMeasures":
         """Return the measures of every token's proposal `index` as proposals of their own (B, 1)."""
         return ProposalMeasures(
             **{name: value[:, index : index + 1] for name, value in self._asdict().items()}
@@ -148,7 +147,7 @@ class MeasureSettings(NamedTuple):
     comfort_at_centre: bool  # v2's history comfort reads the longitudinal acceleration at the centre
 
     @classmethod
-    def of(cls, config: ScorerConfig) -> MeasureSettings:
+    def of(cls, config: ScorerConfig) -> "MeasureSettings":
         """Return what `config` sets of the measures."""
         uses = set(config.multiplier_rows) | set(config.weights)
         return cls(
@@ -215,8 +214,7 @@ TrafficLights = tuple[FloatArray, IntArray, IntArray]
 LaneKeeping = tuple[FloatArray, IntArray, IntArray]
 
 
-@dataclass(frozen=True, eq=False)
-class EgoRows:
+class EgoRows(NamedTuple):
     """B tokens' simulated proposals (B, P, 41, 11) as rows (R = B·P), and what reads only them and the maps
     (the ego's box points, the map areas they lie in): every setting and every observation shares these."""
 
@@ -239,7 +237,7 @@ class EgoRows:
         drivable_maps: Sequence[DrivableMap],
         centerlines: Sequence[FloatArray],
         route_lane_ids: Sequence[Collection[str]],
-    ) -> EgoRows:
+    ) -> "EgoRows":
         """Return the rows of `states` (B, P, 41, 11), each token with its map, centerline and route."""
         states = np.asarray(states, dtype=np.float64)
         if states.ndim != 4 or states.shape[2:] != (SCORING_POSES + 1, STATE_SIZE):
@@ -273,15 +271,12 @@ class EgoRows:
         """The box centres (R, 41, 2)."""
         return self.points[..., BoxPoint.CENTER, :]
 
-    @cached_property
-    def centre_in_intersection(self) -> BoolArray:
-        """Whether each box centre is inside an intersection of its token's map (R, 41): v2's DDC and LK read
-        it, so it is found once, and only when a setting reads it."""
-        num_rows, num_steps = self.rows.shape[:2]
-        x, y = self.centers[..., 0].reshape(-1), self.centers[..., 1].reshape(-1)
-        return in_intersection(x, y, np.repeat(self.row_token, num_steps), self.maps).reshape(
-            num_rows, num_steps
-        )
+
+def centre_in_intersection(ego: EgoRows) -> BoolArray:
+    """Return whether each box centre is inside an intersection of its token's map (R, 41)."""
+    num_rows, num_steps = ego.rows.shape[:2]
+    x, y = ego.centers[..., 0].reshape(-1), ego.centers[..., 1].reshape(-1)
+    return in_intersection(x, y, np.repeat(ego.row_token, num_steps), ego.maps).reshape(num_rows, num_steps)
 
 
 class _Observed:
@@ -360,14 +355,14 @@ def _traffic_lights(
 
 
 def _lane_keeping(
-    ego: EgoRows, settings: Sequence[MeasureSettings]
+    ego: EgoRows, settings: Sequence[MeasureSettings], centres_inside: Callable[[], BoolArray]
 ) -> dict[tuple[float, float], LaneKeeping]:
     """Return LK by (deviation limit, horizon window), measured once for each pair a setting reads."""
     limits = dict.fromkeys(setting.lane_keeping for setting in settings if setting.lane_keeping is not None)
     return {
         (limit, window): lane_keeping(
             ego.centers,
-            ego.centre_in_intersection,
+            centres_inside(),
             ego.centerlines,
             ego.row_token,
             limit,
@@ -400,14 +395,20 @@ def measure_alike(
     readers = list(zip(settings, keys, strict=True))
     ttc = _time_to_collision(ego, observed, readers)
     lights = _traffic_lights(ego, observed, readers)
-    keeping = _lane_keeping(ego, settings)
+
+    # v2's DDC and LK read which box centres are inside an intersection: found once, where a setting reads it.
+    @cache
+    def centres_inside() -> BoolArray:
+        return centre_in_intersection(ego)
+
+    keeping = _lane_keeping(ego, settings, centres_inside)
     comfort = {
         at_centre: ego.per_token(comfort_series(ego.rows, at_centre=at_centre))
         for at_centre in dict.fromkeys(setting.comfort_at_centre for setting in settings)
     }
     off_route = {
         excludes: ego.per_token(
-            off_route_steps(ego.points, ego.areas, ego.centre_in_intersection if excludes else None)
+            off_route_steps(ego.points, ego.areas, centres_inside() if excludes else None)
         )
         for excludes in dict.fromkeys(setting.ddc_excludes_intersections for setting in settings)
     }
@@ -453,10 +454,10 @@ def _setting_measures(
     return ProposalMeasures(
         **per_token,
         no_at_fault_collisions=ego.per_token(seen.collisions),
-        collision_index=ego.per_token(seen.collision.index),
+        collision_index=ego.per_token(seen.collision.time_index),
         collision_object=ego.per_token(seen.local_object(seen.collision.obj)),
         time_to_collision_within_bound=ego.per_token(ttc_within_bound),
-        ttc_index=ego.per_token(ttc_infraction.index),
+        ttc_index=ego.per_token(ttc_infraction.time_index),
         ttc_object=ego.per_token(seen.local_object(ttc_infraction.obj)),
         traffic_light_compliance=ego.per_token(light[0]),
         red_light_index=ego.per_token(light[1]),

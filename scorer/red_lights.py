@@ -13,11 +13,10 @@ Lights are kept apart from the tracked boxes (`scorer.observation`): NC and TTC 
 traffic-light compliance reads them, and they are lane polygons, not boxes.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -30,8 +29,7 @@ RED_LIGHT_TOKEN = "red_light"  # the devkit recognises red lights by this token 
 STEPS_PER_FRAME = 5  # 10 Hz steps per 2 Hz frame
 
 
-@dataclass(frozen=True, eq=False)
-class RedLights:
+class RedLights(NamedTuple):
     """Red-light polygons and the 10 Hz steps at which each is in the occupancy map."""
 
     lane_ids: tuple[str, ...]  # (n,) the lane or lane connector of each polygon
@@ -39,14 +37,14 @@ class RedLights:
     present: BoolArray  # (T, n)
 
     @classmethod
-    def none(cls, num_steps: int) -> RedLights:
+    def none(cls, num_steps: int) -> "RedLights":
         """Return an observation without red lights over `num_steps` steps."""
         return cls(
             lane_ids=(), polygons=np.empty(0, dtype=object), present=np.zeros((num_steps, 0), dtype=bool)
         )
 
     @classmethod
-    def constant(cls, lanes: Sequence[Lane], num_steps: int) -> RedLights:
+    def constant(cls, lanes: Sequence[Lane], num_steps: int) -> "RedLights":
         """Return the red lights of `lanes` present at every step."""
         polygons = np.empty(len(lanes), dtype=object)
         polygons[:] = [lane.polygon for lane in lanes]
@@ -58,7 +56,7 @@ class RedLights:
         """Return each polygon's token in the occupancy map."""
         return tuple(f"{RED_LIGHT_TOKEN}_{lane_id}" for lane_id in self.lane_ids)
 
-    @cached_property
+    @property
     def bounds(self) -> FloatArray:
         """Return the polygons' bounding boxes (n, 4)."""
         return shapely.bounds(self.polygons).reshape(-1, 4)

@@ -3,8 +3,8 @@
 Every broken rule raises `SceneFormatError` naming the file and the field; nothing is guessed.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 import hashlib
 import json
 import math

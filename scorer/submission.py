@@ -8,8 +8,8 @@ holds to inert records and refuses every other one, so a hostile file can never 
 Every problem names the seed, token and field it is about; loading collects all of them.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 import io
 import json
 import lzma
@@ -727,7 +727,7 @@ class ContentLimit(NamedTuple):
     reason: str
 
     @classmethod
-    def for_tokens(cls, tokens: Iterable[str], seeds: int = MAX_SEEDS) -> ContentLimit:
+    def for_tokens(cls, tokens: Iterable[str], seeds: int = MAX_SEEDS) -> "ContentLimit":
         """The most a valid submission of `tokens` (every token a seed holds; a two-stage one's of both stages)
         with up to `seeds` seeds can take, in JSON or in pickle form."""
         tokens = list(tokens)

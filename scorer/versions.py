@@ -8,8 +8,8 @@ The configs are named tuples rather than frozen dataclasses: as immutable and co
 built in a tenth of the time at import, which every command's start-up pays (docs/engine.md, "Start-up").
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from collections.abc import Iterable
 from enum import StrEnum
 from typing import Literal, NamedTuple

@@ -6,9 +6,8 @@ not at fault puts its token on the list for the rest of the horizon. Resolved on
 contact counts iff it comes before the first not-at-fault contact of the same (proposal, object).
 """
 
-from __future__ import annotations
-
-from dataclasses import dataclass
+# Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
+# compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
 from typing import NamedTuple, cast
 
 import numpy as np
@@ -51,7 +50,7 @@ def find_contacts(
     map `map_index[s]` of row r's token. Red-light tokens are left out (the devkit skips them before anything
     else).
     """
-    rows, objects = same_token_pairs(row_token, observations.start, observations.count)
+    rows, objects = same_token_pairs(row_token, observations.start, observations.counts)
     near = (
         boxes_touch(extents(box_bounds)[rows], observations.extent[objects])
         & ~observations.is_red_light[objects]
@@ -193,11 +192,10 @@ def counted_contacts(row: IntArray, obj: IntArray, order: IntArray, at_fault: Bo
     return at_fault & (order < first_cleared[pair])
 
 
-@dataclass(frozen=True, eq=False)
-class FirstInfraction:
+class FirstInfraction(NamedTuple):
     """Each row's first counted contact: its time index and object column, -1 where there is none."""
 
-    index: IntArray  # (R,)
+    time_index: IntArray  # (R,)
     obj: IntArray  # (R,) column in the observation batch
 
 

@@ -36,7 +36,7 @@ def ego_areas(points: FloatArray, bounds: FloatArray, row_token: IntArray, maps:
     Containment is strict: a point on a boundary is outside.
     """
     num_rows, num_steps, num_points = points.shape[:3]
-    rows, polygons = same_token_pairs(row_token, maps.start, maps.count)
+    rows, polygons = same_token_pairs(row_token, maps.start, maps.counts)
     near = boxes_touch(extents(bounds)[rows], maps.bounds[polygons])
     near &= (maps.is_lane | maps.is_drivable)[polygons]
     rows, polygons = rows[near], polygons[near]
@@ -85,7 +85,7 @@ def ego_areas(points: FloatArray, bounds: FloatArray, row_token: IntArray, maps:
 def in_intersection(x: FloatArray, y: FloatArray, token: IntArray, maps: MapBatch) -> BoolArray:
     """Return whether each point lies strictly inside an intersection of its token's map (`is_in_layer`:
     an STRtree query with predicate `within`, so a point on the boundary is outside)."""
-    points, polygons = same_token_pairs(token, maps.start, maps.count)
+    points, polygons = same_token_pairs(token, maps.start, maps.counts)
     layer = maps.is_intersection[polygons]
     points, polygons = points[layer], polygons[layer]
     inside = np.zeros(len(token), dtype=bool)
