@@ -14,7 +14,6 @@ for each scene, unlike the devkit, whose planner instance carries it across the 
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import asdict, fields, replace
 from pathlib import Path
@@ -594,8 +593,12 @@ def _unpack(
         dtype = np.dtype(dtype_str)
         if dtype.hasobject:
             raise ValueError("object arrays are not allowed")
-        count = math.prod(shape)  # the header's integers (numpy's prod costs more than reading the array)
-        views[at] = np.frombuffer(body, dtype=dtype, count=count, offset=offset).reshape(shape)
+        # The array constructor takes a view in one call, a third of `frombuffer` and `reshape`'s time; it
+        # rejects negative and non-integer dimensions and a view past the end (TypeError), not a negative
+        # offset, which would read before the arrays' bytes.
+        if offset < 0:
+            raise ValueError(f"an array at offset {offset}")
+        views[at] = np.ndarray(shape, dtype, body, offset)
     sections = {
         version: (
             {name: values[at] for name, at in version_refs["meta"].items()},
