@@ -10,7 +10,9 @@ keeps the order of the excerpt's layer list, as nuPlan's map tables do (docs/eng
 
 # Annotations are evaluated, not kept as strings (no `from __future__ import annotations`): a named tuple
 # compiles each string annotation of its fields at import (docs/engine.md, "Start-up").
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Iterable, Sequence
+from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -31,12 +33,55 @@ DRIVABLE_TYPES = (ROADBLOCK, INTERSECTION, DRIVABLE_AREA, CARPARK_AREA)
 LANE_TYPES = (LANE, LANE_CONNECTOR)
 
 
-class DrivableMap(NamedTuple):
-    """Map polygons with their map object ids and nuPlan layer names, in the devkit's order."""
+# Polygons' exterior rings (closed) end to end (N, 2), and each ring's coordinate count (m,).
+Outlines = tuple[FloatArray, IntArray]
+
+
+def polygon_outlines(polygons: Iterable[shapely.Polygon]) -> Outlines:
+    """Return the exterior coordinates of polygons and each polygon's coordinate count (int64)."""
+    rings = shapely.get_exterior_ring(np.asarray(list(polygons), dtype=object))
+    return shapely.get_coordinates(rings), shapely.get_num_coordinates(rings).astype(np.int64)
+
+
+def outline_polygons(outlines: Outlines) -> npt.NDArray[np.object_]:
+    """Return one single-ring polygon per outline, in one call (faster than rings, then polygons)."""
+    coords, counts = outlines
+    if not len(counts):
+        return np.empty(0, dtype=object)
+    ring_offsets = np.concatenate([[0], np.cumsum(counts)])
+    polygon_offsets = np.arange(len(counts) + 1)
+    return shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_offsets, polygon_offsets))
+
+
+@dataclass(frozen=True, eq=False)
+class DrivableMap:
+    """Map polygons with their map object ids and nuPlan layer names, in the devkit's order.
+
+    Made from a scene's polygons (`built`) or from their outlines as a metric cache stores them (`stored`):
+    scoring tests points against a few of a map's polygons only, and a batch builds just those
+    (`MapBatch.polygons_at`); each form is derived from the other where read.
+    """
 
     tokens: tuple[str, ...]
     types: tuple[str, ...]
-    polygons: npt.NDArray[np.object_]  # (m,) shapely Polygons
+    built: npt.NDArray[np.object_] | None = None  # (m,) shapely Polygons
+    stored: Outlines | None = None
+
+    def __post_init__(self) -> None:
+        if (self.built is None) == (self.stored is None):
+            raise ValueError("a drivable map is made from its polygons or from their outlines")
+
+    @cached_property
+    def polygons(self) -> npt.NDArray[np.object_]:
+        """The polygons (m,)."""
+        return self.built if self.built is not None else outline_polygons(self.outlines)
+
+    @cached_property
+    def outlines(self) -> Outlines:
+        """The polygons' exterior rings (`polygon_outlines`)."""
+        if self.stored is not None:
+            return self.stored
+        return polygon_outlines(self.polygons)
 
 
 class MapBatch(NamedTuple):
@@ -45,7 +90,8 @@ class MapBatch(NamedTuple):
     Polygon j of token b is entry start[b] + j.
     """
 
-    polygons: npt.NDArray[np.object_]  # (M,) prepared
+    polygons: npt.NDArray[np.object_]  # (M,) prepared; None where not built yet (`polygons_at`)
+    outlines: Outlines  # (N, 2), (M,)
     bounds: FloatArray  # (M, 4)
     is_lane: BoolArray  # lane or lane connector
     is_drivable: BoolArray  # roadblock, intersection, car park (lanes are not drivable polygons)
@@ -57,24 +103,68 @@ class MapBatch(NamedTuple):
     @classmethod
     def of(cls, maps: Sequence[DrivableMap], route_lane_ids: Sequence[Collection[str]]) -> "MapBatch":
         """Return the batch of `maps`, each with its token's route lane ids, in one pass over their polygons."""
-        count = np.array([len(drivable_map.tokens) for drivable_map in maps], dtype=np.intp)
-        polygons = np.concatenate([drivable_map.polygons for drivable_map in maps])
+        polygon_counts = np.array([len(drivable_map.tokens) for drivable_map in maps], dtype=np.intp)
+        # A map read from a cache brings outlines only: its polygons are built where a test reads them.
+        polygons = np.concatenate(
+            [
+                drivable_map.built
+                if drivable_map.built is not None
+                else np.full(len(drivable_map.tokens), None)
+                for drivable_map in maps
+            ]
+        )
         # Prepared in place (a prepared one is left as is): the same results, faster point-in-polygon tests.
         shapely.prepare(polygons)
+        coords = np.concatenate([drivable_map.outlines[0] for drivable_map in maps])
+        vertex_counts = np.concatenate([drivable_map.outlines[1] for drivable_map in maps])
         types = [kind for drivable_map in maps for kind in drivable_map.types]
         routes = [set(route) for route in route_lane_ids]
         listed = [token in route for m, route in zip(maps, routes, strict=True) for token in m.tokens]
         is_lane = np.array([kind in LANE_TYPES for kind in types], dtype=bool)
         return cls(
             polygons=polygons,
-            bounds=shapely.bounds(polygons).reshape(-1, 4),
+            outlines=(coords, vertex_counts),
+            bounds=_outline_bounds(coords, vertex_counts),
             is_lane=is_lane,
             is_drivable=np.array([kind in DRIVABLE_TYPES for kind in types], dtype=bool),
             is_intersection=np.array([kind == INTERSECTION for kind in types], dtype=bool),
             is_route=is_lane & np.array(listed, dtype=bool),
-            start=np.cumsum(count) - count,
-            counts=count,
+            start=np.cumsum(polygon_counts) - polygon_counts,
+            counts=polygon_counts,
         )
+
+    def polygons_at(self, index: IntArray) -> npt.NDArray[np.object_]:
+        """Return the polygons at `index`, building and preparing those not built yet from their outlines."""
+        wanted = np.zeros(len(self.polygons), dtype=bool)
+        wanted[index] = True
+        missing = np.flatnonzero(wanted & shapely.is_missing(self.polygons))
+        if len(missing):
+            coords, vertex_counts = self.outlines
+            first = np.cumsum(vertex_counts) - vertex_counts
+            sizes = vertex_counts[missing]
+            rows = np.repeat(first[missing] - np.cumsum(sizes) + sizes, sizes) + np.arange(sizes.sum())
+            built = outline_polygons((coords[rows], sizes))
+            shapely.prepare(built)
+            self.polygons[missing] = built
+        return self.polygons[index]
+
+
+def _outline_bounds(coords: FloatArray, counts: IntArray) -> FloatArray:
+    """Return each outline's bounding box (M, 4), xmin, ymin, xmax, ymax: GEOS's envelope, the minima and maxima
+    of the coordinates, which round nothing."""
+    if not len(counts):
+        return np.empty((0, 4))
+    first = np.cumsum(counts) - counts
+    x, y = np.ascontiguousarray(coords[:, 0]), np.ascontiguousarray(coords[:, 1])
+    return np.stack(
+        [
+            np.minimum.reduceat(x, first),
+            np.minimum.reduceat(y, first),
+            np.maximum.reduceat(x, first),
+            np.maximum.reduceat(y, first),
+        ],
+        axis=-1,
+    )
 
 
 def proximal_mask(polygons: npt.ArrayLike, x: float, y: float, half_side: float) -> BoolArray:
@@ -127,5 +217,5 @@ def build_drivable_map(scene: Scene) -> DrivableMap:
     return DrivableMap(
         tokens=tuple(item.id for _, item in items),
         types=tuple(kind for kind, _ in items),
-        polygons=polygons,
+        built=polygons,
     )

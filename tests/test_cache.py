@@ -224,6 +224,28 @@ def test_stale_or_damaged_files_are_rebuilt(
     assert result.valid and load_cache(tmp_path, "v1.1", token, scene_file_hash(path)) is not None
 
 
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("offset", -8), ("offset", 10**9), ("shape", [-1, 8]), ("shape", [10**9]), ("dtype", "|O")],
+)
+def test_an_array_outside_the_files_bytes_is_never_read(
+    tmp_path: Path, built: tuple[str, dict[str, MetricCache]], field: str, value: object
+) -> None:
+    token, caches = built
+    written = save_caches({"v1.1": caches["v1.1"]}, tmp_path)
+    scene_hash = scene_file_hash(scene_paths(REFERENCE)[token])
+    assert load_cache(tmp_path, "v1.1", token, scene_hash) is not None
+    data = written.read_bytes()
+    length = int.from_bytes(data[:8], "little")
+    header, body = json.loads(data[16 : 16 + length]), data[16 + length :]
+    at = header["versions"]["v1.1"]["arrays"]["object_corners"]
+    header["arrays"][at][("dtype", "shape", "offset").index(field)] = value
+    damaged = json.dumps(header).encode()
+    size = 16 + len(damaged) + len(body)
+    written.write_bytes(len(damaged).to_bytes(8, "little") + size.to_bytes(8, "little") + damaged + body)
+    assert load_cache(tmp_path, "v1.1", token, scene_hash) is None
+
+
 def test_an_unreadable_scene_file_fails_alone(tmp_path: Path) -> None:
     split = tmp_path / "split"
     (split / "scenes").mkdir(parents=True)

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import shapely
 
-from scorer.drivable_map import MapBatch, build_drivable_map, proximal_mask
+from scorer.drivable_map import DrivableMap, MapBatch, build_drivable_map, proximal_mask
 from scorer.geometry import REAR_AXLE_TO_CENTER
 from scorer.metrics.pairs import points_inside
 from scorer.scene import Area, EgoStatus, Frame, Lane, MapExcerpt, Roadblock, Scene
@@ -124,3 +125,25 @@ def test_points_on_a_boundary_are_outside() -> None:
     maps = MapBatch.of([build_drivable_map(scene_on(MapExcerpt((), (), (block("b", 0.0, 10.0),), ())))], [()])
     x, y = np.array([5.0, 0.0, 10.0, 11.0]), np.array([0.0, 0.0, 5.0, 0.0])
     assert points_inside(x, y, np.zeros(4, dtype=np.intp), maps).tolist() == [True, False, False, False]
+
+
+def test_a_stored_map_builds_only_the_polygons_a_test_reads() -> None:
+    blocks = (block("a", 0.0, 10.0), block("b", 10.0, 20.0), block("c", 20.0, 30.0))
+    lanes = (lane("1", "a", 0.0, 10.0), lane("2", "b", 10.0, 20.0))
+    scene_map = build_drivable_map(scene_on(MapExcerpt(lanes, (), blocks, ())))
+    stored = DrivableMap(scene_map.tokens, scene_map.types, stored=scene_map.outlines)
+    built, read = MapBatch.of([scene_map], [()]), MapBatch.of([scene_map, stored], [(), ()])
+    assert np.array_equal(read.bounds, np.concatenate([shapely.bounds(scene_map.polygons)] * 2))
+    assert shapely.is_missing(read.polygons).tolist() == [False] * 5 + [True] * 5
+    # Polygons a, b, c, 1, 2: a point inside a, one on b's boundary, points outside c's and lane 2's boxes.
+    x, y = np.array([5.0, 10.0, 15.0, 5.0, 15.0]), np.array([0.0, 0.0, 0.0, 1.0, 3.0])
+    polygon = np.arange(5)
+    inside = points_inside(x, y, polygon, built).tolist()
+    assert inside == [True, False, False, True, False]
+    assert points_inside(x, y, polygon + 5, read).tolist() == inside
+    assert shapely.is_missing(read.polygons[5:]).tolist() == [False, False, True, False, True]
+    assert shapely.equals_exact(read.polygons[5], scene_map.polygons[0], 0.0)
+    assert shapely.is_prepared(read.polygons[5])
+    assert shapely.equals_exact(stored.polygons, scene_map.polygons, 0.0).all()
+    with pytest.raises(ValueError, match="its polygons or from their outlines"):
+        DrivableMap(scene_map.tokens, scene_map.types)

@@ -84,7 +84,7 @@ def road(
     polygons += [rectangle(*extent) for extent in lanes.values()]
     array = np.empty(len(polygons), dtype=object)
     array[:] = polygons
-    return DrivableMap(tokens=("block", *lanes), types=("ROADBLOCK", *["LANE"] * len(lanes)), polygons=array)
+    return DrivableMap(tokens=("block", *lanes), types=("ROADBLOCK", *["LANE"] * len(lanes)), built=array)
 
 
 CENTERLINE = np.array([[-60.0, RIGHT_LANE_Y], [160.0, RIGHT_LANE_Y]])
@@ -188,7 +188,7 @@ def test_a_corner_on_the_road_edge_is_off_the_drivable_area() -> None:
 
 
 def test_lanes_alone_are_not_drivable_and_index_0_counts() -> None:
-    lanes_only = DrivableMap(tokens=("right",), types=("LANE",), polygons=np.array([rectangle(-3.5, 0.0)]))
+    lanes_only = DrivableMap(tokens=("right",), types=("LANE",), built=np.array([rectangle(-3.5, 0.0)]))
     assert score(drive(5.0), drivable_map=lanes_only).drivable_area_compliance[0] == 0.0
     # Only the first two poses poke out of the road's start at x = 0 (rear at 0.5 + 0.5 k - 1.127): DAC 0.
     starts_late = road(rectangle(-3.5, 3.5, x_min=0.0))
@@ -325,7 +325,7 @@ def test_on_the_route_there_is_no_off_route_distance() -> None:
 
 
 def test_an_empty_observation_and_map() -> None:
-    empty_map = DrivableMap(tokens=(), types=(), polygons=np.empty(0, dtype=object))
+    empty_map = DrivableMap(tokens=(), types=(), built=np.empty(0, dtype=object))
     scores = score(drive(5.0), objects=observe(), drivable_map=empty_map)
     assert scores.no_at_fault_collisions[0] == 1.0
     assert scores.time_to_collision_within_bound[0] == 1.0

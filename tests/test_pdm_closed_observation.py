@@ -138,7 +138,7 @@ def test_the_scoring_view_has_51_steps_reading_map_k_half_and_leaves_out_collide
 
 def test_without_objects_or_map_polygons_the_proposals_drive_free() -> None:
     scene = _scene_with([])
-    no_map = DrivableMap(tokens=(), types=(), polygons=np.empty(0, dtype=object))
+    no_map = DrivableMap(tokens=(), types=(), built=np.empty(0, dtype=object))
     proposals = unroll_proposals([plan_scene(scene, no_map)])
     targets = proposals.plans[0].targets
     speeds = proposals.unroll.idm[:, PROPOSAL_STEPS, 1].reshape(3, 5)

@@ -52,7 +52,7 @@ def ego_areas(points: FloatArray, bounds: FloatArray, row_token: IntArray, maps:
     flat = np.flatnonzero(tested)
     candidate, point = np.divmod(flat, num_points)
     inside = shapely.contains_xy(
-        maps.polygons[polygons[pair[candidate]]], x.reshape(-1)[flat], y.reshape(-1)[flat]
+        maps.polygons_at(polygons[pair[candidate]]), x.reshape(-1)[flat], y.reshape(-1)[flat]
     )
     candidate, point = candidate[inside], point[inside]
     pair, step = pair[candidate], step[candidate]

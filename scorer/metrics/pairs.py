@@ -55,5 +55,7 @@ def points_inside(x: FloatArray, y: FloatArray, polygon: IntArray, maps: MapBatc
     bounds = maps.bounds[polygon]
     inside = (bounds[:, 0] <= x) & (x <= bounds[:, 2]) & (bounds[:, 1] <= y) & (y <= bounds[:, 3])
     candidates = np.flatnonzero(inside)
-    inside[candidates] = shapely.contains_xy(maps.polygons[polygon[candidates]], x[candidates], y[candidates])
+    inside[candidates] = shapely.contains_xy(
+        maps.polygons_at(polygon[candidates]), x[candidates], y[candidates]
+    )
     return inside
