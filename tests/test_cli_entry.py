@@ -91,7 +91,7 @@ def test_the_script_leaves_its_objects_to_the_os_at_exit() -> None:
 
 
 TEARDOWN_PROBE = """
-import os, sys, threading, time
+import os, sys, threading
 from navsim_lb.cli import main
 
 
@@ -102,7 +102,8 @@ class TornDown:
 
 sys.kept = TornDown()  # freed by the interpreter's teardown (it clears sys), which a finished command skips
 if sys.argv[1] == "thread":  # a thread still running: Python's exit waits for it, and tears down
-    threading.Thread(target=lambda: (time.sleep(0.2), os.write(2, b"thread done\\n"))).start()
+    # It ends only once the main thread is done (Python's exit), however long the command takes.
+    threading.Thread(target=lambda: (threading.main_thread().join(), os.write(2, b"thread done\\n"))).start()
 sys.argv = ["navsim-lb", *sys.argv[2:]]
 main()
 """
