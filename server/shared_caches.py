@@ -3,7 +3,9 @@
 A cache file (scorer.cache) is valid for one scene file and one engine (its OpenBLAS kernels included), so
 in the store it is named by exactly that: `<engine key>/<scene sha256>.nlc`, the engine key a hash of
 `engine_provenance()`. Before a chunk is scored, each of its scenes whose local cache is missing or stale is
-fetched from the store when there (its key checked: a damaged or foreign object is ignored and rebuilt); the
+fetched from the store when there (its key checked: a damaged or foreign object is ignored and rebuilt), into
+memory: the engine reads it from there while its copy in the local cache directory is written on a thread of
+its own (`writing_behind`; 128 files a chunk cost as long as its GETs, waiting on the disk); the
 ones the store lacks are built by the engine as before, then published with a conditional write, so of two
 workers building the same entry at once one stores it and the other's identical build is dropped. Publishing
 is best effort: a cache that could not be published is only built again elsewhere.
@@ -24,7 +26,9 @@ import hashlib
 import json
 import logging
 import struct
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -98,9 +102,11 @@ def scene_hashes(split_dir: Path) -> dict[str, str]:
 
 @dataclass(frozen=True)
 class FetchedCaches:
-    """What fetching a chunk's caches left to do: the tokens whose cache the engine builds (`publish_caches`),
-    and the blocks whose pack the store lacked (`publish_packs`, once the chunk is scored)."""
+    """A chunk's caches fetched from the store, token -> cache file bytes (each checked, none yet in the local
+    cache directory: `writing_behind`), and what is left to do: the tokens whose cache the engine builds
+    (`publish_caches`), and the blocks whose pack the store lacked (`publish_packs`, once the chunk is scored)."""
 
+    caches: dict[str, bytes]
     unbuilt: list[str]
     unpacked: list[tuple[str, ...]]
 
@@ -108,8 +114,8 @@ class FetchedCaches:
 def fetch_caches(
     store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str], blocks: Sequence[Sequence[str]] = ()
 ) -> FetchedCaches:
-    """Bring the store's caches of the scenes (token -> the scene file's sha256) that lack a valid local one
-    into `cache_dir`, a block's from its pack when the chunk holds every member (`blocks`, each a block of
+    """Read the store's caches of the scenes (token -> the scene file's sha256) that lack a valid one in
+    `cache_dir`, a block's from its pack when the chunk holds every member (`blocks`, each a block of
     `hashes`' tokens) and lacks at least half of them, the others one object each."""
     wanted = {
         token: scene_hash
@@ -122,7 +128,7 @@ def fetch_caches(
         if hashes.keys() >= {*block} and 2 * sum(token in wanted for token in block) >= len(block)
     ]
     packs = get_many(store, (_pack_key(block) for block in packed))
-    unpacked = []
+    caches, unpacked = {}, []
     for block in packed:
         pack = packs[_pack_key(block)]
         members = _members(pack) if pack is not None else {}
@@ -131,16 +137,17 @@ def fetch_caches(
         for token, scene_hash in block.items():
             data = members.get(scene_hash, b"")
             if token in wanted and _holds(data, scene_hash):
-                write_atomically(cache_path(cache_dir, token), data, durable=False)
+                caches[token] = data
                 del wanted[token]
         if pack is None:  # a damaged pack stays (the write is conditional): its blocks are read singly
             unpacked.append(tuple(block))
-    return FetchedCaches(_fetch_singly(store, cache_dir, wanted), unpacked)
+    unbuilt = _fetch_singly(store, wanted, caches)
+    return FetchedCaches(caches, unbuilt, unpacked)
 
 
-def _fetch_singly(store: ObjectStore, cache_dir: Path, wanted: Mapping[str, str]) -> list[str]:
-    """Bring the store's cache of each scene into `cache_dir`, one object each; return the tokens it had
-    none (or a damaged one) for."""
+def _fetch_singly(store: ObjectStore, wanted: Mapping[str, str], caches: dict[str, bytes]) -> list[str]:
+    """Read the store's cache of each scene into `caches`, one object each; return the tokens it had none
+    (or a damaged one) for."""
     fetched = get_many(store, (_key(scene_hash) for scene_hash in wanted.values()))
     unbuilt = []
     for token, scene_hash in wanted.items():
@@ -152,8 +159,26 @@ def _fetch_singly(store: ObjectStore, cache_dir: Path, wanted: Mapping[str, str]
             log.warning("metric cache %s/%s is damaged or foreign: rebuilt", store.url, _key(scene_hash))
             unbuilt.append(token)
             continue
-        write_atomically(cache_path(cache_dir, token), data, durable=False)
+        caches[token] = data
     return unbuilt
+
+
+def keep_caches(cache_dir: Path, caches: Mapping[str, bytes]) -> None:
+    """Write fetched caches (token -> cache file bytes) into `cache_dir`, this machine's read-through copy
+    that its later chunks and runs read instead of the store."""
+    for token, data in caches.items():
+        write_atomically(cache_path(cache_dir, token), data, durable=False)
+
+
+@contextmanager
+def writing_behind(cache_dir: Path, caches: Mapping[str, bytes]) -> Iterator[None]:
+    """Write fetched caches into `cache_dir` (`keep_caches`) on a thread of their own while the block runs
+    (the engine reading them from memory meanwhile); leaving the block waits for the last, and raises what
+    writing them raised."""
+    with ThreadPoolExecutor(1, thread_name_prefix="cache-copies") as writer:
+        written = writer.submit(keep_caches, cache_dir, caches)
+        yield
+        written.result()
 
 
 def publish_caches(store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str]) -> int:
