@@ -27,7 +27,6 @@ from server.shared_caches import (
     _pack,
     _pack_key,
     fetch_caches,
-    keep_caches,
     publish_caches,
     publish_packs,
     scene_hashes,
@@ -99,7 +98,26 @@ def test_a_whole_block_is_read_with_one_get(built: Built, tmp_path: Path) -> Non
     assert (fetched.unbuilt, fetched.unpacked) == ([], [])
     assert len(store.reads) == 2  # no single object read (the store holds none)
     assert _same_caches(fetched.caches, built, chunk)
-    assert not any(reader.iterdir())  # written behind the engine's reading, by the caller
+    # Each pack kept whole, as one file: the next chunk or run on this machine reads it instead of the store.
+    kept = sorted(path.relative_to(reader) for path in reader.rglob("*") if path.is_file())
+    assert kept == sorted(path.relative_to(store.root) for path in _packs(store))
+    store.reads.clear()
+    again = fetch_caches(store, reader, chunk, built.blocks)
+    assert (
+        store.reads == [] and again.caches == fetched.caches and (again.unbuilt, again.unpacked) == ([], [])
+    )
+
+
+def test_a_damaged_copy_of_a_pack_is_read_from_the_store_again(built: Built, tmp_path: Path) -> None:
+    store, block = built.store(tmp_path, singles=False, packs=1), built.blocks[0]
+    reader = _cold(tmp_path, "reader")
+    assert fetch_caches(store, reader, built.chunk(block), [block]).unbuilt == []
+    (copy,) = reader.rglob("*.nlp")
+    copy.write_bytes(copy.read_bytes()[:-10])  # cut short
+    store.reads.clear()
+    fetched = fetch_caches(store, reader, built.chunk(block), [block])
+    assert len(store.reads) == 1 and _same_caches(fetched.caches, built, block)
+    assert copy.read_bytes() == _packs(store)[0].read_bytes()  # the copy made whole again
 
 
 def test_a_partial_chunk_or_a_mostly_cached_block_reads_one_by_one(built: Built, tmp_path: Path) -> None:
@@ -128,7 +146,7 @@ def test_a_damaged_pack_is_ignored_and_a_missing_one_published_after_the_chunk(
     # replaced by a conditional write).
     assert fetched.unbuilt == [] and fetched.unpacked == [other]
     assert len(store.reads) == 2 + len(chunk) and _same_caches(fetched.caches, built, chunk)
-    keep_caches(reader, fetched.caches)
+    assert not any(reader.rglob("*.nlp"))  # no copy of a damaged pack: each member is kept on its own
     assert publish_packs(store, reader, chunk, fetched.unpacked) == 1
     store.reads.clear()
     assert fetch_caches(store, _cold(tmp_path, "again"), built.chunk(other), [other]).unbuilt == []

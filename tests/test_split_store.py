@@ -228,7 +228,7 @@ def test_a_token_whose_cache_is_in_the_store_is_scored_without_its_scene(
     _another_machine(monkeypatch, tmp_path / "worker")
     chunk = score_chunk(ChunkInputs(1, job, tokens, (), False), uploads, tmp_path / "worker-cache", caches)
     assert chunk.rows == local.rows and all(row.valid for row in chunk.rows["v1.1"])
-    for token in tokens:  # two caches fetched (written behind the engine's reading), the third built
+    for token in tokens:  # two caches fetched (the engine read them from memory), the third built
         cached = cache_path(tmp_path / "worker-cache", token).read_bytes()
         assert cached == cache_path(tmp_path / "built", token).read_bytes()
     fetched = {path.name for path in (mirror_dir(content_hash) / "scenes").iterdir()}

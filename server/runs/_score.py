@@ -54,7 +54,7 @@ def score_chunk(
     # The engine is heavy: the API imports this package without it.
     from scorer.evaluate import SceneFiles, TokenResult, score_seeds
     from scorer.scene import scene_paths
-    from server.shared_caches import fetch_caches, keep_caches, publish_caches, publish_packs, writing_behind
+    from server.shared_caches import fetch_caches, keep_caches, publish_caches, publish_packs
 
     job = inputs.job
     if inputs.poisoned:
@@ -80,30 +80,27 @@ def score_chunk(
             scenes = SceneFiles(scene_paths(split_dir))
         else:
             split_dir, scenes = _one_stage_scenes(job)
-    fetched: dict[str, bytes] = {}  # read from memory by the engine while written to cache_dir
     if cache_store is not None:
         hashes = {token: scenes.file_hash(token) for token in scored if token in scenes.paths}
-        from_store = fetch_caches(cache_store, cache_dir, hashes, inputs.packs)
+        fetched = fetch_caches(cache_store, cache_dir, hashes, inputs.packs)
         if stages is None:
-            fetched = from_store.caches
+            scenes = scenes._replace(caches=fetched.caches)
         else:  # a two-stage part reads every cache from cache_dir
-            keep_caches(cache_dir, from_store.caches)
+            keep_caches(cache_dir, fetched.caches)
     started = perf_counter()
-    # The scenes of the caches to build are fetched as the engine needs them.
-    with _split_read(), writing_behind(cache_dir, fetched):
+    with _split_read():  # the scenes of the caches to build are fetched as the engine needs them
         if stages is not None:
             rows = {
                 version: _two_stage_rows(split_dir, stages, cache_dir, seeds, version, inputs)
                 for version in job.versions
             }
         else:
-            scenes = scenes._replace(caches=fetched)
             rows = score_seeds(
                 split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context, scenes=scenes
             )
     if cache_store is not None:
-        publish_caches(cache_store, cache_dir, {token: hashes[token] for token in from_store.unbuilt})
-        publish_packs(cache_store, cache_dir, hashes, from_store.unpacked)
+        publish_caches(cache_store, cache_dir, {token: hashes[token] for token in fetched.unbuilt})
+        publish_packs(cache_store, cache_dir, hashes, fetched.unpacked)
     return ScoredChunk(rows, (perf_counter() - started) / len(job.versions))
 
 
