@@ -642,8 +642,8 @@ class SceneFiles(NamedTuple):
     paths: Mapping[str, Path]
     hashes: Mapping[str, str] | None = None
     fetch: Callable[[Sequence[str]], object] | None = None
-    # Token -> its cache file's bytes, held by the caller (fetched from an object store): read from memory
-    # while their copies in the cache directory are still being written.
+    # Token -> its cache file's bytes when the caller holds them (fetched from an object store): read instead
+    # of the cache directory's file.
     caches: Mapping[str, bytes] = MappingProxyType({})
 
     def file_hash(self, token: str) -> str:

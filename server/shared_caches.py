@@ -4,9 +4,10 @@ A cache file (scorer.cache) is valid for one scene file and one engine (its Open
 in the store it is named by exactly that: `<engine key>/<scene sha256>.nlc`, the engine key a hash of
 `engine_provenance()`. Before a chunk is scored, each of its scenes whose local cache is missing or stale is
 fetched from the store when there (its key checked: a damaged or foreign object is ignored and rebuilt) and
-handed to the engine in memory; the ones the store lacks are built by the engine as before, then published with a conditional write, so of two
-workers building the same entry at once one stores it and the other's identical build is dropped. Publishing
-is best effort: a cache that could not be published is only built again elsewhere.
+handed to the engine in memory; the ones the store lacks are built by the engine as before, then published
+with a conditional write, so of two workers building the same entry at once one stores it and the other's
+identical build is dropped. Publishing is best effort: a cache that could not be published is only built
+again elsewhere.
 
 One object per token costs a GET per token, and a GET's cost is CPU (the client's under the interpreter's
 lock, the store's), about as much as scoring the token. So the caches of a block of tokens are also published
