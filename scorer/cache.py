@@ -592,15 +592,18 @@ def _unpack(
 
 
 def load_caches(
-    cache_dir: Path, versions: Collection[str], token: str, scene_hash: str
+    cache_dir: Path, versions: Collection[str], token: str, scene_hash: str, data: bytes | None = None
 ) -> dict[str, MetricCache]:
     """Return the stored caches of `token` under `versions`, by version; a version is missing when its cache is
     missing, damaged or was built from other inputs. The versions share their map's polygons; a version that
-    shares another's cache (`cache_source`) reads that version's section."""
+    shares another's cache (`cache_source`) reads that version's section. `data`: the cache file's bytes when
+    the caller holds them (fetched from an object store), read instead of the file."""
     key = {"scene_hash": scene_hash, "engine_version": engine_provenance()}
     sources = {version: cache_source(version) for version in versions}
     try:
-        stored_key, sections = _unpack(cache_path(cache_dir, token).read_bytes(), set(sources.values()))
+        if data is None:
+            data = cache_path(cache_dir, token).read_bytes()
+        stored_key, sections = _unpack(data, set(sources.values()))
     except (OSError, ValueError, KeyError, TypeError):
         return {}  # missing, truncated or foreign: rebuild
     if stored_key != key:

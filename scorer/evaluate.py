@@ -12,6 +12,7 @@ import itertools
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import numpy as np
@@ -641,6 +642,9 @@ class SceneFiles(NamedTuple):
     paths: Mapping[str, Path]
     hashes: Mapping[str, str] | None = None
     fetch: Callable[[Sequence[str]], object] | None = None
+    # Token -> its cache file's bytes when the caller holds them (fetched from an object store): read instead
+    # of the cache directory's file.
+    caches: Mapping[str, bytes] = MappingProxyType({})
 
     def file_hash(self, token: str) -> str:
         """Return the sha256 of the token's scene file (the cache key): registered, or hashed from the file."""
@@ -715,7 +719,8 @@ def _score_chunk(
     unbuilt: list[str] = []
     scene_hashes = {token: scenes.file_hash(token) for token in needed}
     for token in needed:
-        loaded = load_caches(cache_dir, [version.name for version in versions], token, scene_hashes[token])
+        names = [version.name for version in versions]
+        loaded = load_caches(cache_dir, names, token, scene_hashes[token], scenes.caches.get(token))
         for name in loaded:
             caches[name][token] = loaded[name]
         if len(loaded) < len(versions):

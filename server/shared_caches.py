@@ -3,10 +3,11 @@
 A cache file (scorer.cache) is valid for one scene file and one engine (its OpenBLAS kernels included), so
 in the store it is named by exactly that: `<engine key>/<scene sha256>.nlc`, the engine key a hash of
 `engine_provenance()`. Before a chunk is scored, each of its scenes whose local cache is missing or stale is
-fetched from the store when there (its key checked: a damaged or foreign object is ignored and rebuilt); the
-ones the store lacks are built by the engine as before, then published with a conditional write, so of two
-workers building the same entry at once one stores it and the other's identical build is dropped. Publishing
-is best effort: a cache that could not be published is only built again elsewhere.
+fetched from the store when there (its key checked: a damaged or foreign object is ignored and rebuilt) and
+handed to the engine in memory; the ones the store lacks are built by the engine as before, then published
+with a conditional write, so of two workers building the same entry at once one stores it and the other's
+identical build is dropped. Publishing is best effort: a cache that could not be published is only built
+again elsewhere.
 
 One object per token costs a GET per token, and a GET's cost is CPU (the client's under the interpreter's
 lock, the store's), about as much as scoring the token. So the caches of a block of tokens are also published
@@ -16,6 +17,11 @@ blocks), so the packs one run publishes are those every later run fetches. A chu
 holds every member and lacks the caches of at least half of them; each member is checked as a single cache is
 (a damaged pack, or member, falls back to the single objects). The worker that ends a chunk holding every
 member of a block whose pack the store lacked publishes it, with the same conditional write.
+
+A machine keeps what it fetched, for its later chunks and runs: a whole pack as one file under its store key
+in the cache directory (read again and checked as the store's), a single object as the engine's own cache
+file. Writing a pack's 64 members as files cost a chunk about as long as its GETs on a loaded host, and
+written on a thread beside the engine they waited for the interpreter's lock.
 """
 
 from __future__ import annotations
@@ -82,8 +88,12 @@ def _holds(data: bytes, scene_hash: str) -> bool:
 
 
 def _local(cache_dir: Path, token: str) -> bytes:
+    return _read(cache_path(cache_dir, token))
+
+
+def _read(path: Path) -> bytes:
     try:
-        return cache_path(cache_dir, token).read_bytes()
+        return path.read_bytes()
     except OSError:
         return b""
 
@@ -98,9 +108,12 @@ def scene_hashes(split_dir: Path) -> dict[str, str]:
 
 @dataclass(frozen=True)
 class FetchedCaches:
-    """What fetching a chunk's caches left to do: the tokens whose cache the engine builds (`publish_caches`),
-    and the blocks whose pack the store lacked (`publish_packs`, once the chunk is scored)."""
+    """A chunk's caches read from the store or this machine's copies of its packs, token -> cache file bytes
+    (each checked: the engine reads them from memory), and what is left to do: the tokens whose cache the
+    engine builds (`publish_caches`), and the blocks whose pack the store lacked (`publish_packs`, once the
+    chunk is scored)."""
 
+    caches: dict[str, bytes]
     unbuilt: list[str]
     unpacked: list[tuple[str, ...]]
 
@@ -108,39 +121,54 @@ class FetchedCaches:
 def fetch_caches(
     store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str], blocks: Sequence[Sequence[str]] = ()
 ) -> FetchedCaches:
-    """Bring the store's caches of the scenes (token -> the scene file's sha256) that lack a valid local one
-    into `cache_dir`, a block's from its pack when the chunk holds every member (`blocks`, each a block of
-    `hashes`' tokens) and lacks at least half of them, the others one object each."""
+    """Read the caches of the scenes (token -> the scene file's sha256) that lack a valid one in `cache_dir`:
+    a block's from its pack when the chunk holds every member (`blocks`, each a block of `hashes`' tokens)
+    and lacks at least half of them (this machine's copy of the pack, else the store's, then kept as one file
+    in `cache_dir`), the others one object each from the store (each kept in `cache_dir` as the engine's
+    own would be)."""
     wanted = {
         token: scene_hash
         for token, scene_hash in hashes.items()
         if not _holds(_local(cache_dir, token), scene_hash)
     }
-    packed = [
+    held = [
         {token: hashes[token] for token in block}
         for block in blocks
         if hashes.keys() >= {*block} and 2 * sum(token in wanted for token in block) >= len(block)
     ]
-    packs = get_many(store, (_pack_key(block) for block in packed))
-    unpacked = []
-    for block in packed:
-        pack = packs[_pack_key(block)]
-        members = _members(pack) if pack is not None else {}
-        if pack is not None and not members:
-            log.warning("metric cache pack %s/%s is damaged: read one by one", store.url, _pack_key(block))
-        for token, scene_hash in block.items():
-            data = members.get(scene_hash, b"")
-            if token in wanted and _holds(data, scene_hash):
-                write_atomically(cache_path(cache_dir, token), data, durable=False)
-                del wanted[token]
+    packed = {_pack_key(block): block for block in held}
+    members = {key: _checked_members(_read(cache_dir / key), block) for key, block in packed.items()}
+    uncopied = [key for key, block in packed.items() if len(members[key]) < len(block)]
+    caches, unpacked = {}, []
+    for key, pack in get_many(store, uncopied).items():
+        members[key] = _checked_members(pack or b"", packed[key])
         if pack is None:  # a damaged pack stays (the write is conditional): its blocks are read singly
-            unpacked.append(tuple(block))
-    return FetchedCaches(_fetch_singly(store, cache_dir, wanted), unpacked)
+            unpacked.append(tuple(packed[key]))
+        elif len(members[key]) == len(packed[key]):  # one file where 64 would cost a chunk its GETs' time
+            write_atomically(cache_dir / key, pack, durable=False)
+        elif not members[key]:
+            log.warning("metric cache pack %s/%s is damaged: read one by one", store.url, key)
+    for key, block in packed.items():
+        for token in block:
+            if token in wanted and token in members[key]:
+                caches[token] = members[key][token]
+                del wanted[token]
+    unbuilt = _fetch_singly(store, cache_dir, wanted, caches)
+    return FetchedCaches(caches, unbuilt, unpacked)
 
 
-def _fetch_singly(store: ObjectStore, cache_dir: Path, wanted: Mapping[str, str]) -> list[str]:
-    """Bring the store's cache of each scene into `cache_dir`, one object each; return the tokens it had
-    none (or a damaged one) for."""
+def _checked_members(pack: bytes, block: Mapping[str, str]) -> dict[str, bytes]:
+    """Return token -> cache file bytes of the block's (token -> scene hash) members a pack holds whole."""
+    members = _members(pack)
+    found = {token: members.get(scene_hash, b"") for token, scene_hash in block.items()}
+    return {token: data for token, data in found.items() if _holds(data, block[token])}
+
+
+def _fetch_singly(
+    store: ObjectStore, cache_dir: Path, wanted: Mapping[str, str], caches: dict[str, bytes]
+) -> list[str]:
+    """Read the store's cache of each scene into `caches` and `cache_dir`, one object each; return the
+    tokens it had none (or a damaged one) for."""
     fetched = get_many(store, (_key(scene_hash) for scene_hash in wanted.values()))
     unbuilt = []
     for token, scene_hash in wanted.items():
@@ -152,8 +180,15 @@ def _fetch_singly(store: ObjectStore, cache_dir: Path, wanted: Mapping[str, str]
             log.warning("metric cache %s/%s is damaged or foreign: rebuilt", store.url, _key(scene_hash))
             unbuilt.append(token)
             continue
-        write_atomically(cache_path(cache_dir, token), data, durable=False)
+        caches[token] = data
+    keep_caches(cache_dir, {token: caches[token] for token in wanted if token in caches})
     return unbuilt
+
+
+def keep_caches(cache_dir: Path, caches: Mapping[str, bytes]) -> None:
+    """Write caches (token -> cache file bytes) into `cache_dir`, one file each, as the engine reads them."""
+    for token, data in caches.items():
+        write_atomically(cache_path(cache_dir, token), data, durable=False)
 
 
 def publish_caches(store: ObjectStore, cache_dir: Path, hashes: Mapping[str, str]) -> int:

@@ -90,6 +90,26 @@ def test_round_trip_is_exact(tmp_path: Path, built: tuple[str, dict[str, MetricC
         assert_same_cache(together[version], cache)
 
 
+def test_a_cache_file_held_in_memory_is_read_instead_of_the_directory(
+    tmp_path: Path, built: tuple[str, dict[str, MetricCache]]
+) -> None:
+    """Caches fetched from a store reach scoring as bytes (`SceneFiles.caches`): read as the file would be,
+    with nothing built or written where the directory lacks them, the rows those of the file's."""
+    token, caches = built
+    data = save_caches(caches, tmp_path / "disk").read_bytes()
+    scene_hash = scene_file_hash(scene_paths(REFERENCE)[token])
+    from_memory = load_caches(tmp_path / "empty", list(caches), token, scene_hash, data)
+    for version, cache in caches.items():
+        assert_same_cache(from_memory[version], cache)
+    empty, paths = tmp_path / "empty", scene_paths(REFERENCE)
+    poses = {token: np.column_stack([np.arange(1.0, 9.0), np.zeros(8), np.zeros(8)])}
+    held = evaluate.SceneFiles(paths, caches={token: data})
+    rows = evaluate.score_seeds(REFERENCE, empty, {0: poses}, list(caches), [token], scenes=held)
+    assert not empty.exists()  # nothing built: the cache came from memory
+    on_disk = evaluate.score_seeds(REFERENCE, tmp_path / "disk", {0: poses}, list(caches), [token])
+    assert repr(rows) == repr(on_disk)  # NaN (an undefined EC) too
+
+
 @pytest.mark.parametrize("shape", [(51, 7), (41, 0), (3, 4)])
 def test_present_boxes_land_where_a_mask_assignment_puts_them(shape: tuple[int, int]) -> None:
     """The boxes moved as items hold the bits a boolean-mask assignment gives: -0.0 kept, NaN where absent."""

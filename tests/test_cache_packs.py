@@ -6,7 +6,7 @@ split alone."""
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +23,14 @@ from server.models import ScoringChunk, Submission
 from server.object_store import LocalStore, ObjectStore
 from server.runs import _plan, chunk_inputs, split_blocks, start_chunk
 from server.services.splits import scene_starts
-from server.shared_caches import _pack, _pack_key, fetch_caches, publish_caches, publish_packs, scene_hashes
+from server.shared_caches import (
+    _pack,
+    _pack_key,
+    fetch_caches,
+    publish_caches,
+    publish_packs,
+    scene_hashes,
+)
 
 
 @dataclass(frozen=True)
@@ -76,10 +83,9 @@ def _cold(tmp_path: Path, name: str) -> Path:
     return directory
 
 
-def _same_caches(directory: Path, built: Built, tokens: Iterable[str]) -> bool:
-    return all(
-        cache_path(directory, token).read_bytes() == cache_path(built.cache_dir, token).read_bytes()
-        for token in tokens
+def _same_caches(caches: Mapping[str, bytes], built: Built, tokens: Iterable[str]) -> bool:
+    return caches.keys() == {*tokens} and all(
+        data == cache_path(built.cache_dir, token).read_bytes() for token, data in caches.items()
     )
 
 
@@ -91,7 +97,27 @@ def test_a_whole_block_is_read_with_one_get(built: Built, tmp_path: Path) -> Non
     fetched = fetch_caches(store, reader, chunk, built.blocks)
     assert (fetched.unbuilt, fetched.unpacked) == ([], [])
     assert len(store.reads) == 2  # no single object read (the store holds none)
-    assert _same_caches(reader, built, chunk)
+    assert _same_caches(fetched.caches, built, chunk)
+    # Each pack kept whole, as one file: the next chunk or run on this machine reads it instead of the store.
+    kept = sorted(path.relative_to(reader) for path in reader.rglob("*") if path.is_file())
+    assert kept == sorted(path.relative_to(store.root) for path in _packs(store))
+    store.reads.clear()
+    again = fetch_caches(store, reader, chunk, built.blocks)
+    assert (
+        store.reads == [] and again.caches == fetched.caches and (again.unbuilt, again.unpacked) == ([], [])
+    )
+
+
+def test_a_damaged_copy_of_a_pack_is_read_from_the_store_again(built: Built, tmp_path: Path) -> None:
+    store, block = built.store(tmp_path, singles=False, packs=1), built.blocks[0]
+    reader = _cold(tmp_path, "reader")
+    assert fetch_caches(store, reader, built.chunk(block), [block]).unbuilt == []
+    (copy,) = reader.rglob("*.nlp")
+    copy.write_bytes(copy.read_bytes()[:-10])  # cut short
+    store.reads.clear()
+    fetched = fetch_caches(store, reader, built.chunk(block), [block])
+    assert len(store.reads) == 1 and _same_caches(fetched.caches, built, block)
+    assert copy.read_bytes() == _packs(store)[0].read_bytes()  # the copy made whole again
 
 
 def test_a_partial_chunk_or_a_mostly_cached_block_reads_one_by_one(built: Built, tmp_path: Path) -> None:
@@ -119,7 +145,8 @@ def test_a_damaged_pack_is_ignored_and_a_missing_one_published_after_the_chunk(
     # Both blocks read one by one; only the missing pack is to be published (the damaged one cannot be
     # replaced by a conditional write).
     assert fetched.unbuilt == [] and fetched.unpacked == [other]
-    assert len(store.reads) == 2 + len(chunk) and _same_caches(reader, built, chunk)
+    assert len(store.reads) == 2 + len(chunk) and _same_caches(fetched.caches, built, chunk)
+    assert not any(reader.rglob("*.nlp"))  # no copy of a damaged pack: each member is kept on its own
     assert publish_packs(store, reader, chunk, fetched.unpacked) == 1
     store.reads.clear()
     assert fetch_caches(store, _cold(tmp_path, "again"), built.chunk(other), [other]).unbuilt == []
@@ -137,10 +164,10 @@ def test_a_foreign_member_is_read_alone_and_a_block_with_one_is_not_published(
     assert publish_packs(store, foreign, built.hashes, [block]) == 0
     caches = [(built.hashes[token], cache_path(foreign, token).read_bytes()) for token in block]
     store.put_bytes(_pack_key(built.chunk(block)), _pack(caches))  # such a pack published all the same
-    reader = _cold(tmp_path, "reader")
-    assert fetch_caches(store, reader, built.chunk(block), [block]).unbuilt == []
+    fetched = fetch_caches(store, _cold(tmp_path, "reader"), built.chunk(block), [block])
+    assert fetched.unbuilt == []
     assert [key.endswith(f"{built.hashes[block[1]]}.nlc") for key in store.reads] == [False, True]
-    assert _same_caches(reader, built, block)
+    assert _same_caches(fetched.caches, built, block)
 
 
 def test_two_publishers_of_a_pack_store_it_once(built: Built, tmp_path: Path) -> None:

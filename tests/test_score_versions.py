@@ -152,12 +152,12 @@ def test_caches_another_process_built_meanwhile_are_read(
     missed: set[str] = set()
 
     def load_after_a_miss(
-        cache_dir: Path, versions: Collection[str], name: str, scene_hash: str
+        cache_dir: Path, versions: Collection[str], name: str, scene_hash: str, data: bytes | None = None
     ) -> dict[str, MetricCache]:
         if name not in missed:  # the first look comes before the other process wrote the file
             missed.add(name)
             return {}
-        return load_caches(cache_dir, versions, name, scene_hash)
+        return load_caches(cache_dir, versions, name, scene_hash, data)
 
     monkeypatch.setattr(evaluate, "load_caches", load_after_a_miss)
     rows = score_versions(REFERENCE, tmp_path, poses, list(VERSIONS), [token])

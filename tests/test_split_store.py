@@ -154,9 +154,10 @@ def test_a_metric_cache_built_once_is_read_by_the_other_workers(
     assert sum(published) == len(scenes)
     for reader in readers:
         reader.mkdir()
-        assert fetch_caches(caches, reader, scenes).unbuilt == []
+        fetched = fetch_caches(caches, reader, scenes)
+        assert fetched.unbuilt == []
         for token in scenes:
-            assert cache_path(reader, token).read_bytes() == cache_path(builder, token).read_bytes()
+            assert fetched.caches[token] == cache_path(builder, token).read_bytes()
     damaged = tmp_path / "damaged"
     damaged.mkdir()
     key = next(iter(caches.keys("")))
@@ -227,6 +228,9 @@ def test_a_token_whose_cache_is_in_the_store_is_scored_without_its_scene(
     _another_machine(monkeypatch, tmp_path / "worker")
     chunk = score_chunk(ChunkInputs(1, job, tokens, (), False), uploads, tmp_path / "worker-cache", caches)
     assert chunk.rows == local.rows and all(row.valid for row in chunk.rows["v1.1"])
+    for token in tokens:  # two caches fetched (the engine read them from memory), the third built
+        cached = cache_path(tmp_path / "worker-cache", token).read_bytes()
+        assert cached == cache_path(tmp_path / "built", token).read_bytes()
     fetched = {path.name for path in (mirror_dir(content_hash) / "scenes").iterdir()}
     assert fetched == {scene_paths(REFERENCE_DIR)[tokens[2]].name}
     (tmp_path / "reader").mkdir()

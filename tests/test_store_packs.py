@@ -126,8 +126,8 @@ def test_a_worker_with_an_empty_cache_reads_each_block_as_one_pack(
                 second_rows = _scored(service, second_id)
             requests = _requests(moto_log, cache_prefix)[seen:]
             contexts = _contexts(service, second_id)
-    # Every cache came from the store, each block's from its pack, read once.
-    assert {path.stem for path in second_cache.glob("*.nlc")} == set(hashes)
+    # Every cache came from the store, each block's from its pack, read once and kept whole as one file.
+    assert {path.relative_to(second_cache).as_posix() for path in second_cache.rglob("*.nlp")} == packs
     # The metric caches and their packs (not the human filter's futures, also kept there).
     engine = [(method, key, status) for method, key, status in requests if key.startswith(f"{engine_key()}/")]
     reads = [key for method, key, status in engine if method == "GET" and status == 200]
@@ -137,6 +137,7 @@ def test_a_worker_with_an_empty_cache_reads_each_block_as_one_pack(
         key.removeprefix(f"{engine_key()}/").removesuffix(".nlc") for key in reads if "/packs/" not in key
     }
     assert read_alone <= {hashes[token] for token in contexts}
+    assert {hashes[path.stem] for path in second_cache.glob("*.nlc")} == read_alone  # each kept as a file
     assert not [request for request in engine if request[0] != "GET" or request[2] != 200]  # none built
     assert (
         len(second_rows) == len({row[:3] for row in second_rows}) == PACKED_SCENES * len(LOG_REPLAY_VERSIONS)

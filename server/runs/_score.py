@@ -54,7 +54,7 @@ def score_chunk(
     # The engine is heavy: the API imports this package without it.
     from scorer.evaluate import SceneFiles, TokenResult, score_seeds
     from scorer.scene import scene_paths
-    from server.shared_caches import fetch_caches, publish_caches, publish_packs
+    from server.shared_caches import fetch_caches, keep_caches, publish_caches, publish_packs
 
     job = inputs.job
     if inputs.poisoned:
@@ -83,6 +83,10 @@ def score_chunk(
     if cache_store is not None:
         hashes = {token: scenes.file_hash(token) for token in scored if token in scenes.paths}
         fetched = fetch_caches(cache_store, cache_dir, hashes, inputs.packs)
+        if stages is None:
+            scenes = scenes._replace(caches=fetched.caches)
+        else:  # a two-stage part reads every cache from cache_dir
+            keep_caches(cache_dir, fetched.caches)
     started = perf_counter()
     with _split_read():  # the scenes of the caches to build are fetched as the engine needs them
         if stages is not None:
