@@ -276,11 +276,11 @@ class ChunkState(StrEnum):
     running = "running"  # a worker process scores it and beats while it does
     done = "done"  # its rows are written
     split_up = "split"  # a worker died holding it: its tokens went out again one per chunk
-    failed = "failed"  # one token whose workers died with it twice: written as failed rows
+    failed = "failed"  # one token whose own process died scoring it alone: written as failed rows
 
 
 LIVE_CHUNK_STATES = (ChunkState.queued, ChunkState.running)
-# Their rows are written: scored (done), or written as failed (a poisoned token).
+# Their rows are written: scored (done), or written as failed (a token that killed its process).
 FINISHED_CHUNK_STATES = (ChunkState.done, ChunkState.failed)
 
 
@@ -302,7 +302,7 @@ class ScoringChunk(Base):
     # to pair with, never written (scorer.evaluate.pairing_contexts).
     context: Mapped[list[str]] = mapped_column(JSON, default=list, server_default=text("'[]'"))
     state: Mapped[str] = mapped_column(String(16), default=ChunkState.queued, index=True)
-    # Worker processes that died while scoring these tokens (inherited by the chunks of a split).
+    # Processes that died while scoring these tokens (inherited by the chunks of a split).
     deaths: Mapped[int] = mapped_column(Integer, default=0)
     starts: Mapped[int] = mapped_column(Integer, default=0)
     worker: Mapped[str | None] = mapped_column(String(300))  # the process scoring it: host/pid

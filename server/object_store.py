@@ -384,6 +384,10 @@ def _client_of(endpoint: str | None) -> Any:
     return boto3.client("s3", config=config)
 
 
+# A forked child (worker.isolated) makes its own: pooled connections shared with the parent would cross replies.
+os.register_at_fork(after_in_child=_client_of.cache_clear)
+
+
 def connect(store: ObjectStore) -> None:
     """Make this process's client of `store` now, at start (an S3 client's imports and service model cost about
     0.3 CPU-s, and twice that in wall time on a busy host): an upload or a chunk never waits on it."""

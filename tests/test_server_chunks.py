@@ -1,6 +1,7 @@
 """The chunk record the reaper holds the broker to: planning skips tokens in flight, only a queued chunk starts
-(a duplicate message drops), a stopped beat is a death, a death splits a chunk one token per chunk, and a
-single token with two deaths is poisoned; a chunk sent long ago and still queued is forgotten."""
+(a duplicate message drops), a stopped beat is a death, a death splits a chunk one token per chunk, a single
+token with a death is scored isolated, workers lost again and again fail the run; a chunk sent long ago and
+still queued is forgotten."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ from server_testing import REFERENCE_DIR, World, claimed_submission, reference_t
 from scorer.evaluate import pairing_contexts
 from scorer.scene import scene_start
 from server.db import transaction
-from server.models import ChunkState, ScoringChunk, Submission, utc_now
-from server.runs import POISON_DEATHS, StartAction, beat_chunk, cancel, start_chunk
+from server.models import ChunkState, FailureKind, ScoringChunk, Status, Submission, utc_now
+from server.runs import LOST_DEATHS, StartAction, beat_chunk, cancel, reap_dead_chunks, start_chunk
 from server.runs._chunks import dead_chunks, forgotten_chunks, resend_chunk
 from server.runs._finish import live_chunks
 from server.runs._plan import plan_chunks
@@ -81,8 +82,8 @@ def test_only_a_queued_chunk_of_the_current_run_starts(world: World) -> None:
     assert _start(world, other, "host/1") == StartAction.drop  # the run is no longer wanted
 
 
-def test_a_stopped_beat_is_a_death_and_a_death_splits_then_poisons(world: World) -> None:
-    submission = claimed_submission(world, b"poison")
+def test_a_stopped_beat_is_a_death_and_a_death_splits_then_isolates(world: World) -> None:
+    submission = claimed_submission(world, b"isolated")
     (chunk_id,) = _plan(world, submission, TOKENS[:3], 3)
     started = utc_now()
     assert _start(world, chunk_id, "host/1", started) == StartAction.score
@@ -99,16 +100,54 @@ def test_a_stopped_beat_is_a_death_and_a_death_splits_then_poisons(world: World)
     children = [_chunk(world, child) for child in split.children]
     assert [(child.tokens, child.deaths) for child in children] == [([token], 1) for token in TOKENS[:3]]
 
-    # Each single token starts once more; the one that kills its process again is poisoned.
-    poisoned = split.children[1]
+    # Each single token starts again, to be scored in a process of its own; a worker lost while it does is one
+    # more death, and the token starts isolated again.
+    lost, died = split.children[1:]
     started = utc_now()
-    assert _start(world, poisoned, "host/3", started) == StartAction.score
-    assert _kill(world, poisoned, started) == [poisoned]
-    assert _chunk(world, poisoned).deaths == POISON_DEATHS
     with transaction(world.factory) as session:
-        verdict = start_chunk(session, poisoned, 1, "host/4")
-    assert (verdict.action, verdict.tokens) == (StartAction.poisoned, (TOKENS[1],))
-    assert _start(world, split.children[0], "host/4") == StartAction.score
+        verdict = start_chunk(session, lost, 1, "host/3", started)
+    assert (verdict.action, verdict.tokens, verdict.isolated) == (StartAction.score, (TOKENS[1],), True)
+    assert _kill(world, lost, started) == [lost]
+    with transaction(world.factory) as session:
+        verdict = start_chunk(session, lost, 1, "host/4")
+    assert (verdict.action, verdict.isolated, _chunk(world, lost).deaths) == (StartAction.score, True, 2)
+    # The isolated process died: its token is written as failed, the chunk finished with that death on record.
+    assert _start(world, died, "host/5") == StartAction.score
+    with transaction(world.factory) as session:
+        finish_chunk(session, died, ChunkState.failed)
+    assert (_chunk(world, died).state, _chunk(world, died).deaths) == (ChunkState.failed, 2)
+    # A chunk without a death is scored where it is taken.
+    (fresh,) = _plan(world, submission, TOKENS[3:4], 1)
+    with transaction(world.factory) as session:
+        assert not start_chunk(session, fresh, 1, "host/6").isolated
+
+
+def test_a_chunk_whose_workers_are_lost_again_and_again_fails_its_run_refunded(world: World) -> None:
+    """Kills from outside never fail a token; but a chunk whose worker is lost LOST_DEATHS times is not the
+    team's doing: its run fails, not charged, naming what happened."""
+    submission = claimed_submission(world, b"lost")
+    (chunk_id,) = _plan(world, submission, TOKENS[:1], 1)
+    for death in range(1, LOST_DEATHS + 1):
+        started = utc_now()
+        assert _start(world, chunk_id, f"host/{death}", started) == StartAction.score
+        with transaction(world.factory) as session:
+            reaped = reap_dead_chunks(session, started + timedelta(seconds=LIVE_WITHIN_S + 1), 3600.0)
+        if death < LOST_DEATHS:
+            assert (reaped.chunks, reaped.failed) == ([(submission.id, 1, chunk_id)], [])
+            assert _chunk(world, chunk_id).deaths == death
+    assert (reaped.chunks, reaped.failed) == ([], [submission.id])
+    with world.session() as session:
+        failed = session.get(Submission, submission.id)
+        assert failed is not None
+        assert (failed.status, failed.failure_kind, failed.charged) == (
+            Status.failed,
+            FailureKind.infrastructure,
+            False,
+        )
+        assert (failed.error or "").startswith(
+            f"the workers scoring a part of this submission were lost {LOST_DEATHS} times"
+        )
+        assert f"chunk {chunk_id} of 1 tokens" in (failed.error_detail or "")
 
 
 def test_a_chunk_queued_since_before_the_cut_is_forgotten(world: World) -> None:

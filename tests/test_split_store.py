@@ -187,7 +187,7 @@ def test_a_changed_scene_or_a_lost_file_fails_the_run_naming_the_object(world: W
         1,
         ("v1.1",),
     )
-    chunk = ChunkInputs(1, job, tokens[:2], (), poisoned=False)
+    chunk = ChunkInputs(1, job, tokens[:2], (), isolated=False)
     store.put_bytes(f"scenes/{scene_paths(REFERENCE_DIR)[tokens[1]].name}", b"changed")
     with pytest.raises(Rejected) as rejected:
         score_chunk(chunk, uploads, machine / "cache")
@@ -297,7 +297,7 @@ def test_a_worker_scores_a_stored_two_stage_group_from_its_scenes_alone(
     rows = {}
     for source, cache in ((store.url, tmp_path / "cache"), (str(EXCERPT), tmp_path / "local-cache")):
         chunk_job = dataclasses.replace(job, split_source=source)
-        chunk = score_chunk(ChunkInputs(1, chunk_job, group.tokens, (), poisoned=False), uploads, cache)
+        chunk = score_chunk(ChunkInputs(1, chunk_job, group.tokens, (), isolated=False), uploads, cache)
         rows[source] = chunk.rows["v2.2-two-stage"]
     fetched = {path.name for path in (mirror_dir(content_hash) / "scenes").iterdir()}
     assert fetched == {scene_paths(EXCERPT)[token].name for token in group.tokens}

@@ -8,6 +8,7 @@ import csv
 import json
 import math
 import shutil
+from dataclasses import replace
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,6 @@ from scorer.versions import DEFAULT_VERSION
 from server.db import transaction
 from server.models import Result, ScoringChunk, SplitKind, Submission, Summary, TokenResultRow, utc_now
 from server.runs import (
-    POISON_DEATHS,
     RUN_VERSIONS,
     ChunkStart,
     StartAction,
@@ -40,6 +40,7 @@ from server.runs import (
     write_chunk,
     write_chunk_results,
 )
+from server.runs._score import POISONED_TOKEN
 from server.services.errors import Conflict
 from server.services.splits import create_phase, register_split, split_tokens
 from server.settings import Settings
@@ -196,15 +197,18 @@ def _claim_and_plan(world: World, submission_id: int, chunk_size: int) -> tuple[
     return run, list(plan.chunks)
 
 
-def _score_and_write(world: World, submission_id: int, run: int, start: ChunkStart) -> bool:
-    """Score a started chunk as a worker does and write its rows; return whether it was poisoned."""
+def _score_and_write(
+    world: World, submission_id: int, run: int, start: ChunkStart, process_death: str | None = None
+) -> None:
+    """Score a started chunk as a worker does and write its rows; with `process_death`, as a worker does whose
+    isolated process died so."""
     with world.session() as session:
         inputs = chunk_inputs(session, submission_id, run, start)
     assert inputs is not None
+    inputs = replace(inputs, process_death=process_death)
     chunk = score_chunk(inputs, world.settings.submission_store, world.settings.cache_dir)
     with transaction(world.factory) as session:
         write_chunk(session, inputs, chunk, "w", "test-engine", 200)
-    return inputs.poisoned
 
 
 def _cli_results(world: World, data: bytes, seeds: int, tmp_path: Path) -> list[dict[str, dict[str, str]]]:
@@ -419,14 +423,15 @@ def test_a_two_stage_rescore_reports_the_rank_changes_of_the_combined_score(worl
 def test_a_token_that_killed_its_workers_is_written_failed_in_its_place_of_the_submission(
     world: World,
 ) -> None:
-    """A group's chunk died twice: split one token per chunk, each token poisoned; its failed row keeps its
-    stage and its row in the submission (what the aggregation orders rows by), its points unknown."""
+    """A group's chunk died: split one token per chunk, each scored isolated; a token whose isolated process
+    died has a failed row that keeps its stage and its row in the submission (what the aggregation orders rows
+    by), its points unknown."""
     add_two_stage_phase(world)
     response = post(world, dump_two_stage_submission_json(family_submission("human")), "two.json")
     submission_id = response.json()["id"]
     run, [first, *_] = _claim_and_plan(world, submission_id, 12)
     with transaction(world.factory) as session:
-        session.get(ScoringChunk, first).deaths = POISON_DEATHS  # type: ignore[union-attr]
+        session.get(ScoringChunk, first).deaths = 1  # type: ignore[union-attr]
     with transaction(world.factory) as session:
         split_up = start_chunk(session, first, run, "w")
     assert split_up.action == StartAction.split_up
@@ -434,16 +439,14 @@ def test_a_token_that_killed_its_workers_is_written_failed_in_its_place_of_the_s
     child = split_up.children[2]  # the group's first now2
     with transaction(world.factory) as session:
         start = start_chunk(session, child, run, "w")
-    assert start.action == StartAction.poisoned
-    assert _score_and_write(world, submission_id, run, start)
+    assert (start.action, start.isolated) == (StartAction.score, True)
+    _score_and_write(world, submission_id, run, start, process_death="killed by SIGSEGV")
     with world.session() as session:
         [row] = session.scalars(
             select(TokenResultRow).where(TokenResultRow.submission_id == submission_id)
         ).all()
     token = STAGES.groups[0].pairs[0][0]  # type: ignore[index]
-    assert (row.token, row.valid) == (token, False) and "stopped the worker process twice" in (
-        row.error or ""
-    )
+    assert (row.token, row.valid, row.error) == (token, False, POISONED_TOKEN)
     submitted = [*STAGES.stage_one_tokens, *STAGES.stage_two_tokens]
     assert row.detail["two_stage"] == {
         "stage": 2,

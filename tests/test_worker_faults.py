@@ -370,7 +370,10 @@ def test_a_token_that_kills_its_worker_every_time_fails_alone(
         assert len(rows) == len(entry.seeds[0]) * 2 * len(VERSIONS)
         failed = {(row.token, row.error) for row in rows if not row.valid}
         assert failed == {(poison, POISONED_TOKEN)}
-        assert poison in (submission.error_detail or "")  # named for the admins
+        # named for the admins, with what its isolated process died of
+        assert f"token {poison}: written as failed, its process killed by SIGKILL" in (
+            submission.error_detail or ""
+        )
         with service.client() as client:  # the team sees the token failed, and why
             seen = client.get(
                 f"/api/v1/submissions/{submission_id}/tokens", params={"version": "v1.1"}
@@ -381,6 +384,56 @@ def test_a_token_that_kills_its_worker_every_time_fails_alone(
             (len(c.tokens), c.deaths, c.state) for c in _chunks(service, submission_id) if c.deaths
         )
         assert deaths[-1] == (4, 1, ChunkState.split_up) and (1, 2, ChunkState.failed) in deaths
+
+
+def _holder(chunk: ScoringChunk) -> int:
+    """Return the pid of the consumer holding a running chunk."""
+    assert chunk.worker is not None
+    return int(chunk.worker.rsplit("/", 1)[1])
+
+
+def test_kills_from_outside_never_fail_a_token_however_often_they_land_on_it(
+    tmp_path: Path, synthetic_split: SplitFixture
+) -> None:
+    """The consumer holding a chunk killed, then twice the consumer holding one of its tokens, scored again
+    alone: the token is scored as any other. Only a process that dies of the token, seen dying by the consumer
+    that forked it for the token, fails it."""
+    faults = {"FAULT_CHUNK_SECONDS": "2", "CHUNK_SIZE": "4", "REAPER_INTERVAL": "2"}
+    with running_service(tmp_path, synthetic_split, faults, faults=True) as service:
+        entry = predictions(synthetic_split.directory, seeds=1, noise=0.3, method="killed from outside")
+        uploaded = time.monotonic()
+        submission_id = service.upload(entry)
+        chunk = _running_chunk(service, submission_id)
+        killed = {_holder(chunk)}
+        _kill(*killed)
+        token = chunk.tokens[0]
+
+        def alone() -> ScoringChunk | None:  # the token's own chunk, taken by a consumer not yet killed
+            return next(
+                (
+                    c
+                    for c in _chunks(service, submission_id)
+                    if c.tokens == [token] and c.state == ChunkState.running and _holder(c) not in killed
+                ),
+                None,
+            )
+
+        for _ in range(2):
+            holder = _holder(wait_for(alone, f"{token} to be scored alone"))  # type: ignore[arg-type]
+            killed.add(holder)
+            _kill(holder)
+        service.final(submission_id, timeout=RECOVERY_S)
+        _record("a token's consumer killed three times from outside: upload to scored", uploaded)
+        assert_scored_once(service, synthetic_split, submission_id, entry)
+        with service.factory() as session:
+            failed = session.scalars(
+                select(TokenResultRow.token).where(
+                    TokenResultRow.submission_id == submission_id, ~TokenResultRow.valid
+                )
+            ).all()
+        assert failed == []
+        [scored_alone] = [c for c in _chunks(service, submission_id) if c.tokens == [token]]
+        assert (scored_alone.state, scored_alone.deaths, scored_alone.starts) == (ChunkState.done, 3, 3)
 
 
 def test_a_chunk_past_the_hard_time_limit_fails_the_run_refunded(

@@ -17,8 +17,9 @@ from __future__ import annotations
 import os
 import traceback
 from collections.abc import Callable
+from dataclasses import replace
 from datetime import timedelta
-from functools import lru_cache
+from functools import lru_cache, partial
 from time import monotonic, sleep
 from typing import Any, TypeVar
 
@@ -40,6 +41,7 @@ from server.services.errors import NotFound
 from server.settings import get_settings
 from worker.app import CHUNK_TASK, INTEGRITY_TASK, app, chunk_soft_time_limit
 from worker.heartbeat import beating
+from worker.isolated import ProcessDeath, run_isolated
 
 log = get_task_logger(__name__)
 T = TypeVar("T")
@@ -185,18 +187,12 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
         if inputs is None:
             return "dropped"
         with beating(sessions, chunk_id, worker):
-            scored = _through_outages(
-                lambda: runs.score_chunk(
-                    inputs, settings.submission_store, settings.cache_dir, settings.cache_store
-                ),
-                (StoreUnavailable,),
-                "object store",
-            )
+            chunk, scored = _through_outages(lambda: _score(inputs), (StoreUnavailable,), "object store")
 
         def write() -> str:
             with transaction(sessions) as session:
                 return runs.write_chunk(
-                    session, inputs, scored, worker, engine_provenance(), settings.bootstrap_samples
+                    session, chunk, scored, worker, engine_provenance(), settings.bootstrap_samples
                 )
 
         written = _through_outages(write, DATABASE_OUTAGES, "database")
@@ -205,6 +201,24 @@ def score_chunk(self: Task, submission_id: int, run: int, chunk_id: int) -> str:
         return written
 
     return f"submission {submission_id} run {run}: {_guarded(submission_id, run, score)}"
+
+
+def _score(inputs: runs.ChunkInputs) -> tuple[runs.ChunkInputs, runs.ScoredChunk]:
+    """Score a chunk here, or an isolated one in a process of its own (worker.isolated); return the inputs to
+    write it with (a process death on record when that process died) and what was scored."""
+    settings = get_settings()
+
+    def score(chunk: runs.ChunkInputs) -> runs.ScoredChunk:
+        return runs.score_chunk(chunk, settings.submission_store, settings.cache_dir, settings.cache_store)
+
+    if not inputs.isolated:
+        return inputs, score(inputs)
+    scored = run_isolated(partial(score, inputs))
+    if not isinstance(scored, ProcessDeath):
+        return inputs, scored
+    log.warning("chunk %s: the process scoring %s alone was %s", inputs.chunk_id, inputs.todo, scored)
+    died = replace(inputs, process_death=str(scored))
+    return died, score(died)
 
 
 def _send_integrity_check(submission_id: int, behind_chunks: bool = False) -> None:

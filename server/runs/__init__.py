@@ -4,7 +4,7 @@ only carry it, worker.tasks).
 A submission's run is claimed (`claim_submission`) and planned into chunks of consecutive frames
 (`plan_run`), which travel as tasks while SQL records each. A chunk's walk, each module once:
 
-    start_chunk (_chunks)  take the queued chunk, or split it after a death, or drop a duplicate
+    start_chunk (_chunks)  take the queued chunk (isolated after a death), or split it, or drop a duplicate
     chunk_inputs (_job)    the run's job and the chunk's tokens still without rows
     score_chunk (_score)   the engine, every seed and version at once (the caller beats meanwhile)
     write_chunk (_rows)    upsert the rows, finish the chunk's record, then (_finish) record the run's
@@ -19,11 +19,11 @@ an older run is dropped, and a repeated one overwrites its rows.
 """
 
 from server.runs._after import check_integrity_after_run, chunks_waiting
-from server.runs._chunks import POISON_DEATHS, ChunkStart, StartAction, beat_chunk, start_chunk
+from server.runs._chunks import ChunkStart, StartAction, beat_chunk, start_chunk
 from server.runs._finish import mark_scored
 from server.runs._job import ChunkInputs, Rejected, ScoringJob, chunk_inputs
 from server.runs._plan import Plan, plan_run, split_blocks
-from server.runs._reaper import Reaped, reap_dead_chunks, reap_lost_work
+from server.runs._reaper import LOST_DEATHS, Reaped, reap_dead_chunks, reap_lost_work
 from server.runs._rows import write_chunk, write_chunk_results
 from server.runs._run import BOARD_VERSIONS, RUN_VERSIONS, run_versions
 from server.runs._score import ScoredChunk, score_chunk
@@ -31,7 +31,7 @@ from server.runs._state import cancel, claim_submission, mark_failed, reset_for_
 
 __all__ = [
     "BOARD_VERSIONS",
-    "POISON_DEATHS",
+    "LOST_DEATHS",
     "RUN_VERSIONS",
     "ChunkInputs",
     "ChunkStart",

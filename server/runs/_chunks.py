@@ -9,10 +9,13 @@ HEARTBEAT_SECONDS), then `done`. The reaper reads these rows, never the broker's
   restarted without persistence, held by a dead worker until a visibility timeout): it is sent again.
 
 A chunk that starts with a death on record is split, one token per chunk, so that a token that kills its
-worker cannot take the others with it; a single token that POISON_DEATHS worker processes died with is not
-scored again: its rows are written as failed, naming the cause, and the rest of the run goes on. A message may
-arrive twice (Celery's redelivery after a lost worker, a re-send of a message that was only late): only a
-queued chunk starts, so a duplicate drops, and only the reaper, which sees a beat stop, counts a death.
+worker cannot take the others with it; a single token with a death on record is scored `isolated`, in a
+process of its own (worker.isolated). If that process dies, the death is the token's: its rows are written as
+failed, naming the cause, and the rest of the run goes on. If the worker holding it is lost instead (killed
+from outside, its machine gone), nothing is known of the token: it is one more death, and the chunk goes out
+again (server.runs._reaper fails the run after LOST_DEATHS of them). A message may arrive twice (Celery's
+redelivery after a lost worker, a re-send of a message that was only late): only a queued chunk starts, so a
+duplicate drops, and only the reaper, which sees a beat stop, counts a worker's death.
 """
 
 from __future__ import annotations
@@ -29,13 +32,10 @@ from server.models import ChunkState, ScoringChunk, Status, Submission, utc_now
 from server.runs._plan import split_chunk
 from server.services.workers import LIVE_WITHIN_S
 
-POISON_DEATHS = 2
-
 
 class StartAction(StrEnum):
     score = "score"  # the caller holds the chunk: score it, then write it
     split_up = "split"  # re-planned one token per chunk: send `children`
-    poisoned = "poisoned"  # its one token killed its workers: write it as failed
     drop = "drop"  # done, held by another process, or no longer wanted
 
 
@@ -46,6 +46,7 @@ class ChunkStart:
     tokens: tuple[str, ...] = ()
     children: tuple[int, ...] = ()
     context: tuple[str, ...] = ()  # scored beside the tokens for EC to pair with, not written
+    isolated: bool = False  # one token with a death on record: scored in a process of its own
 
 
 def _current_run(session: Session, submission_id: int, run: int) -> bool:
@@ -56,7 +57,7 @@ def _current_run(session: Session, submission_id: int, run: int) -> bool:
 def start_chunk(
     session: Session, chunk_id: int, run: int, worker: str, now: datetime | None = None
 ) -> ChunkStart:
-    """Take a queued chunk for `worker` (host/pid), or say why not: split, poisoned or dropped."""
+    """Take a queued chunk for `worker` (host/pid), or say why not: split or dropped."""
     now = now or utc_now()
     chunk = session.scalar(select(ScoringChunk).where(ScoringChunk.id == chunk_id).with_for_update())
     if chunk is None or chunk.run != run or chunk.state != ChunkState.queued:
@@ -66,13 +67,12 @@ def start_chunk(
     tokens = tuple(chunk.tokens)
     if chunk.deaths and len(tokens) > 1:
         return ChunkStart(chunk_id, StartAction.split_up, tokens, split_chunk(session, chunk, now))
-    if chunk.deaths >= POISON_DEATHS:
-        return ChunkStart(chunk_id, StartAction.poisoned, tokens)
     chunk.state, chunk.worker = ChunkState.running, worker
     chunk.starts += 1
     chunk.started_at = chunk.beat_at = now
     session.flush()
-    return ChunkStart(chunk_id, StartAction.score, tokens, context=tuple(chunk.context))
+    context = tuple(chunk.context)
+    return ChunkStart(chunk_id, StartAction.score, tokens, context=context, isolated=bool(chunk.deaths))
 
 
 def beat_chunk(session: Session, chunk_id: int, worker: str, now: datetime | None = None) -> bool:

@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 from scorer.geometry import FloatArray
 from server.models import FailureKind, SplitKind, Submission
 from server.object_store import ObjectStore
-from server.runs._chunks import ChunkStart, StartAction
+from server.runs._chunks import ChunkStart
 from server.runs._plan import token_blocks
 from server.runs._run import completed_tokens, run_versions
 from server.services.errors import NotFound
@@ -37,6 +37,10 @@ class Rejected(Exception):
     def __init__(self, kind: FailureKind, message: str, detail: str | None = None) -> None:
         super().__init__(message)
         self.kind, self.message, self.detail = kind, message, detail
+
+    def __reduce__(self) -> tuple[type[Rejected], tuple[FailureKind, str, str | None]]:
+        # Raised in an isolated child (worker.isolated), it travels to its parent pickled.
+        return Rejected, (self.kind, self.message, self.detail)
 
 
 @dataclass(frozen=True)
@@ -65,9 +69,11 @@ class ChunkInputs:
     job: ScoringJob
     todo: tuple[str, ...]  # the chunk's tokens without every row
     context: tuple[str, ...]  # scored for EC to pair with, not written
-    poisoned: bool  # its one token killed its workers: written as failed, not scored
+    isolated: bool  # one token with a death on record: scored in a process of its own (worker.isolated)
     # The blocks of the split it holds whole (server.runs._plan): their metric caches are fetched as packs.
     packs: tuple[tuple[str, ...], ...] = ()
+    # How the isolated process scoring its one token died: the token is written as failed, not scored.
+    process_death: str | None = None
 
 
 def load_job(session: Session, submission_id: int) -> ScoringJob:
@@ -106,7 +112,7 @@ def chunk_inputs(
         job=job,
         todo=todo,
         context=(*start.context, *(token for token in start.tokens if token in done)),
-        poisoned=start.action == StartAction.poisoned and bool(todo),
+        isolated=start.isolated and bool(todo),
         packs=_whole_blocks(session, submission_id, {*start.tokens, *start.context}) if packs else (),
     )
 

@@ -3,8 +3,10 @@
 It holds the broker to the SQL records, never to the broker's internals:
 
 - a running chunk whose beat stopped lost its process (killed, out of memory, machine gone, hard time
-  limit): it is sent again with one more death on record (server.runs._chunks splits it, then writes a
-  token that keeps killing its workers as failed), or the run fails once the chunk ran past the hard limit;
+  limit): it is sent again with one more death on record (server.runs._chunks splits it, then scores each
+  token in a process of its own, which sees a death of the token's making); the run fails once the chunk ran
+  past the hard limit, or when the chunk's workers were lost LOST_DEATHS times (the workers, not the token,
+  keep dying: the team is refunded);
 - when the broker's queue is idle, what waits in SQL was lost by the broker (flushed, restarted without
   persistence) or is held by a worker that took it a moment ago: a queued chunk sent more than one reaper
   interval ago is sent again (a duplicate drops), a running run with nothing queued or running is planned
@@ -27,6 +29,8 @@ from server.runs._chunks import dead_chunks, forgotten_chunks, resend_chunk
 from server.runs._run import locked_submission
 from server.runs._state import mark_failed
 
+LOST_DEATHS = 5
+
 
 @dataclass
 class Reaped:
@@ -38,22 +42,34 @@ class Reaped:
 
 
 def reap_dead_chunks(session: Session, now: datetime, hard_limit_s: float) -> Reaped:
-    """Send again the chunks whose process stopped beating; fail the run of one past the hard time limit.
+    """Send again the chunks whose process stopped beating; fail the run of one past the hard time limit, or
+    of one whose workers were lost LOST_DEATHS times.
 
     A beat that stopped is proof on its own: the chunk is sent again whatever the queue holds.
     """
     reaped = Reaped()
     for chunk in dead_chunks(session, now):
-        assert chunk.started_at is not None
-        if (now - chunk.started_at).total_seconds() >= hard_limit_s:
-            message = f"scoring was stopped at the hard time limit of {hard_limit_s:.0f} s"
-            detail = f"chunk {chunk.id} of {len(chunk.tokens)} tokens, started {chunk.started_at} by {chunk.worker}"
-            mark_failed(session, chunk.submission_id, chunk.run, FailureKind.infrastructure, message, detail)
-            reaped.failed.append(chunk.submission_id)
-        else:
+        message = _run_failure(chunk, now, hard_limit_s)
+        if message is None:
             chunk_id = resend_chunk(session, chunk, died=True, now=now)
             reaped.chunks.append((chunk.submission_id, chunk.run, chunk_id))
+            continue
+        detail = (
+            f"chunk {chunk.id} of {len(chunk.tokens)} tokens, started {chunk.started_at} by {chunk.worker}"
+        )
+        mark_failed(session, chunk.submission_id, chunk.run, FailureKind.infrastructure, message, detail)
+        reaped.failed.append(chunk.submission_id)
     return reaped
+
+
+def _run_failure(chunk: ScoringChunk, now: datetime, hard_limit_s: float) -> str | None:
+    """Return why the run of a chunk whose process died cannot go on (the team's message), or None."""
+    assert chunk.started_at is not None
+    if (now - chunk.started_at).total_seconds() >= hard_limit_s:
+        return f"scoring was stopped at the hard time limit of {hard_limit_s:.0f} s"
+    if chunk.deaths + 1 >= LOST_DEATHS:
+        return f"the workers scoring a part of this submission were lost {chunk.deaths + 1} times"
+    return None
 
 
 def reap_lost_work(session: Session, now: datetime, sent_before: datetime, max_attempts: int) -> Reaped:

@@ -114,11 +114,13 @@ def write_chunk_results(
 def finish_chunk(
     session: Session, chunk_id: int, state: ChunkState = ChunkState.done, now: datetime | None = None
 ) -> None:
-    """Mark a chunk done (its rows are written) or failed (its poisoned token is written as failed)."""
+    """Mark a chunk done (its rows are written) or failed (its token's process died: written as failed, and
+    one more death on record)."""
+    died = int(state == ChunkState.failed)
     session.execute(
         update(ScoringChunk)
         .where(ScoringChunk.id == chunk_id)
-        .values(state=state, finished_at=now or utc_now())
+        .values(state=state, finished_at=now or utc_now(), deaths=ScoringChunk.deaths + died)
     )
 
 
@@ -138,7 +140,9 @@ def write_chunk(
             session, job.submission_id, job.run, version, rows, worker, scored.seconds_per_version
         ):
             return "dropped"
-    finish_chunk(session, inputs.chunk_id, ChunkState.failed if inputs.poisoned else ChunkState.done)
+    finish_chunk(
+        session, inputs.chunk_id, ChunkState.done if inputs.process_death is None else ChunkState.failed
+    )
     if scored.admin_note:
         submission = locked_submission(session, job.submission_id)
         notes = filter(None, [submission.error_detail, scored.admin_note])

@@ -1,5 +1,6 @@
 """Scoring a chunk's tokens with the engine: every seed and version at once (a token's caches read once, each
-trajectory simulated once), or, for a token that killed its workers, failed rows naming the cause."""
+trajectory simulated once), or, for a token that killed the process scoring it alone, failed rows naming the
+cause."""
 
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ if TYPE_CHECKING:
 
 SPLIT_UNREADABLE = "the split's scenes cannot be read from the server's store; the organisers are told"
 POISONED_TOKEN = (
-    "scoring this token stopped the worker process twice (a crash or running out of memory); "
+    "scoring this token stopped its process (a crash or running out of memory); "
     "it was not scored and counts as a failed token"
 )
 
@@ -57,13 +58,13 @@ def score_chunk(
     from server.shared_caches import fetch_caches, keep_caches, publish_caches, publish_packs
 
     job = inputs.job
-    if inputs.poisoned:
+    if inputs.process_death is not None:
         failed = [
             TokenResult(token, seed, valid=False, error=POISONED_TOKEN)
             for seed in range(job.seed_count)
             for token in inputs.todo
         ]
-        note = f"token {', '.join(inputs.todo)}: written as failed, {POISONED_TOKEN}"
+        note = f"token {', '.join(inputs.todo)}: written as failed, its process {inputs.process_death}"
         if job.split_kind == SplitKind.two_stage:
             with _split_read():
                 failed = _stage_failed(failed, trajectories(job, store))
