@@ -11,9 +11,16 @@ import math
 import numpy as np
 import pytest
 
-from scorer.geometry import NUMPY_ARCTAN2_IS_SVML, svml_arctan2_emulated
+from scorer.geometry import NUMPY_ARCTAN2_IS_SVML, FloatArray, svml_arctan2_emulated
 from scorer.rcp14 import rcp14, rcp14_float, significands
-from scorer.svml_tan import _SVML_PROBE_ANGLES, _SVML_PROBE_TAN, NUMPY_TAN_IS_SVML, svml_tan_emulated
+from scorer.svml_tan import (
+    _FLOAT_REPLAY_MAX_ANGLES,
+    _SVML_PROBE_ANGLES,
+    _SVML_PROBE_TAN,
+    NUMPY_TAN_IS_SVML,
+    _svml_tan_float,
+    svml_tan_emulated,
+)
 
 needs_svml = pytest.mark.skipif(not NUMPY_TAN_IS_SVML, reason="numpy does not run SVML on this host")
 libm_tan = np.vectorize(math.tan, otypes=[np.float64])
@@ -75,6 +82,76 @@ def test_the_tan_replay_keeps_numpys_value_outside_its_domain() -> None:
         assert np.array_equal(svml_tan_emulated(special), np.tan(special), equal_nan=True)
     assert np.signbit(svml_tan_emulated(np.array([-0.0])))[0]
     assert svml_tan_emulated(np.array([[0.5, -0.5]])).shape == (1, 2)
+
+
+def _ulps_around(values: FloatArray, steps: int) -> FloatArray:
+    """Return each value and its `steps` neighbours either side, one ulp apart."""
+    around = [values]
+    for direction in (np.inf, -np.inf):
+        neighbour = values
+        for _ in range(steps):
+            neighbour = np.nextafter(neighbour, direction)
+            around.append(neighbour)
+    return np.concatenate(around)
+
+
+def _hard_angles() -> FloatArray:
+    """Angles in and around the replay's domain, of both signs: random ones, magnitudes from 2^-320 to 8, a few
+    ulps around its bounds 2^-300 and 1.4, around every multiple of pi/16 and every midpoint between two (where
+    N changes), subnormals, zeros, huge values, infinities and NaN."""
+    rng = np.random.default_rng(3)
+    sixteenths = np.pi / 16 * np.arange(-8, 8.5, 0.5)
+    subnormals = rng.integers(1, 2**52, 1_000).view(np.float64)
+    unsigned = np.concatenate(
+        [
+            2.0 ** rng.uniform(-320, 3, 60_000),
+            _ulps_around(np.array([2.0**-300, 1.4]), 8),
+            subnormals,
+            [0.0, 5e-324, 2.0**-1022, 1e300, np.finfo(np.float64).max, np.inf, np.nan],
+        ]
+    )
+    return np.concatenate(
+        [
+            rng.uniform(-1.4, 1.4, 100_000),
+            _ulps_around(sixteenths, 8),
+            (sixteenths[:, None] + rng.uniform(-1e-6, 1e-6, (len(sixteenths), 200))).ravel(),
+            unsigned,
+            -unsigned,
+        ]
+    )
+
+
+@pytest.fixture(scope="module")
+def hard_tan() -> tuple[FloatArray, FloatArray]:
+    """The hard angles and their tan from the float replay, one angle a call."""
+    angles = _hard_angles()
+    with np.errstate(invalid="ignore"):
+        return angles, np.array([_svml_tan_float(angle) for angle in angles.tolist()], dtype=np.float64)
+
+
+def test_the_float_tan_replay_gives_the_numpy_replays_bits(hard_tan: tuple[FloatArray, FloatArray]) -> None:
+    angles, floats = hard_tan
+    with np.errstate(invalid="ignore"):
+        replayed = svml_tan_emulated(angles)  # more angles than the float replay takes: numpy's
+    assert np.array_equal(floats.view(np.int64), replayed.view(np.int64))
+
+
+@needs_svml
+def test_the_float_tan_replay_gives_numpys_svml_bits(hard_tan: tuple[FloatArray, FloatArray]) -> None:
+    angles, floats = hard_tan
+    with np.errstate(invalid="ignore"):
+        assert np.array_equal(floats.view(np.int64), np.tan(angles).view(np.int64))
+
+
+def test_a_few_angles_take_the_float_tan_replay_in_any_shape() -> None:
+    angles = _hard_angles()[::997]
+    with np.errstate(invalid="ignore"):
+        replayed = svml_tan_emulated(angles)
+        for shape in [(0,), (), (1,), (2, 3), (_FLOAT_REPLAY_MAX_ANGLES,)]:
+            size = math.prod(shape)
+            few = svml_tan_emulated(angles[:size].reshape(shape))
+            assert few.shape == shape and few.dtype == np.float64
+            assert np.array_equal(few.ravel().view(np.int64), replayed[:size].view(np.int64))
 
 
 @pytest.mark.skipif(not NUMPY_ARCTAN2_IS_SVML, reason="numpy does not run SVML on this host")
