@@ -22,6 +22,7 @@ import os
 import pickle
 import signal
 import traceback
+import warnings
 from collections.abc import Callable
 from contextlib import suppress
 from dataclasses import dataclass
@@ -65,7 +66,10 @@ def run_isolated(work: Callable[[], T]) -> T | ProcessDeath:
     child."""
     parent = os.getpid()
     read_end, write_end = os.pipe()
-    child = os.fork()
+    # Python 3.12 and later warn of any fork beside threads; the module's docstring says why this one is safe.
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
+        child = os.fork()
     if child == 0:
         os.close(read_end)
         _run_child(work, write_end, parent)
