@@ -39,7 +39,9 @@ class Observation:
     """Occupancy maps (T time indices x n objects) and each object's first appearance.
 
     Objects are boxes, held as corners: shapely polygons cost more to build than most scoring steps,
-    and the scorer needs them only for the few pairs its exact box tests cannot decide.
+    and the scorer needs them only for the few pairs its exact box tests cannot decide. Only the present
+    boxes are held, as a metric cache stores them: a batch puts them in place in its own dense maps
+    (`ObservationBatch`), and an observation's dense maps (`corners`) are made where read.
     """
 
     tokens: tuple[str, ...]  # n track tokens, first-appearance order
@@ -47,20 +49,56 @@ class Observation:
     is_agent: BoolArray  # (n,) vehicle, pedestrian or bicycle at first appearance (nuPlan `Agent`)
     first_speed: FloatArray  # (n,) |velocity| at first appearance (0 for static objects)
     present: BoolArray  # (T, n) the object is in occupancy map k
-    corners: FloatArray  # (T, n, 4, 2) box corners FL, RL, RR, FR (the devkit's ring order); NaN where absent
+    # (k, 4, 2) the corners FL, RL, RR, FR (the devkit's ring order) of the k present boxes, in the C order of
+    # `present`: step by step, each step's in column order
+    boxes: FloatArray
     red_lights: RedLights | None = None  # v2's red-light polygons (None: the version reads none)
+
+    @cached_property
+    def corners(self) -> FloatArray:
+        """Return the box corners (T, n, 4, 2), NaN where absent."""
+        return joined_corners([self.present], [self.boxes])
 
     @cached_property
     def polygons(self) -> npt.NDArray[np.object_]:
         """Return the box polygons (T, n), None where absent."""
         polygons = np.full(self.present.shape, None, dtype=object)
-        polygons[self.present] = shapely.polygons(self.corners[self.present])
+        polygons[self.present] = shapely.polygons(self.boxes)
         return polygons
 
     @cached_property
     def is_red_light(self) -> BoolArray:
         """Return which tokens are red-light pseudo-obstacles (the devkit tests for this substring)."""
         return np.array([RED_LIGHT_TOKEN in token for token in self.tokens], dtype=bool)
+
+
+_BOX_BYTES = np.dtype((np.void, 8 * np.dtype(np.float64).itemsize))  # a box's 4 corners as one item
+_ABSENT = np.full(8, np.nan).view(_BOX_BYTES)[0]
+
+
+def _box_items(corners: FloatArray) -> np.ndarray:
+    """Return C-contiguous corners (..., 4, 2) viewed as one item per box (...)."""
+    return corners.reshape(*corners.shape[:-2], 8).view(_BOX_BYTES)[..., 0]
+
+
+def joined_corners(presents: Sequence[BoolArray], boxes: Sequence[FloatArray]) -> FloatArray:
+    """Return the corners (T, N, 4, 2) of observations side by side, NaN where absent, from each one's presence
+    (T, n) and its present boxes (k, 4, 2) in its C order.
+
+    Each observation's boxes are put in place in the joined array, without a dense array of their own to copy
+    in; each box's 8 values move as one item: numpy copies an indexed item several times faster than an
+    indexed row of 8 floats.
+    """
+    present = np.concatenate(presents, axis=1)
+    corners = np.empty((*present.shape, 4, 2))
+    items = _box_items(corners)
+    start = 0
+    for observation_present, observation_boxes in zip(presents, boxes, strict=True):
+        end = start + observation_present.shape[1]
+        items[:, start:end][observation_present] = _box_items(np.ascontiguousarray(observation_boxes))
+        start = end
+    items[~present] = _ABSENT
+    return corners
 
 
 class ObservationBatch(NamedTuple):
@@ -79,10 +117,13 @@ class ObservationBatch(NamedTuple):
         """Return the batch of `observations`, in order."""
         count = np.array([len(observation.tokens) for observation in observations], dtype=np.intp)
 
-        def joined(name: str, axis: int = 0) -> np.ndarray:
-            return np.concatenate([getattr(observation, name) for observation in observations], axis=axis)
+        def joined(name: str) -> np.ndarray:
+            return np.concatenate([getattr(observation, name) for observation in observations])
 
-        corners = joined("corners", axis=1)
+        corners = joined_corners(
+            [observation.present for observation in observations],
+            [observation.boxes for observation in observations],
+        )
         return cls(
             corners=corners,
             extent=_extents(corners),
@@ -162,14 +203,13 @@ def observe_scene(scene: Scene, future_frames: int = FUTURE_FRAMES) -> Observati
     half_length = boxes[first_rows, 3] / 2.0
     half_width = boxes[first_rows, 4] / 2.0
     corners = box_corners(states[..., 0], states[..., 1], states[..., 2], half_length, half_width)
-    corners[~present] = np.nan
     return Observation(
         tokens=tuple(tracks[row] for row in first_rows.tolist()),
         object_types=tuple(categories[row].upper() for row in first_rows.tolist()),
         is_agent=is_agent,
         first_speed=np.where(is_agent, np.hypot(*velocities[first_rows].T), 0.0),
         present=present,
-        corners=corners,
+        boxes=corners[present],
     )
 
 
@@ -232,8 +272,9 @@ def drop_tracks_on_ego(
     """
     touching = np.zeros(len(observation.tokens), dtype=bool)
     first = np.flatnonzero(observation.present[0])
-    # Only step 0's boxes: `polygons` would build all the steps' (the scorer's exact box tests need none).
-    touching[first] = shapely.intersects(shapely.polygons(observation.corners[0, first]), ego_footprint)
+    # Only step 0's boxes, the first: `polygons` would build all the steps' (the scorer's exact box tests need
+    # none).
+    touching[first] = shapely.intersects(shapely.polygons(observation.boxes[: len(first)]), ego_footprint)
     kept = np.flatnonzero(~touching)
     dropped = tuple(observation.tokens[index] for index in np.flatnonzero(touching))
     return (
@@ -243,7 +284,7 @@ def drop_tracks_on_ego(
             is_agent=observation.is_agent[kept],
             first_speed=observation.first_speed[kept],
             present=observation.present[:, kept],
-            corners=observation.corners[:, kept],
+            boxes=observation.boxes[~touching[np.nonzero(observation.present)[1]]],
             red_lights=observation.red_lights,
         ),
         dropped,

@@ -172,6 +172,6 @@ def scoring_observation(observation: PlannerObservation) -> Observation:
         is_agent=observation.is_agent[kept],
         first_speed=observation.speeds[kept],
         present=np.ones((SCORING_STEPS, len(kept)), dtype=bool),
-        corners=observation.corners[time_to_map][:, kept],
+        boxes=observation.corners[time_to_map][:, kept].reshape(-1, 4, 2),  # every box present
         red_lights=observation.red_lights,
     )

@@ -49,7 +49,8 @@ def assert_same_cache(loaded: MetricCache, cache: MetricCache) -> None:
     assert shapely.equals_exact(loaded.drivable_map.polygons, cache.drivable_map.polygons, 0.0).all()
     assert loaded.observation.tokens == cache.observation.tokens
     assert np.array_equal(loaded.observation.present, cache.observation.present)
-    assert loaded.observation.corners.tobytes() == cache.observation.corners.tobytes()  # NaN and -0.0 too
+    assert loaded.observation.boxes.tobytes() == cache.observation.boxes.tobytes()  # NaN and -0.0 too
+    assert loaded.observation.corners.tobytes() == cache.observation.corners.tobytes()
     assert (loaded.reference_measures is None) == (cache.reference_measures is None)
     for name in ProposalMeasures._fields if cache.reference_measures is not None else ():
         assert np.array_equal(
@@ -108,21 +109,6 @@ def test_a_cache_file_held_in_memory_is_read_instead_of_the_directory(
     assert not empty.exists()  # nothing built: the cache came from memory
     on_disk = evaluate.score_seeds(REFERENCE, tmp_path / "disk", {0: poses}, list(caches), [token])
     assert repr(rows) == repr(on_disk)  # NaN (an undefined EC) too
-
-
-@pytest.mark.parametrize("shape", [(51, 7), (41, 0), (3, 4)])
-def test_present_boxes_land_where_a_mask_assignment_puts_them(shape: tuple[int, int]) -> None:
-    """The boxes moved as items hold the bits a boolean-mask assignment gives: -0.0 kept, NaN where absent."""
-    rng = np.random.default_rng(7)
-    present = rng.random(shape) < 0.6
-    boxes = rng.standard_normal((int(present.sum()), 4, 2))
-    boxes[:, 0, 1] = -0.0
-    expected = np.full((*shape, 4, 2), np.nan)
-    expected[present] = boxes
-    stored = np.frombuffer(b"\0" + boxes.tobytes(), dtype=np.float64, offset=1).reshape(
-        boxes.shape
-    )  # unaligned
-    assert scorer_cache._boxes_where_present(present, stored).tobytes() == expected.tobytes()
 
 
 def test_a_file_is_read_before_it_is_written_only_to_keep_versions_not_rewritten(

@@ -127,7 +127,7 @@ def test_configs_measured_together_get_what_each_gets_alone() -> None:
             is_agent=observation.is_agent[:0],
             first_speed=observation.first_speed[:0],
             present=observation.present[:, :0],
-            corners=observation.corners[:, :0],
+            boxes=observation.boxes[:0],
         )
         for observation in observations
     ]

@@ -67,7 +67,7 @@ def observe(*tracks: tuple) -> Observation:
         is_agent=is_agent,
         first_speed=np.array([speed for *_, speed, _, _ in tracks], dtype=np.float64),
         present=np.ones((OBSERVATION_STEPS, len(tracks)), dtype=bool),
-        corners=corners,
+        boxes=corners.reshape(-1, 4, 2),
     )
 
 

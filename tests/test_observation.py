@@ -5,10 +5,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import shapely
 
 from scorer.geometry import box_corners
-from scorer.observation import OBSERVATION_STEPS, ObservationBatch, observe_scene
+from scorer.observation import (
+    OBSERVATION_STEPS,
+    Observation,
+    ObservationBatch,
+    joined_corners,
+    observe_scene,
+)
 from scorer.scene import EgoStatus, Frame, MapExcerpt, Scene
 
 CURRENT = 3  # NAVSIM: 3 history frames, then the current one
@@ -114,3 +121,36 @@ def test_a_scene_without_objects_has_an_empty_observation() -> None:
     assert observation.tokens == ()
     assert observation.present.shape == (OBSERVATION_STEPS, 0)
     assert ObservationBatch.of([observation]).extent.shape == (0, 4)
+
+
+@pytest.mark.parametrize("widths", [[7], [0], [4], [5, 0, 1, 3, 9, 2, 0, 4]])
+def test_joined_boxes_land_where_mask_assignments_put_them(widths: list[int]) -> None:
+    """Observations of every width (none, one object, absent everywhere, all present) joined side by side hold
+    the bits each one's boolean-mask assignment gives: -0.0, NaN, infinities and subnormals kept, NaN where
+    absent."""
+    rng = np.random.default_rng(7)
+    steps = 41
+    presents = [rng.random((steps, width)) < rng.choice([0.0, 0.6, 1.0]) for width in widths]
+    specials = np.array([np.nan, np.inf, -np.inf, 1e308, 5e-324, -0.0])
+    boxes = []
+    for present in presents:
+        values = rng.standard_normal((int(present.sum()), 4, 2)) * 10.0 ** rng.integers(-300, 300)
+        chosen = rng.random(values.shape) < 0.05
+        values[chosen] = rng.choice(specials, int(chosen.sum()))
+        # Unaligned, as a cache file's view may be.
+        boxes.append(np.frombuffer(b"\0" + values.tobytes(), np.float64, offset=1).reshape(values.shape))
+    expected = []
+    for present, values in zip(presents, boxes, strict=True):
+        dense = np.full((steps, present.shape[1], 4, 2), np.nan)
+        dense[present] = values
+        expected.append(dense)
+    assert joined_corners(presents, boxes).tobytes() == np.concatenate(expected, axis=1).tobytes()
+    observation = Observation(
+        tokens=("a",) * widths[0],
+        object_types=("VEHICLE",) * widths[0],
+        is_agent=np.ones(widths[0], dtype=bool),
+        first_speed=np.zeros(widths[0]),
+        present=presents[0],
+        boxes=boxes[0],
+    )
+    assert observation.corners.tobytes() == expected[0].tobytes()

@@ -56,9 +56,11 @@ def find_contacts(
         & ~observations.is_red_light[objects]
     )
     rows, objects = rows[near], objects[near]
-    # Bounds of the objects left, at every time index, each box once, then per pair and box (pairs, S, 4).
+    # Bounds of the objects left, at every time index up to the last tested (v1's NC and TTC test 41 of its
+    # 51), each box once, then per pair and box (pairs, S, 4).
     near_objects, column = np.unique(objects, return_inverse=True)
-    object_bounds = corner_bounds(observations.corners[:, near_objects])[map_index[None, :], column[:, None]]
+    tested = observations.corners[: map_index.max(initial=-1) + 1, near_objects]
+    object_bounds = corner_bounds(tested)[map_index[None, :], column[:, None]]
     pair, step = np.nonzero(boxes_touch(box_bounds[rows], object_bounds))
     if not len(pair):
         return Contacts(

@@ -62,7 +62,7 @@ def base_observation(frame: Frame, replayed: Observation) -> Observation:
         is_agent=np.concatenate([is_agent, replayed.is_agent[later]]),
         first_speed=np.concatenate([speed, replayed.first_speed[later]]),
         present=present,
-        corners=corners,
+        boxes=corners[present],
         red_lights=replayed.red_lights,
     )
 
@@ -79,7 +79,7 @@ def with_vehicles(base: Observation, vehicles: VehicleSteps) -> Observation:
         box = np.column_stack(box_columns).astype(np.float64, copy=False)  # (n, 5), C order
         present[step, column] = True
         corners[step, column] = box_corners(box[:, 0], box[:, 1], box[:, 2], box[:, 3] / 2.0, box[:, 4] / 2.0)
-    return replace(base, present=present, corners=corners)
+    return replace(base, present=present, boxes=corners[present])
 
 
 def reacting_observation(
