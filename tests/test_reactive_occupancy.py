@@ -1,7 +1,8 @@
 """The reactive simulation's shortcuts against the plain computations they replace, bit for bit: the capsules
 of a path ahead and of a footprint's path (slices of a path's memoised segments) against the segments of the
 points `to_go` and `between` give, a box polygon's corners against `box_corners`, whether a path ahead meets
-a box against GEOS's buffer of it, and a path's memoised states against fresh ones; and the bounds against
+a box against GEOS's buffer of it, a path's memoised states against fresh ones and the capsule test's clamped
+projection against Python's min and max; and the bounds against
 what they bound: a box's capsule holds the box, a box taken as its own simplification is GEOS's, a path ahead
 taken to meet the box it starts in meets it."""
 
@@ -20,6 +21,7 @@ from scorer.reactive.occupancy import (
     BOUND_SLACK,
     BUFFER_REACH,
     SIMPLIFY_TOLERANCE,
+    _end_within,
     bound_of,
     box_capsule,
     box_is_simplified,
@@ -181,3 +183,18 @@ def test_a_path_ahead_starting_inside_a_box_meets_it() -> None:
                     buffer = shapely.buffer(shapely.linestrings(points), half_width, cap_style="flat")
                     assert shapely.intersects(box, buffer)
     assert claimed > 1000 and refused > 1000
+
+
+def test_the_clamped_projection_is_min_and_max() -> None:
+    """`_end_within` clamps the projection by comparisons: the same side as min(max(fraction, 0), 1) on every
+    pair, NaN, infinite and degenerate segments among them."""
+    rng = np.random.default_rng(11)
+    values = [*rng.normal(0.0, 3.0, 600).tolist(), 0.0, -0.0, 1e-300, -1e-300, math.inf, -math.inf, math.nan]
+    for x, y, x0, y0, dx, dy, signed_reach in rng.choice(values, (20000, 7)).tolist():
+        reach = abs(signed_reach)
+        squared = dx * dx + dy * dy
+        fraction = min(max(((x - x0) * dx + (y - y0) * dy) / (squared if squared > 0 else 1.0), 0.0), 1.0)
+        distance = math.hypot(x - x0 - fraction * dx, y - y0 - fraction * dy)
+        if abs(distance - reach) <= reach * 1e-9:
+            distance = float(np.hypot(x - x0 - fraction * dx, y - y0 - fraction * dy))
+        assert _end_within(x, y, x0, y0, dx, dy, squared, reach) == (distance <= reach)

@@ -131,7 +131,12 @@ def _end_within(
     squared length `squared`), measured as numpy measured it: hypot of the offset from the clamped
     projection; numpy's hypot where the distance is a near-tie."""
     along = (x - x0) * dx + (y - y0) * dy
-    fraction = min(max(along / (squared if squared > 0 else 1.0), 0.0), 1.0)
+    fraction = along / (squared if squared > 0 else 1.0)
+    # min(max(fraction, 0.0), 1.0) as comparisons (a NaN and -0.0 pass as through those): runs per capsule pair.
+    if fraction < 0.0:
+        fraction = 0.0
+    elif fraction > 1.0:
+        fraction = 1.0
     off_x, off_y = x - x0 - fraction * dx, y - y0 - fraction * dy
     distance = math.hypot(off_x, off_y)
     if abs(distance - reach) <= reach * HYPOT_TIE:
@@ -173,6 +178,8 @@ def bound_of(capsules: Capsules) -> Bound:
 
 def envelope_of(envelopes: list[Envelope]) -> Envelope:
     """Return the envelope of the union of capsules, given their envelopes."""
+    if len(envelopes) == 1:  # a box's (the ego's at every step): its own
+        return envelopes[0]
     low_x, low_y, high_x, high_y = zip(*envelopes, strict=True)
     return min(low_x), min(low_y), max(high_x), max(high_y)
 
