@@ -15,7 +15,7 @@ at --rate and its web page at a tenth of that, while a team uploads N entries sp
 each (POST /submissions:validate) and polls their status 4 times a second; p50/p95/p99 latency and errors per
 route, the load average before and after (other work on the host shows there), how many uploads were still
 being scored when the load ended, and a check that every upload was scored exactly once (one row per token,
-version and seed; one leaderboard entry per version). The target (issue 26): the leaderboard at 200/s with
+version and seed; one leaderboard entry per version). The target: the leaderboard at 200/s with
 p99 at most 100 ms, the upload routes below 1 s, while 2 workers score on the same 2 cores.
 
 With --storage local,s3: each configuration also with its uploads, its split's scenes and the metric caches in
@@ -120,7 +120,7 @@ SPLIT_SEED = 11
 CONNECTIONS = 64  # concurrent clients of the leaderboard load
 REQUEST_TIMEOUT_S = 30.0
 SERVICE_TARGET = 1.25  # POST to leaderboard row against the engine alone
-STORE_TARGET = 1.1  # upload to row on the object store (cold worker caches) against the local directory (#28)
+STORE_TARGET = 1.1  # upload to row on the object store (cold worker caches) against the local directory
 # How often the client asks whether its upload is scored: each answer costs the API a few ms of the CPU the
 # workers score on, so asking 20 times a second would slow what it measures by several percent.
 STATUS_POLL_S = 0.25
