@@ -8,9 +8,11 @@ score included, and so do the human filter's block (the human's own columns, the
 columns overridden), the human's raw progress, EC's partner and the tracks dropped for touching the ego.
 
 The official results were made on an AVX-512 host under OpenBLAS's SkylakeX kernels, as the v1 results, and
-are compared under the kernels `scorer.blas` selects, in a fresh process. Two probe tokens' NC hangs on the
-kernel (the `ddot` of the relative angle, docs/engine.md "BLAS"): under other kernels (a host without AVX-512)
-their contact is a rear collision, as the devkit's own would be there, and they are left out.
+are compared under the kernels `scorer.blas` selects, in a fresh process: exactly under SkylakeX. Under other
+kernels (a host without AVX-512) `pinv` rounds differently in the tracker, as the devkit's own would there, so
+continuous numbers (progress, the score) are compared within 1e-9 and discrete ones still exactly; and two
+probe tokens' NC hangs on the kernel (the `ddot` of the relative angle, docs/engine.md "BLAS"): there their
+contact is a rear collision and they are left out.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from devkit_kernels import CONTINUOUS_TOLERANCE, same_number
 from engine_process import run_python
 
 from scorer.blas import DEVKIT_KERNELS
@@ -102,10 +105,6 @@ def scored(
     return tuple(output["kernels"]), rows
 
 
-def _same(ours: float, official: float | None) -> bool:
-    return math.isnan(ours) if official is None else ours == official
-
-
 @pytest.mark.parametrize("version", list(OFFICIAL))
 @pytest.mark.parametrize("split", list(SPLITS))
 @pytest.mark.parametrize("family", FAMILIES)
@@ -126,14 +125,17 @@ def test_every_column_and_the_human_filter_equal_the_official_results(
         mismatches += [
             f"{token} {column}: {metrics[column]!r} != {row[column]!r}"
             for column in EPDMS_COLUMNS
-            if not _same(metrics[column], row[column])
+            if not same_number(metrics[column], row[column])
         ]
         block, official = detail["human_filter"], row["human_filter"]
         assert block["overridden"] == official["overridden"], token
         if official["applied"]:
             for column in FILTERED_COLUMNS:
-                assert _same(block["human"][column], official["human"][column]), (token, column)
-                assert _same(block["agent_before"][column], official["agent_raw"][column]), (token, column)
+                assert same_number(block["human"][column], official["human"][column]), (token, column)
+                assert same_number(block["agent_before"][column], official["agent_raw"][column]), (
+                    token,
+                    column,
+                )
         else:
             assert "not_applied" in block
         partner = detail.get("two_frame_extended_comfort", {}).get("previous_token")
@@ -153,7 +155,7 @@ def test_the_human_and_the_dropped_tracks_equal_the_official_ones(split: str, ca
             assert metric_cache.human is None
         else:
             assert metric_cache.human is not None
-            assert metric_cache.human["progress_raw"] == official_progress
+            assert same_number(metric_cache.human["progress_raw"], official_progress)
 
 
 def _results(split: str, family: str, cache_dir: Path) -> dict[str, TokenResult]:
@@ -182,7 +184,8 @@ def test_the_average_row_skips_undefined_ec_as_the_official_one(cache_dir: Path)
     official = summary["submissions"][family]["means"]
     assert 0 < official["two_frame_extended_comfort"] < 1  # defined on some rows only
     for column in EPDMS_COLUMNS:
-        assert abs(ours[column] - official[column]) <= 1e-15, column  # the mean's own summation order
+        # the mean's own summation order (and the kernels' last bits elsewhere)
+        assert abs(ours[column] - official[column]) <= max(1e-15, CONTINUOUS_TOLERANCE), column
 
 
 def _split_of(tmp_path: Path, scenes: dict[str, bytes]) -> Path:

@@ -6,7 +6,9 @@ the start (segment, progress, speed, target velocity, path, snapped box, rejecti
 stepped against the agents' and the logged humans' simulated trajectories, every IDM update (lead, distance,
 speed, state before and after) and every vehicle's box at each of the 41 steps equal the official trace; and
 the per-token subscores of every family, after the human filter, equal the official ones. Exact equality
-throughout.
+throughout under the official results' OpenBLAS kernels (SkylakeX, an AVX-512 host); under others the ego's
+simulated states move in their last bits (the tracker's `pinv`, as the devkit's own would), so there the
+floats of the IDM trace and the scores are compared within 1e-9 and everything discrete still exactly.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from devkit_kernels import same_values
 
 from scorer.evaluate import build_split_cache, score_tokens
 from scorer.human import FILTERED_COLUMNS, human_future_poses
@@ -152,7 +155,7 @@ def test_every_idm_update_and_box_is_the_official_one(family: str) -> None:
                 + [*u.before, *u.after, u.target_velocity]
                 for u in steps.updates
             ]
-            assert updates == trace[key]["propagate"], (token, key)
+            assert same_values(updates, trace[key]["propagate"]), (token, key)
             frame = _scene(token).current_frame
             recorded = [
                 [track, *box[[0, 1, 6, 3, 4]].tolist()]
@@ -162,7 +165,7 @@ def test_every_idm_update_and_box_is_the_official_one(family: str) -> None:
             assert [box[:6] for box in trace[key]["vehicle_boxes"][0]] == recorded
             for step, vehicles in enumerate(steps.steps, 1):
                 official = trace[key]["vehicle_boxes"][step]
-                assert [list(vehicle) for vehicle in vehicles] == [box[:6] for box in official], (
+                assert same_values([list(v) for v in vehicles], [box[:6] for box in official]), (
                     token,
                     key,
                     step,
@@ -173,7 +176,7 @@ def test_every_idm_update_and_box_is_the_official_one(family: str) -> None:
             }
             final = {agent.track: None for agent in _traffic(token).agents}
             final |= {update.track: list(update.after) for update in steps.updates}
-            assert final == official_final
+            assert same_values(final, official_final)
             assert steps.out_of_range == _expected()[family, token][key]["out_of_range"]
 
 
@@ -193,14 +196,16 @@ def test_token_scores_are_the_official_ones(cache_dir: Path, family: str) -> Non
     for row in rows:
         official = _expected()[family, row.token]
         assert row.valid, row.error
-        assert {column: row.metrics[column] for column in FILTERED_COLUMNS} == {
-            column: official[column] for column in FILTERED_COLUMNS
-        }, row.token
+        assert same_values(
+            {column: row.metrics[column] for column in FILTERED_COLUMNS},
+            {column: official[column] for column in FILTERED_COLUMNS},
+        ), row.token
         if official["stage"] == "one":
             human = row.detail["human_filter"]["human"]
-            assert {column: human[column] for column in FILTERED_COLUMNS} == {
-                column: official["human_filter"]["human"][column] for column in FILTERED_COLUMNS
-            }, row.token
+            assert same_values(
+                {column: human[column] for column in FILTERED_COLUMNS},
+                {column: official["human_filter"]["human"][column] for column in FILTERED_COLUMNS},
+            ), row.token
             assert row.detail["human_filter"]["overridden"] == official["human_filter"]["overridden"], (
                 row.token
             )

@@ -3,7 +3,8 @@
 480 tokens, 13 families, each family's NAVSIM pickle (the file the official script read) scored from scenes by
 the engine, reactive traffic and all, in 2 processes. Every token's columns, weight and two-frame comfort,
 every group, the three summary rows and the official CSV byte for byte; and one family through
-`navsim-lb score`. Several minutes (the reactive scoring is about 0.15 s per token).
+`navsim-lb score`. Bit for bit under the official results' OpenBLAS kernels; under others (a host without
+AVX-512) progress and the scores within 1e-9 (devkit_kernels.CONTINUOUS_TOLERANCE). Several minutes (the reactive scoring is about 0.15 s per token).
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from two_stage_reference import group_mismatches, token_mismatches
+from devkit_kernels import same_number
+from two_stage_reference import csv_mismatches, group_mismatches, token_mismatches
 from typer.testing import CliRunner
 
 from navsim_lb.cli import app
@@ -56,11 +58,11 @@ def test_the_whole_family_is_the_official_one(cache_dir: Path, family: str) -> N
     assert group_mismatches(result, summary["groups"]) == []
     for name in ("stage_one", "stage_two", "combined"):
         exact = summary["summary_rows_exact"][name]
-        assert [getattr(result, name)[column] for column in SCORE_COLUMNS] == [
-            exact[column] for column in SCORE_COLUMNS
-        ], name
+        assert all(same_number(getattr(result, name)[column], exact[column]) for column in SCORE_COLUMNS), (
+            name
+        )
     assert result.official and result.notes == ()
-    assert two_stage_csv(result) == (REFERENCE / "expected" / f"{family}.csv").read_text()
+    assert csv_mismatches(two_stage_csv(result), (REFERENCE / "expected" / f"{family}.csv").read_text()) == []
 
 
 def test_the_command_line_writes_the_official_csv(cache_dir: Path, tmp_path: Path) -> None:
@@ -73,4 +75,5 @@ def test_the_command_line_writes_the_official_csv(cache_dir: Path, tmp_path: Pat
     ]
     result = CliRunner().invoke(app, arguments)
     assert result.exit_code == 0, result.output
-    assert out.read_bytes() == (REFERENCE / "expected" / "human.csv").read_bytes()
+    official = (REFERENCE / "expected" / "human.csv").read_bytes()
+    assert csv_mismatches(out.read_bytes().decode(), official.decode()) == []
