@@ -188,9 +188,10 @@ def svml_arctan2_emulated(y: npt.ArrayLike, x: npt.ArrayLike) -> FloatArray:
     subnormals, huge values, inf and NaN take SVML's special path, where libm's value is the same (zeros)
     or close enough.
 
-    A few pairs go through `_svml_arctan2_float`, the same replay on Python floats: the tracker wraps one
-    proposal's angles twice a step, and for one pair the numpy replay takes about 0.4 ms where the float
-    replay takes 0.02-0.03 ms (a one-token `navsim-lb score` makes 81 such calls; tests check the bits).
+    A few pairs go through `_svml_arctan2_float`, the same replay on Python floats: the tracker wraps two
+    angles of each proposal a step, and for one pair the numpy replay takes about 0.4 ms where the float
+    replay takes 0.02-0.03 ms a pair (a one-token `navsim-lb score` makes 41 such calls of two pairs; tests
+    check the bits).
     """
     y, x = np.broadcast_arrays(np.asarray(y, dtype=np.float64), np.asarray(x, dtype=np.float64))
     if y.size <= _FLOAT_REPLAY_MAX_PAIRS:
