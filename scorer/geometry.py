@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import struct
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -107,15 +107,20 @@ def _veltkamp_split(a: Number) -> tuple[Number, Number]:
 
 
 def _exact_multiply_add(
-    a: Number, b: Number, c: Number, b_parts: tuple[Number, Number] | None
+    a: Number,
+    b: Number,
+    c: Number,
+    b_parts: tuple[Number, Number] | None,
+    a_parts: tuple[Number, Number] | None = None,
 ) -> tuple[Number, Number, Number]:
     """Return (high, tail, error) with a * b + c == high + tail + error exactly and tail + error the low part.
 
     Exact product (Dekker) and exact sums. Exact for operands whose product does not underflow
-    (|a|, |b| >= 1e-100 or zero), which covers every coordinate and angle the engine handles.
+    (|a|, |b| >= 1e-100 or zero), which covers every coordinate and angle the engine handles. `a_parts` and
+    `b_parts` are the operands' Veltkamp splits where the caller has them (an operand of several products).
     """
     product = a * b
-    a_high, a_low = _veltkamp_split(a)
+    a_high, a_low = _veltkamp_split(a) if a_parts is None else a_parts
     b_high, b_low = _veltkamp_split(b) if b_parts is None else b_parts
     product_low = ((a_high * b_high - product) + a_high * b_low + a_low * b_high) + a_low * b_low
     high, low = _two_sum(c, product)
@@ -131,14 +136,23 @@ def _ratio_powers(reciprocal: Number, numerator: Number) -> tuple[Number, Number
 
 
 def _fused_multiply_add(
-    a: FloatArray, b: FloatArray, c: FloatArray, b_parts: tuple[FloatArray, FloatArray] | None = None
+    a: FloatArray,
+    b: FloatArray | float,
+    c: FloatArray | float,
+    b_parts: tuple[FloatArray, FloatArray] | tuple[float, float] | None = None,
+    a_parts: tuple[FloatArray, FloatArray] | None = None,
 ) -> FloatArray:
-    """Return a * b + c rounded once, as the FMA instruction does, from float64 operations only.
+    """Return a * b + c rounded once, as the FMA instruction does, from float64 operations only (`b` and `c`
+    may be constants: a float each, `b` with its split).
 
     The exact sum's low parts are added with rounding to odd, which makes the final rounding correct
     (Boldo & Melquiond, IEEE Trans. Computers 57(4), 2008).
     """
-    high, tail, error = _exact_multiply_add(a, b, c, b_parts)
+    # Arrays and constants mix here, which the arithmetic's type variable does not express.
+    high, tail, error = cast(
+        "tuple[FloatArray, FloatArray, FloatArray]",
+        _exact_multiply_add(a, b, c, b_parts, a_parts),
+    )
     tail = np.where(
         (error != 0) & ((tail.view(np.int64) & 1) == 0), np.nextafter(tail, np.copysign(np.inf, error)), tail
     )
@@ -155,15 +169,27 @@ def _fused_multiply_add_float(
     return high + tail
 
 
+def _estimate_residual(divisor: FloatArray, estimate: FloatArray) -> FloatArray:
+    """Return 1 - divisor * estimate rounded once, as fma(-divisor, estimate, 1) gives it, for `rcp14`'s estimate
+    of 1 / divisor, without emulating the FMA: the estimate has at most 17 significant bits and each Veltkamp
+    half of the divisor at most 26, so both partial products are exact; the estimate lies within 2^-14 of
+    1 / divisor, so the high half's product lies within 2^-13 of 1 and 1 minus it is exact (Sterbenz). The
+    subtraction of the low half's product rounds the exact value once."""
+    high, low = _veltkamp_split(divisor)
+    return (1.0 - high * estimate) - low * estimate
+
+
 def _svml_reciprocal(denominator: FloatArray) -> FloatArray:
-    """Return SVML's 1 / denominator: `vrcp14pd`, then two Newton steps r + (1 - d r) r, each an FMA pair."""
-    one = np.ones_like(denominator)
-    reciprocal = rcp14(denominator)
-    for _ in range(2):
-        reciprocal = _fused_multiply_add(
-            _fused_multiply_add(-denominator, reciprocal, one), reciprocal, reciprocal
-        )
-    return reciprocal
+    """Return SVML's 1 / denominator: `vrcp14pd`, then two Newton steps r + (1 - d r) r, each an FMA pair
+    (the first step's residual from the estimate's few bits, `_estimate_residual`)."""
+    estimate = rcp14(denominator)
+    estimate_parts = _veltkamp_split(estimate)
+    reciprocal = _fused_multiply_add(
+        _estimate_residual(denominator, estimate), estimate, estimate, estimate_parts
+    )
+    reciprocal_parts = _veltkamp_split(reciprocal)
+    residual = _fused_multiply_add(-denominator, reciprocal, 1.0, reciprocal_parts)
+    return _fused_multiply_add(residual, reciprocal, reciprocal, reciprocal_parts)
 
 
 def _svml_reciprocal_float(denominator: float) -> float:
@@ -188,9 +214,10 @@ def svml_arctan2_emulated(y: npt.ArrayLike, x: npt.ArrayLike) -> FloatArray:
     subnormals, huge values, inf and NaN take SVML's special path, where libm's value is the same (zeros)
     or close enough.
 
-    A few pairs go through `_svml_arctan2_float`, the same replay on Python floats: the tracker wraps one
-    proposal's angles twice a step, and for one pair the numpy replay takes about 0.4 ms where the float
-    replay takes 0.02-0.03 ms (a one-token `navsim-lb score` makes 81 such calls; tests check the bits).
+    A few pairs go through `_svml_arctan2_float`, the same replay on Python floats: the tracker wraps two
+    angles of each proposal a step, and for one pair the numpy replay takes about 0.4 ms where the float
+    replay takes 0.02-0.03 ms a pair (a one-token `navsim-lb score` makes 41 such calls of two pairs; tests
+    check the bits).
     """
     y, x = np.broadcast_arrays(np.asarray(y, dtype=np.float64), np.asarray(x, dtype=np.float64))
     if y.size <= _FLOAT_REPLAY_MAX_PAIRS:
@@ -231,6 +258,8 @@ def svml_arctan2_emulated(y: npt.ArrayLike, x: npt.ArrayLike) -> FloatArray:
     main_path = (
         (high_x >= 0x00300000) & (high_x < 0x7E000000) & (high_y >= 0x00300000) & (high_y < 0x7E000000)
     )
+    if main_path.all():  # the usual case: no pair needs numpy's own value (libm's, about 20 ns a pair)
+        return result
     return np.where(main_path, result, np.arctan2(y, x))
 
 

@@ -11,9 +11,11 @@ several times faster (tests check both claims against einsum).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-from scorer.geometry import WHEEL_BASE, FloatArray, IntArray, normalize_angle, principal_value
+from scorer.geometry import WHEEL_BASE, BoolArray, FloatArray, IntArray, normalize_angle, principal_value
 from scorer.svml_tan import tan_avx512
 from scorer.trajectory import SCORING_INTERVAL_S, SCORING_POSES, STATE_SIZE, StateIndex
 
@@ -157,10 +159,11 @@ def _previous(values: FloatArray) -> FloatArray:
     return np.concatenate([np.zeros((len(values), 1)), values[:, :-1]], axis=1)
 
 
-def _lateral_steering_rate(
+def _lateral_error(
     lateral_state: FloatArray, velocities: FloatArray, curvatures: FloatArray
-) -> FloatArray:
-    """Return the one-step lateral LQR steering rate (B,) over the horizon.
+) -> tuple[FloatArray, FloatArray]:
+    """Return the one-step lateral LQR's error (B, 3) after the horizon, its heading error not yet wrapped, and
+    the control (B, 2) that meets Q's non-zero weights (B0, B1).
 
     The devkit chains the step matrices S_i = I + (v_i dt) e_01 + (v_i dt / L) e_12 with einsum from
     A = I, B = 0, g = 0. Every row of S_i has at most two non-zero entries, so each entry of the chained
@@ -190,10 +193,13 @@ def _lateral_steering_rate(
     offset[:, 1] = heading_offsets[:, -1]
 
     error = np.einsum("bij, bj -> bi", transition, lateral_state) + offset
-    # The devkit wraps the heading and the steering error; the steering error meets Q's zero weight and is
-    # never read, so only the heading error is wrapped (elementwise: the same bits, half the arctan2 work).
-    heading_error = normalize_angle(error[:, 1])
-    control = np.stack([lateral_input, heading_inputs[:, -1]], axis=-1)  # B0, B1 (B2 meets Q's zero weight)
+    return error, np.stack([lateral_input, heading_inputs[:, -1]], axis=-1)  # B2 meets Q's zero weight
+
+
+def _lateral_steering_rate(error: FloatArray, heading_error: FloatArray, control: FloatArray) -> FloatArray:
+    """Return the one-step lateral LQR steering rate (B,) from `_lateral_error`'s error and control, the error's
+    heading wrapped (`heading_error`). The devkit wraps the heading and the steering error; the steering error
+    meets Q's zero weight and is never read, so only the heading error is wrapped."""
     weighted_control = control * LATERAL_Q_DIAGONAL[:2]  # B^T Q
     inverse = -1 / (
         weighted_control[:, 0] * control[:, 0] + weighted_control[:, 1] * control[:, 1] + LATERAL_R
@@ -201,19 +207,36 @@ def _lateral_steering_rate(
     return inverse * (weighted_control[:, 0] * error[:, 0] + weighted_control[:, 1] * heading_error)
 
 
-def _track(
-    states: FloatArray, target: FloatArray, reference_speed: FloatArray, curvature_window: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Return the commands (acceleration, steering rate), each (P,), towards the reference pose `target`.
+class _Commands(NamedTuple):
+    """A step's commands before the lateral LQR's heading error is wrapped (`_track`)."""
 
-    `reference_speed` (P,) is the velocity profile at the lookahead index and `curvature_window` (P, 10)
-    the curvature profile over the horizon. Proposals near standstill get the stopping controller
-    (docs/engine.md, "Simulation: the tracker").
+    stopping: BoolArray  # (P,) rows that take the stopping controller
+    acceleration: FloatArray  # (P,)
+    lateral_error: FloatArray  # (P, 3) the lateral LQR's error, its heading error (column 1) not yet wrapped
+    lateral_control: FloatArray  # (P, 2)
+
+    def steering_rate(self, heading_error: FloatArray) -> FloatArray:
+        """Return the steering rate command (P,), given the lateral error's heading wrapped."""
+        rate = _lateral_steering_rate(self.lateral_error, heading_error, self.lateral_control)
+        return np.where(self.stopping, 0.0, rate)
+
+
+def _track(
+    states: FloatArray,
+    target: FloatArray,
+    heading_errors: FloatArray,
+    reference_speed: FloatArray,
+    curvature_window: FloatArray,
+) -> _Commands:
+    """Return the commands towards the reference pose `target`, the lateral one up to its heading error's wrap.
+
+    `heading_errors` (P,) are the states' heading errors to the target, wrapped; `reference_speed` (P,) is the
+    velocity profile at the lookahead index and `curvature_window` (P, 10) the curvature profile over the
+    horizon. Proposals near standstill get the stopping controller (docs/engine.md, "Simulation: the tracker").
     """
     x_errors = states[:, StateIndex.X] - target[:, 0]
     y_errors = states[:, StateIndex.Y] - target[:, 1]
     lateral_errors = -x_errors * np.sin(target[:, 2]) + y_errors * np.cos(target[:, 2])
-    heading_errors = normalize_angle(states[:, StateIndex.HEADING] - target[:, 2])
     speed = states[:, StateIndex.VELOCITY_X]
     lateral_state = np.stack([lateral_errors, heading_errors, states[:, StateIndex.STEERING_ANGLE]], axis=-1)
 
@@ -222,22 +245,28 @@ def _track(
     stopping_acceleration = -STOPPING_GAIN * (speed - reference_speed)
     lqr_acceleration = _LONGITUDINAL_GAIN * (1.0 * speed + 0.0 - reference_speed)
     speeds = _integrate(speed, np.repeat(lqr_acceleration[:, None], TRACKING_HORIZON, axis=-1), TRACKER_DT)
-    lqr_steering_rate = _lateral_steering_rate(lateral_state, speeds[:, :TRACKING_HORIZON], curvature_window)
+    error, control = _lateral_error(lateral_state, speeds[:, :TRACKING_HORIZON], curvature_window)
     acceleration = np.where(stopping, stopping_acceleration, lqr_acceleration)
-    return acceleration, np.where(stopping, 0.0, lqr_steering_rate)
+    return _Commands(stopping, acceleration, error, control)
+
+
+def _next_heading(states: FloatArray, steering_tan: FloatArray) -> FloatArray:
+    """Return the heading (P,) one bicycle step later, wrapped: it integrates the old speed, heading and steering
+    angle (`steering_tan` its tan), so it is known before the step's commands."""
+    speed = states[:, StateIndex.VELOCITY_X]
+    return principal_value(states[:, StateIndex.HEADING] + speed * steering_tan / WHEEL_BASE * BICYCLE_DT)
 
 
 def _propagate(
-    states: FloatArray, acceleration: FloatArray, steering_rate: FloatArray, steering_tan: FloatArray
+    states: FloatArray, heading: FloatArray, acceleration: FloatArray, steering_rate: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """Return the states (P, 11) one bicycle step of BICYCLE_DT later, and the tan of their steering angle.
 
-    `steering_tan` is the tan of the states' steering angle: each step's yaw rate takes the tan of the angle
-    the next step's heading takes it of, computed once (docs/engine.md, "Simulation: the bicycle model").
+    `heading` is their heading (`_next_heading`). Each step's yaw rate takes the tan of the angle the next
+    step's heading takes it of, computed once (docs/engine.md, "Simulation: the bicycle model").
     """
     dt = BICYCLE_DT
     speed = states[:, StateIndex.VELOCITY_X]
-    heading = states[:, StateIndex.HEADING]
     steering = states[:, StateIndex.STEERING_ANGLE]
     # First-order lags on the commanded acceleration and steering angle.
     ideal_steering = dt * steering_rate + steering
@@ -249,10 +278,11 @@ def _propagate(
     filtered_steering_rate = (filtered_steering - steering) / dt
 
     result = np.empty_like(states)
-    result[:, StateIndex.X] = states[:, StateIndex.X] + speed * np.cos(heading) * dt
-    result[:, StateIndex.Y] = states[:, StateIndex.Y] + speed * np.sin(heading) * dt
-    # Positions and heading integrate with the old speed, heading and steering angle.
-    result[:, StateIndex.HEADING] = principal_value(heading + speed * steering_tan / WHEEL_BASE * dt)
+    # Positions integrate with the old speed and heading (the heading with the old steering angle too).
+    old_heading = states[:, StateIndex.HEADING]
+    result[:, StateIndex.X] = states[:, StateIndex.X] + speed * np.cos(old_heading) * dt
+    result[:, StateIndex.Y] = states[:, StateIndex.Y] + speed * np.sin(old_heading) * dt
+    result[:, StateIndex.HEADING] = heading
     result[:, StateIndex.VELOCITY_X] = speed + filtered_acceleration * dt
     result[:, StateIndex.VELOCITY_Y] = 0.0
     result[:, StateIndex.ACCELERATION_X] = filtered_acceleration
@@ -318,11 +348,20 @@ def _simulate(poses: FloatArray, initial: FloatArray) -> FloatArray:
     window_indices = np.minimum(steps[:, None] + np.arange(TRACKING_HORIZON), lookahead[:, None])
     curvature_windows = curvature[:, window_indices]
     steering_tan = tan_avx512(states[:, 0, StateIndex.STEERING_ANGLE])
+    heading_errors = normalize_angle(states[:, 0, StateIndex.HEADING] - poses[:, 0, 2])
     for step in steps:
-        acceleration, steering_rate = _track(
-            states[:, step], poses[:, step], reference_speeds[:, step], curvature_windows[:, step]
+        state = states[:, step]
+        commands = _track(
+            state, poses[:, step], heading_errors, reference_speeds[:, step], curvature_windows[:, step]
         )
+        # The next heading does not depend on this step's commands: its error to the next reference pose is
+        # wrapped with this step's lateral heading error, in one arctan2 (elementwise: the same bits).
+        heading = _next_heading(state, steering_tan)
+        wrapped = normalize_angle(
+            np.concatenate([commands.lateral_error[:, 1], heading - poses[:, step + 1, 2]])
+        )
+        heading_errors = wrapped[batch:]
         states[:, step + 1], steering_tan = _propagate(
-            states[:, step], acceleration, steering_rate, steering_tan
+            state, heading, commands.acceleration, commands.steering_rate(wrapped[:batch])
         )
     return states

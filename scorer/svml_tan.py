@@ -11,9 +11,11 @@ x = N pi/16 + r with r in three parts, tan r by an odd polynomial, then tan(N pi
 (T_N + tan r) / (1 - T_N tan r) with T_N from a 16-entry table, divided through `vrcp14pd`'s estimate
 (`scorer.rcp14`) and one Newton step each for the reciprocal and the quotient. It gives this host's SVML bits
 on every one of 9e6 random angles in [-1.4, 1.4] (with the correctly rounded reciprocal in place of the
-estimate, 0.3 % would differ). It covers 2^-300 <= |x| < 1.4, where no operand meets the table's entry for
-pi/2 (its FMAs would overflow the emulation) and none underflows; the steering angle is clipped to pi/3.
-Elsewhere numpy's own value is returned (below 2^-300 tan x rounds to x on every path).
+estimate, 0.3 % would differ). Where exact products make an FMA one rounded sum (the reduction by N pi/16, the
+estimate's residual) the replay forms it so, with about a third fewer numpy calls (the simulation takes a tan a
+step; tests compare these with the emulated FMAs). It covers 2^-300 <= |x| < 1.4, where no operand meets the
+table's entry for pi/2 (its FMAs would overflow the emulation) and none underflows; the steering angle is
+clipped to pi/3. Elsewhere numpy's own value is returned (below 2^-300 tan x rounds to x on every path).
 
 A few angles go through `_svml_tan_float`, the same replay on Python floats: the simulation takes one tan a
 step of arrays as small as one angle (a one-token `navsim-lb score` makes 41 such calls), where the numpy
@@ -25,7 +27,14 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from scorer.geometry import FloatArray, _fused_multiply_add, _fused_multiply_add_float, _veltkamp_split
+from scorer.geometry import (
+    FloatArray,
+    IntArray,
+    _estimate_residual,
+    _fused_multiply_add,
+    _fused_multiply_add_float,
+    _veltkamp_split,
+)
 from scorer.rcp14 import rcp14, rcp14_float
 
 # Constants of `__svml_tan8_ha` (table `__svml_dtan_ha_data_internal`): N = round(x * 16 / pi) by the
@@ -81,6 +90,46 @@ _TAN_POLYNOMIAL = tuple(  # highest coefficient first: r^2 ... r^10 of tan r = r
 _REPLAY_LOW, _REPLAY_HIGH = 2.0**-300, 1.4
 
 
+def _nearest_sixteenth(x: FloatArray) -> tuple[FloatArray, IntArray]:
+    """Return N (as floats) and j = N mod 16 for angles |x| < 1.4, N = round(x 16/pi) as SVML forms it: the
+    shifter 1.5 * 2^52 added to x 16/pi in an FMA, whose result is an integer (|x 16/pi| < 8) rounded from
+    the exact product, ties to even. `rint` of the rounded product is that integer unless the product rounds
+    onto a half-integer (rounding is monotone and half-integers are doubles), where the emulated FMA decides."""
+    product = x * _SIXTEEN_OVER_PI
+    count = np.rint(product) + 0.0  # SVML's N is the shifted value minus the shifter: 0, never -0
+    tie = np.abs(product - count) == 0.5
+    if tie.any():
+        shifted = _fused_multiply_add(x, _SIXTEEN_OVER_PI, _SHIFTER, _SIXTEEN_OVER_PI_SPLIT)
+        count = np.where(tie, shifted - _SHIFTER, count)
+    return count, count.astype(np.int64) & 15
+
+
+def _reduced_angle(x: FloatArray, count: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Return r = x - N pi/16 as SVML's high and low parts, for |N| <= 7, its FMAs with -N and pi/16's three
+    parts formed without emulation where exact products allow (the emulation otherwise):
+
+    - N has at most 3 significant bits, part 1 50 and part 2 29, so N times either is exact and each FMA with
+      them is one rounded sum;
+    - |N part 3| < 2^-85, below half an ulp of any |value| >= 2^-30, so where the second reduction is that large
+      (or N = 0) the third FMA returns it unchanged, and the low part's FMA with part 3 adds N part 3 to 0:
+      the product rounded once.
+    """
+    minus_count = -count
+    pi_1, pi_2, pi_3 = _PI16_PARTS
+    first = x + minus_count * pi_1
+    second = first + minus_count * pi_2
+    low_first = (first - second) + minus_count * pi_2
+    if np.all((np.abs(second) >= _PART_3_NEGLIGIBLE) | (count == 0)):
+        return second, low_first - count * pi_3
+    split_3 = _PI16_SPLITS[2][1]
+    high = _fused_multiply_add(minus_count, pi_3, second, split_3)
+    return high, low_first - _fused_multiply_add(count, pi_3, high - second, split_3)
+
+
+# Reductions at least this large absorb N times pi/16's third part (`_reduced_angle`).
+_PART_3_NEGLIGIBLE = 2.0**-30
+
+
 def svml_tan_emulated(angle: npt.ArrayLike) -> FloatArray:
     """Return np.tan(angle) as numpy computes it on AVX-512 machines, from float64 operations only.
 
@@ -93,38 +142,56 @@ def svml_tan_emulated(angle: npt.ArrayLike) -> FloatArray:
     fma = _fused_multiply_add
     replayed = (np.abs(x) >= _REPLAY_LOW) & (np.abs(x) < _REPLAY_HIGH)
     x_in = np.where(replayed, x, 1.0)
-    shifted = fma(x_in, np.full_like(x_in, _SIXTEEN_OVER_PI), np.full_like(x_in, _SHIFTER))
-    count = shifted - _SHIFTER  # N
-    index = shifted.view(np.int64) & 15  # j = N mod 16, the shifted value's low bits
-    pi_1, pi_2, pi_3 = (np.full_like(x_in, part) for part in _PI16_PARTS)
-    # r = x - N pi/16 = high + low: three partial reductions, the low part from their rounding errors.
-    first = fma(-count, pi_1, x_in)
-    second = fma(-count, pi_2, first)
-    high = fma(-count, pi_3, second)
-    low = fma(-count, pi_2, first - second) - fma(pi_3, count, high - second)
+    # Operands of several products are split once, constants' splits precomputed (`_exact_multiply_add`), and
+    # the reduction's FMAs not emulated where exact products make them plain sums (`_nearest_sixteenth`,
+    # `_reduced_angle`).
+    count, index = _nearest_sixteenth(x_in)
+    high, low = _reduced_angle(x_in, count)
     # tan r = high + (high r^2 P(r^2) + low), kept as value + its rounding error.
     square = high * high
-    polynomial = fma(square, np.full_like(x_in, _TAN_POLYNOMIAL[0]), np.full_like(x_in, _TAN_POLYNOMIAL[1]))
+    square_high, square_low = _veltkamp_split(square)
+    polynomial = fma(
+        square, _TAN_POLYNOMIAL[0], _TAN_POLYNOMIAL[1], _TAN_POLYNOMIAL_SPLIT, (square_high, square_low)
+    )
     for coefficient in _TAN_POLYNOMIAL[2:]:
-        polynomial = fma(square, polynomial, np.full_like(x_in, coefficient))
-    correction = fma(-square, polynomial * high, -low)
+        polynomial = fma(square, polynomial, coefficient, None, (square_high, square_low))
+    correction = fma(-square, polynomial * high, -low, None, (-square_high, -square_low))
     tan_r = high - correction
     tan_r_low = (high - tan_r) - correction
     # Numerator T_j + tan r and denominator 1 - T_j tan r, each as high + low part.
     table_high, table_low = _TAN_HI[index], _TAN_LO[index]
+    table_high_parts = _veltkamp_split(table_high)
+    tan_r_high, tan_r_rest = _veltkamp_split(tan_r)
     numerator = tan_r + table_high
     numerator_low = ((tan_r - (numerator - table_high)) + table_low) + tan_r_low
-    one = np.ones_like(x_in)
-    denominator = fma(-tan_r, table_high, one)
-    denominator_error = fma(tan_r, table_high, denominator - 1.0)
-    denominator_low = fma(tan_r, table_low, fma(tan_r_low, table_high, denominator_error))
+    denominator = fma(-tan_r, table_high, 1.0, table_high_parts, (-tan_r_high, -tan_r_rest))
+    denominator_error = fma(tan_r, table_high, denominator - 1.0, table_high_parts, (tan_r_high, tan_r_rest))
+    denominator_low = fma(
+        tan_r,
+        table_low,
+        fma(tan_r_low, table_high, denominator_error, table_high_parts),
+        None,
+        (tan_r_high, tan_r_rest),
+    )
     # The quotient: vrcp14pd, one Newton step on the reciprocal, one on the quotient.
     estimate = rcp14(denominator)
-    residual = fma(denominator_low, estimate, fma(-denominator, estimate, one))
-    reciprocal = fma(residual, estimate, estimate)
+    estimate_parts = _veltkamp_split(estimate)
+    residual = fma(denominator_low, estimate, _estimate_residual(denominator, estimate), estimate_parts)
+    reciprocal = fma(residual, estimate, estimate, estimate_parts)
     quotient = numerator * reciprocal
-    remainder = fma(-quotient, denominator_low, fma(quotient, denominator, -numerator)) - numerator_low
+    quotient_high, quotient_low = _veltkamp_split(quotient)
+    remainder = (
+        fma(
+            denominator_low,
+            -quotient,
+            fma(denominator, quotient, -numerator, (quotient_high, quotient_low)),
+            (-quotient_high, -quotient_low),
+        )
+        - numerator_low
+    )
     result = fma(-reciprocal, remainder, quotient)
+    if replayed.all():  # the usual case: no angle needs numpy's own value
+        return result
     return np.where(replayed, result, np.tan(x))
 
 

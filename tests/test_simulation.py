@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from scorer import simulation
-from scorer.geometry import arctan2_avx512
+from scorer.geometry import arctan2_avx512, normalize_angle
 from scorer.simulation import (
     _LONGITUDINAL_GAIN,
     _REGULARISER,
     _UPPER_TRIANGLE,
+    _lateral_error,
     _lateral_steering_rate,
     _triangular_gram,
     simulate,
@@ -96,7 +97,8 @@ def test_lateral_lqr_equals_the_einsum_chain_bit_for_bit(seed: int) -> None:
     state = rng.normal(0, [1.0, 0.5, 0.3], (batch, 3))
     velocities = rng.normal(8, 8, (batch, 1)) + np.cumsum(rng.normal(0, 0.3, (batch, 10)), axis=1)
     curvatures = rng.normal(0, 0.05, (batch, 10))
-    ours = _lateral_steering_rate(state, velocities, curvatures)
+    error, control = _lateral_error(state, velocities, curvatures)
+    ours = _lateral_steering_rate(error, normalize_angle(error[:, 1]), control)
     assert np.array_equal(ours, _einsum_lateral_steering_rate(state, velocities, curvatures))
 
 

@@ -11,13 +11,25 @@ import math
 import numpy as np
 import pytest
 
-from scorer.geometry import NUMPY_ARCTAN2_IS_SVML, FloatArray, svml_arctan2_emulated
+from scorer.geometry import (
+    NUMPY_ARCTAN2_IS_SVML,
+    FloatArray,
+    _estimate_residual,
+    _fused_multiply_add,
+    _fused_multiply_add_float,
+    svml_arctan2_emulated,
+)
 from scorer.rcp14 import rcp14, rcp14_float, significands
 from scorer.svml_tan import (
     _FLOAT_REPLAY_MAX_ANGLES,
+    _PI16_PARTS,
+    _SHIFTER,
+    _SIXTEEN_OVER_PI,
     _SVML_PROBE_ANGLES,
     _SVML_PROBE_TAN,
     NUMPY_TAN_IS_SVML,
+    _nearest_sixteenth,
+    _reduced_angle,
     _svml_tan_float,
     svml_tan_emulated,
 )
@@ -167,3 +179,63 @@ def test_the_arctan2_replay_gives_numpys_svml_bits_with_rcp14() -> None:
     for y_part, x_part in ((y, x), headings, (np.tile(headings[0], 20), np.tile(headings[1], 20))):
         replayed = svml_arctan2_emulated(y_part, x_part)
         assert np.array_equal(replayed.view(np.int64), np.arctan2(y_part, x_part).view(np.int64))
+
+
+def test_the_estimates_residual_is_the_emulated_fma() -> None:
+    """1 - d r for `vrcp14pd`'s estimate r of 1 / d, formed without an emulated FMA, rounds as the FMA does."""
+    rng = np.random.default_rng(4)
+    divisors = np.concatenate(
+        [
+            rng.uniform(1, 2, 200_000) * 2.0 ** rng.integers(-900, 900, 200_000),
+            1 + np.arange(2**16) / 2**16,  # every table entry's first divisor
+            np.nextafter(1 + np.arange(1, 2**16 + 1) / 2**16, 0),  # and its last
+            2.0 ** np.arange(-60, 61),  # exact estimates
+        ]
+    )
+    divisors = np.concatenate([divisors, -divisors])
+    estimates = rcp14(divisors)
+    residuals = _estimate_residual(divisors, estimates)
+    assert np.array_equal(
+        residuals.view(np.int64), _fused_multiply_add(-divisors, estimates, 1.0).view(np.int64)
+    )
+
+
+def _fma_of_each_pair(a: FloatArray, b: float, c: FloatArray | float) -> FloatArray:
+    """Return fma(a, b, c) of each element alone, on Python floats (the float FMA's rounding to odd)."""
+    c_values = np.broadcast_to(c, a.shape).tolist()
+    return np.array([_fused_multiply_add_float(x, b, z) for x, z in zip(a.tolist(), c_values, strict=True)])
+
+
+def test_tans_reduction_without_emulated_fmas_is_svmls() -> None:
+    """N = round(x 16/pi) and the reduced angle, formed from exact products where they allow, equal SVML's FMAs
+    on random angles, on angles whose product with 16/pi rounds onto a half-integer (where `rint` alone ties to
+    even) and on angles next to multiples of pi/16 (where the third part of pi/16 counts)."""
+    rng = np.random.default_rng(5)
+    halves = (np.arange(-7, 7) + 0.5) * (np.pi / 16)
+    ties = _ulps_around(halves, 40)
+    angles = np.concatenate([rng.uniform(-1.4, 1.4, 20_000), ties, -ties])
+    angles = angles[np.abs(angles) < 1.4]
+    assert np.any(np.abs(angles * _SIXTEEN_OVER_PI - np.rint(angles * _SIXTEEN_OVER_PI)) == 0.5)
+    count, index = _nearest_sixteenth(angles)
+    shifted = _fma_of_each_pair(angles, _SIXTEEN_OVER_PI, _SHIFTER)
+    assert np.array_equal(count.view(np.int64), (shifted - _SHIFTER).view(np.int64))
+    assert np.array_equal(index, shifted.view(np.int64) & 15)
+    near_multiples = _ulps_around(np.pi / 16 * np.arange(-7, 8), 8)
+    near_multiples = near_multiples[np.abs(near_multiples) >= 2.0**-300]  # the replay's domain
+    for x in (angles, near_multiples, np.concatenate([angles, near_multiples])):
+        reduced = _reduced_angle(x, _nearest_sixteenth(x)[0])
+        for part, emulated in zip(reduced, _emulated_reduction(x), strict=True):
+            assert np.array_equal(part.view(np.int64), emulated.view(np.int64))
+
+
+def _emulated_reduction(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Return SVML's r = x - N pi/16 as high and low parts with every FMA emulated (the replay before its
+    shortcuts)."""
+    shifted = _fused_multiply_add(x, np.full_like(x, _SIXTEEN_OVER_PI), np.full_like(x, _SHIFTER))
+    count = shifted - _SHIFTER
+    pi_1, pi_2, pi_3 = (np.full_like(x, part) for part in _PI16_PARTS)
+    first = _fused_multiply_add(-count, pi_1, x)
+    second = _fused_multiply_add(-count, pi_2, first)
+    high = _fused_multiply_add(-count, pi_3, second)
+    low = _fused_multiply_add(-count, pi_2, first - second) - _fused_multiply_add(pi_3, count, high - second)
+    return high, low
