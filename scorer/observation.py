@@ -241,7 +241,8 @@ def _track_samples(
 def _interpolate_tracks(
     times: FloatArray, states: FloatArray, counts: IntArray, num_steps: int
 ) -> tuple[BoolArray, FloatArray]:
-    """Return presence (T, n) and x, y, heading (T, n, 3) at k * 0.1 s, as scipy's `interp1d` per track."""
+    """Return presence (T, n) and x, y, heading (T, n, 3) at k * 0.1 s, as scipy's `interp1d` per track; the
+    heading wrapped where a track seen more than once is present (elsewhere it is not read)."""
     query = np.arange(num_steps, dtype=np.float64) * STEP_S
     first = times[:, 0]
     last = np.take_along_axis(times, np.maximum(counts - 1, 0)[:, None], axis=1)[:, 0]
@@ -257,7 +258,10 @@ def _interpolate_tracks(
         slope = (high - low) / (high_time - low_time)[..., None]
         interpolated = slope * (query[:, None] - low_time)[..., None] + low
     result = interpolated[..., :3]
-    result[..., 2] = normalize_angle(result[..., 2])
+    # Only the headings of boxes kept are wrapped (the arctan2 replay costs per element): the present steps of
+    # tracks seen more than once; a track seen once takes its sighting unchanged (`observe_scene`).
+    kept = present & (counts > 1)[None, :]
+    result[..., 2][kept] = normalize_angle(result[..., 2][kept])
     return present, result
 
 

@@ -317,10 +317,11 @@ class IdmUnroll:
             # Only the rows with an object ahead need the ego's pose and footprint (each row's alone).
             searching = np.flatnonzero(has_lead)
             ego = self.poses(rows[searching], slice(step - 1, step), _unwrapped)[:, 0]
-            raw_heading = np.zeros(len(rows))
-            raw_heading[searching] = ego[:, 2]
-            # The footprint's corners do not move with the last bit of the heading: libm's wrap serves.
+            # The ego's heading wrapped once (numpy's AVX-512 arctan2, replayed without AVX-512 at a cost per
+            # call): its footprint and an agent's relative heading below read the same wrap.
             ego[:, 2] = normalize_angle(ego[:, 2])
+            ego_heading = np.zeros(len(rows))
+            ego_heading[searching] = ego[:, 2]
             objects = self.hit_object[pair_hit]
             footprints = np.empty(len(rows), dtype=object)
             footprints[searching] = ego_polygons(ego)
@@ -337,8 +338,7 @@ class IdmUnroll:
             # as is); its last bits follow the devkit's wraps, so these take numpy's AVX-512 arctan2.
             agent = has_lead & self.is_agent[lead]
             if agent.any():
-                ego_heading = normalize_angle(raw_heading[agent])
-                relative_heading = normalize_angle(self.headings[lead[agent]] - ego_heading)
+                relative_heading = normalize_angle(self.headings[lead[agent]] - ego_heading[agent])
                 lead_speed[agent] = self.speeds[lead[agent]] * np.cos(relative_heading)
 
         leading = np.empty((len(rows), 3))

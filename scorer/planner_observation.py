@@ -100,14 +100,15 @@ def observe_for_planner(
 
     speeds = np.hypot(velocities[:, 0], velocities[:, 1])
     headings = boxes[:, 6]
-    # Agents move along their heading, or against it when they drive backwards.
-    forward = (
-        np.abs(normalize_angle(headings - arctan2_avx512(velocities[:, 1], velocities[:, 0]))) < np.pi / 2
+    # Agents move along their heading, or against it when they drive backwards. The devkit wraps every
+    # object's angles; only the kept agents' are read, so only theirs are (the arctan2 replay costs per angle).
+    agent_headings, agent_speeds = headings[agents], speeds[agents]
+    agent_motion = arctan2_avx512(velocities[agents, 1], velocities[agents, 0])
+    forward = np.abs(normalize_angle(agent_headings - agent_motion)) < np.pi / 2
+    track_headings = np.where(forward, agent_headings, normalize_angle(agent_headings + np.pi))
+    agent_velocity = np.stack(
+        [np.cos(track_headings) * agent_speeds, np.sin(track_headings) * agent_speeds], axis=-1
     )
-    track_headings = np.where(forward, headings, normalize_angle(headings + np.pi))
-    agent_velocity = np.stack([np.cos(track_headings) * speeds, np.sin(track_headings) * speeds], axis=-1)[
-        agents
-    ]
 
     red_lights = RedLights.constant(red_lanes(frame.traffic_lights, route_lanes), SCORING_STEPS)
     light_polygons = red_lights.polygons
