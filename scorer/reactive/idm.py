@@ -27,18 +27,30 @@ class Lead(NamedTuple):
     length_rear: float
 
 
-def idm_update(
-    progress: float, speed: float, lead: Lead, target_velocity: float, config: IdmTraffic, dt: float
-) -> tuple[float, float]:
-    """Return the vehicle's progress and speed after `dt` seconds behind `lead`."""
-    comfortable_braking = 2 * math.sqrt(config.accel_max * config.decel_max)
-    desired_gap = (
-        config.min_gap_to_lead_agent
-        + speed * config.headway_time
-        + (speed * (speed - lead.velocity)) / comfortable_braking
-    )
-    gap = max(lead.distance - 0.0 - lead.length_rear, config.min_gap_to_lead_agent)
-    acceleration = config.accel_max * (1 - (speed / target_velocity) ** 4 - (desired_gap / gap) ** 2)
-    moved = 0.0 + dt * speed
-    next_speed = speed + dt * min(max(config.decel_max * -1, acceleration), config.accel_max)
-    return progress + moved, max(next_speed, 0.0)
+class Idm:
+    """The IDM of one configuration, its constants computed once (the same floats the devkit's expressions
+    give: one update is made per vehicle and step)."""
+
+    __slots__ = ("_accel_max", "_comfortable_braking", "_headway_time", "_lowest", "_min_gap")
+
+    def __init__(self, config: IdmTraffic) -> None:
+        self._comfortable_braking = 2 * math.sqrt(config.accel_max * config.decel_max)
+        self._min_gap = config.min_gap_to_lead_agent
+        self._headway_time = config.headway_time
+        self._accel_max = config.accel_max
+        self._lowest = config.decel_max * -1
+
+    def update(
+        self, progress: float, speed: float, lead: Lead, target_velocity: float, dt: float
+    ) -> tuple[float, float]:
+        """Return the vehicle's progress and speed after `dt` seconds behind `lead`."""
+        min_gap = self._min_gap
+        distance, velocity, length_rear = lead
+        desired_gap = (
+            min_gap + speed * self._headway_time + (speed * (speed - velocity)) / self._comfortable_braking
+        )
+        gap = max(distance - 0.0 - length_rear, min_gap)
+        acceleration = self._accel_max * (1 - (speed / target_velocity) ** 4 - (desired_gap / gap) ** 2)
+        moved = 0.0 + dt * speed
+        next_speed = speed + dt * min(max(self._lowest, acceleration), self._accel_max)
+        return progress + moved, max(next_speed, 0.0)

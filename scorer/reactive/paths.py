@@ -110,7 +110,11 @@ class LanePath:
         start, first = self.to_go_parts(progress)
         if start is None:
             return self.points[first:]
-        return np.concatenate([[start], self.points[first:]])
+        # Filled in place: `np.concatenate` of the point's list costs more than the copy (the same floats).
+        points = np.empty((len(self.progress) - first + 1, 2))
+        points[0] = start
+        points[1:] = self.points[first:]
+        return points
 
     def to_go_parts(self, progress: float) -> tuple[tuple[float, float] | None, int]:
         """Return what `to_go(progress)` is made of: the point it starts at (None: at a vertex) and the
@@ -167,7 +171,11 @@ class LanePath:
         if ends is None:
             return self.points[first : last + 1]
         start_point, end_point = ends
-        return np.concatenate([[start_point], self.points[first : last + 1], [end_point]])
+        points = np.empty((max(last + 1 - first, 0) + 2, 2))  # filled in place, as in `to_go`
+        points[0] = start_point
+        points[1:-1] = self.points[first : last + 1]
+        points[-1] = end_point
+        return points
 
     def between_parts(
         self, start: float, end: float

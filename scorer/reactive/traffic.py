@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Hashable, Iterable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from functools import partial
 from typing import NamedTuple, TypeVar
@@ -45,7 +45,7 @@ import shapely.ops
 from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, FloatArray, box_corners, principal_value_of
 from scorer.reactive import geos
 from scorer.reactive.agents import IdmVehicle, ParkingCandidate, StartingTraffic, box_polygon
-from scorer.reactive.idm import Lead, idm_update
+from scorer.reactive.idm import Idm, Lead
 from scorer.reactive.occupancy import (
     BOUND_SLACK,
     BUFFER_REACH,
@@ -60,6 +60,7 @@ from scorer.reactive.occupancy import (
     path_between_bound,
     path_to_go_bound,
 )
+from scorer.reactive.paths import LanePath
 from scorer.trajectory import StateIndex
 from scorer.versions import IdmTraffic
 
@@ -97,20 +98,43 @@ class VehicleSteps:
 
 class _Agent:
     """A simulated vehicle's state during the loop (`nuplan` `IDMAgent`): its progress and speed, and what a
-    step reads of them, computed once per update: the progress clamped to its path and its pose there."""
+    step reads of them, computed once per update: the progress clamped to its path and its pose there. What
+    its start fixes (its path's ends, its size's halves) is kept once per simulation: read at every update."""
 
-    __slots__ = ("clamped", "pose", "progress", "speed", "start", "updated")
+    __slots__ = (
+        "clamped",
+        "first",
+        "half_length",
+        "half_width",
+        "last",
+        "length",
+        "path",
+        "pose",
+        "progress",
+        "reach",
+        "speed",
+        "start",
+        "track",
+        "updated",
+        "widened",
+        "width",
+    )
 
     def __init__(self, start: IdmVehicle) -> None:
         self.start = start
+        self.track, self.path, self.length, self.width = start.track, start.path, start.length, start.width
+        self.first, self.last = start.path.progress[0], start.path.progress[-1]  # `LanePath.clamp`'s bounds
+        self.half_length, self.half_width = start.length / 2, start.width / 2
+        self.widened = self.half_width * BUFFER_REACH  # a buffer by half its width reaches that far
+        self.reach = math.hypot(self.half_length, self.half_width)  # its box's circumscribed circle
         self.updated = False  # its occupancy holds its projected footprint, no longer its box at the start
         self.move(start.progress, start.speed)
 
     def move(self, progress: float, speed: float) -> None:
         """Set the vehicle's progress and speed (an IDM update)."""
         self.progress, self.speed = progress, speed
-        self.clamped = self.start.path.clamp(progress)
-        self.pose = self.start.path.state_at(self.clamped)
+        self.clamped = clamped = max(self.first, min(progress, self.last))
+        self.pose = self.path.state_at(clamped)
 
     def projected_footprint(
         self, headway_time: float
@@ -119,14 +143,12 @@ class _Agent:
         capsules) and the function that builds it. The envelope is a square around the box centre (on the
         path): the box's circumscribed circle, and the path's points between the bounds lie no farther from
         the centre than their progress does."""
-        path, length, width = self.start.path, self.start.length, self.start.width
-        lower = path.clamp(self.progress - length / 2)
-        upper = path.clamp(self.progress + length / 2 + self.speed * headway_time)
+        path, length, width, first, last = self.path, self.length, self.width, self.first, self.last
+        progress, half_length = self.progress, self.half_length
+        lower = max(first, min(progress - half_length, last))
+        upper = max(first, min(progress + half_length + self.speed * headway_time, last))
         pose, clamped = self.pose, self.clamped
-        reach = max(
-            max(clamped - lower, upper - clamped) + width / 2 * BUFFER_REACH,
-            math.hypot(length / 2, width / 2),
-        )
+        reach = max(max(clamped - lower, upper - clamped) + self.widened, self.reach)
         reach += BOUND_SLACK
         envelope = pose[0] - reach, pose[1] - reach, pose[0] + reach, pose[1] + reach
 
@@ -140,6 +162,20 @@ class _Agent:
             return geos.union(ahead, _box(*pose, length, width))
 
         return (path.identity, lower, upper, pose, length, width), envelope, bound, build
+
+    def box_meets(self, polygon: shapely.Polygon, envelope: Envelope) -> bool:
+        """Return whether the vehicle's box now meets `polygon` (held within `envelope`): tested by GEOS only
+        where their envelopes meet (touching counts)."""
+        x, y, heading = self.pose
+        radius = self.reach + BOUND_SLACK  # `_box_envelope`'s
+        low_x, low_y, high_x, high_y = envelope
+        return (
+            x - radius <= high_x
+            and low_x <= x + radius
+            and y - radius <= high_y
+            and low_y <= y + radius
+            and geos.intersects(_box(x, y, heading, self.length, self.width), polygon)
+        )
 
 
 def _box(x: float, y: float, heading: float, length: float, width: float) -> shapely.Polygon:
@@ -255,20 +291,17 @@ def _lead_of(
     agent: _Agent, agents: dict[str, _Agent], occupancy: LazyOccupancy, ego_state: FloatArray
 ) -> tuple[str | None, Lead]:
     """Return what `agent` follows (`NavsimIDMAgentManager.propagate_agents`)."""
-    track = agent.start.track
-    path = agent.start.path
-    clamped = agent.clamped
-    half_width = agent.start.width / 2
-    near = occupancy.around(path.to_go_envelope(clamped, half_width * BUFFER_REACH + BOUND_SLACK), track)
+    track, path, clamped, half_width = agent.track, agent.path, agent.clamped, agent.half_width
+    near = occupancy.around(path.to_go_envelope(clamped, agent.widened + BOUND_SLACK), track)
     if near:
         ahead_key = (path.identity, clamped, half_width)
         near = occupancy.near(near, ahead_key, partial(path_to_go_bound, path, clamped, half_width))
-    free_road = None, Lead(path.end - agent.progress, 0.0, agent.start.length / 2)
+    free_road = None, Lead(agent.last - agent.progress, 0.0, agent.half_length)
     # After its first update a vehicle's footprint holds its box, centred where its path ahead starts: the
     # devkit's assertion that the path ahead meets the vehicle's own geometry holds without a test; before,
     # it holds where the path ahead starts well inside the box at the start.
     meets_own = agent.updated or _inside_box(
-        *path.to_go_start(clamped), agent.start.pose, agent.start.length, agent.start.width
+        *path.to_go_start(clamped), agent.start.pose, agent.length, agent.width
     )
     if not near and meets_own:
         return free_road
@@ -337,10 +370,8 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
             box_is_simplified(vehicle.length, vehicle.width),
         )
     target_velocity = {vehicle.track: vehicle.target_velocity for vehicle in start.agents}
-    parked = [
-        (candidate, box_polygon(*candidate.box), _box_envelope(candidate.box[:3], *candidate.box[3:]))
-        for candidate in start.parking
-    ]
+    parked = _parked(start, config)
+    idm = Idm(config)
     ego_corners = _ego_corners(ego_states)
     ego = shapely.polygons(ego_corners)
     # The ego box's long axis, from its rear edge's middle to its front edge's (corners FL, RL, RR, FR).
@@ -371,7 +402,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
             occupancy.simplify_round()
             lead_track, lead = _lead_of(agent, agents, occupancy, ego_state)
             before = (agent.progress, agent.speed)
-            agent.move(*idm_update(agent.progress, agent.speed, lead, target_velocity[track], config, STEP_S))
+            agent.move(*idm.update(agent.progress, agent.speed, lead, target_velocity[track], STEP_S))
             agent.updated = True
             updates.append(
                 IdmUpdate(
@@ -385,7 +416,7 @@ def simulate_traffic(start: StartingTraffic, ego_states: FloatArray, config: Idm
                 )
             )
             occupancy.set(track, *agent.projected_footprint(config.headway_time))
-        steps.append(_vehicles_of_step(agents.values(), parked, config))
+        steps.append(_vehicles_of_step(agents, parked))
     return VehicleSteps(steps=tuple(steps), updates=tuple(updates), out_of_range=out_of_range)
 
 
@@ -428,27 +459,55 @@ def _devkit_distance(ego_state: FloatArray, x: float, y: float) -> float:
     return float(cdist(ego_state[None, : StateIndex.HEADING], np.array([[x, y]]))[0, 0])
 
 
+class _Parked(NamedTuple):
+    """A parking candidate, its recorded box and the simulated vehicles whose boxes may come near it."""
+
+    candidate: ParkingCandidate
+    polygon: shapely.Polygon
+    envelope: Envelope
+    reaching: tuple[str, ...]  # the tracks of the vehicles whose path passes within a box's reach of it
+
+
+def _parked(start: StartingTraffic, config: IdmTraffic) -> list[_Parked]:
+    """Return the parking candidates of a simulation (none where the configuration keeps no parked vehicles),
+    each with the vehicles that may meet it: a vehicle's box stays centred on its path, so its envelope
+    (`_box_envelope`) lies within the envelope of the path's vertices widened by its radius and the slack (an
+    interpolated point lies between its vertices up to ulps); the others never meet the candidate's envelope,
+    so no step tests them."""
+    if not config.add_open_loop_parked_vehicles:
+        return []
+    reaches = [
+        (vehicle.track, _path_envelope(vehicle.path, math.hypot(vehicle.length / 2, vehicle.width / 2)))
+        for vehicle in start.agents
+    ]
+    parked = []
+    for candidate in start.parking:
+        envelope = _box_envelope(candidate.box[:3], *candidate.box[3:])
+        low_x, low_y, high_x, high_y = envelope
+        reaching = tuple(
+            track
+            for track, (around_low_x, around_low_y, around_high_x, around_high_y) in reaches
+            if around_low_x <= high_x
+            and low_x <= around_high_x
+            and around_low_y <= high_y
+            and low_y <= around_high_y
+        )
+        parked.append(_Parked(candidate, box_polygon(*candidate.box), envelope, reaching))
+    return parked
+
+
+def _path_envelope(path: LanePath, radius: float) -> Envelope:
+    """Return the envelope of the path's vertices, widened by `radius` and twice the slack."""
+    return path.to_go_envelope(path.start, radius + 2 * BOUND_SLACK)
+
+
 def _vehicles_of_step(
-    agents: Iterable[_Agent],
-    parked: list[tuple[ParkingCandidate, shapely.Polygon, Envelope]],
-    config: IdmTraffic,
+    agents: dict[str, _Agent], parked: list[_Parked]
 ) -> tuple[tuple[str, float, float, float, float, float], ...]:
     """Return the vehicles the scorer sees at a step: the simulated ones, then the parked ones they leave free
     (a simulated box is built only where its envelope meets a parked one's)."""
-    simulated = [(agent.start.track, *agent.pose, agent.start.length, agent.start.width) for agent in agents]
-    vehicles = list(simulated)
-    if config.add_open_loop_parked_vehicles and parked:
-        envelopes = [_box_envelope(vehicle[1:4], *vehicle[4:]) for vehicle in simulated]
-        for candidate, polygon, (low_x, low_y, high_x, high_y) in parked:
-            # Do the envelopes meet (touching counts)? Per step, parked and simulated vehicle: written out.
-            near = [
-                index
-                for index, (around_low_x, around_low_y, around_high_x, around_high_y) in enumerate(envelopes)
-                if around_low_x <= high_x
-                and low_x <= around_high_x
-                and around_low_y <= high_y
-                and low_y <= around_high_y
-            ]
-            if not any(geos.intersects(_box(*simulated[index][1:]), polygon) for index in near):
-                vehicles.append((candidate.track, *candidate.box))
+    vehicles = [(agent.track, *agent.pose, agent.length, agent.width) for agent in agents.values()]
+    for candidate, polygon, envelope, reaching in parked:
+        if not any(agents[track].box_meets(polygon, envelope) for track in reaching if track in agents):
+            vehicles.append((candidate.track, *candidate.box))
     return tuple(vehicles)
