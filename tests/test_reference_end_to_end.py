@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 
 import pytest
-from devkit_kernels import V1_VERSIONS, devkit_tolerance
+from devkit_kernels import CONTINUOUS_TOLERANCE, V1_VERSIONS
 
 from scorer.evaluate import TokenResult, build_split_cache, score_tokens
 from scorer.submission import load_submission
@@ -21,7 +21,6 @@ from scorer.versions import METRIC_COLUMNS, VERSIONS
 
 REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 CONTINUOUS_COLUMNS = {"ego_progress", "score"}
-CONTINUOUS_TOLERANCE = devkit_tolerance(1e-9)
 FAMILIES = sorted(path.stem for path in (REFERENCE / "submissions").glob("*.json"))
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from devkit_kernels import V1_VERSIONS, devkit_tolerance
+from devkit_kernels import CONTINUOUS_TOLERANCE, V1_VERSIONS
 from engine_scoring import score_proposals
 
 from scorer.drivable_map import DrivableMap, build_drivable_map
@@ -41,7 +41,6 @@ REFERENCE = Path(__file__).parent / "fixtures" / "reference"
 FAMILIES = sorted(path.stem for path in (REFERENCE / "submissions").glob("*.json"))
 VERSIONS = V1_VERSIONS
 DISCRETE_COLUMNS = tuple(column for column in METRIC_COLUMNS if column not in ("ego_progress", "score"))
-CONTINUOUS_TOLERANCE = devkit_tolerance(1e-9)
 
 
 @dataclass(frozen=True)
