@@ -16,6 +16,8 @@ from engine_scoring import score_proposals
 
 from scorer import pdm_scorer
 from scorer.drivable_map import build_drivable_map
+from scorer.metrics.ego_areas import ego_areas
+from scorer.metrics.ego_box import repeated_from
 from scorer.observation import observe_scene
 from scorer.pdm_scorer import (
     EgoRows,
@@ -195,3 +197,45 @@ def test_comfort_shared_with_an_earlier_batch_is_each_batchs_own() -> None:
     assert np.array_equal(second, pdm_scorer.is_comfortable(later, 0.1))
     assert not second[[1, 4], 1].any()
     assert len(known) == 2
+
+
+def test_repeated_from_names_the_first_step_of_each_run_of_equal_bits() -> None:
+    values = np.array(
+        [
+            [[1.0, 2.0], [1.0, 2.0], [1.0, 3.0], [1.0, 3.0], [1.0, 3.0]],
+            [[0.0, 0.0], [-0.0, 0.0]] * 2 + [[0.0, 0.0]],
+        ]
+    )
+    assert repeated_from(values).tolist() == [[0, 0, 2, 2, 2], [0, 1, 2, 3, 4]]
+
+
+def _standing(from_step: int) -> tuple:
+    """The v1.1 cases' proposals (B, 2, 41, 11) standing still from `from_step` on, and the other inputs."""
+    cases = _tokens("v1.1")
+    states, observations, maps, centerlines, routes = (list(column) for column in zip(*cases, strict=True))
+    standing = np.stack(states)
+    standing[:, :, from_step:] = standing[:, :, from_step : from_step + 1]
+    standing[:, :, from_step:, 3] = 0.0
+    return standing, observations, maps, centerlines, routes
+
+
+def test_a_standing_box_has_the_ego_areas_of_its_step_measured_alone() -> None:
+    """A box that repeats the step before's takes that step's flags (`repeated_from`): each step measured on
+    its own gives the same."""
+    standing, _, maps, centerlines, routes = _standing(20)
+    ego = EgoRows.of(standing, maps, centerlines, routes)
+    alone = [
+        ego_areas(ego.points[:, step : step + 1], ego.bounds[:, step : step + 1], ego.row_token, ego.maps)
+        for step in range(standing.shape[2])
+    ]
+    assert np.array_equal(ego.areas, np.concatenate(alone, axis=1))
+
+
+def test_proposals_stopped_throughout_have_no_collision_or_ttc_infraction() -> None:
+    """A stopped ego is never at fault (NC) and its states are skipped (TTC), whatever it touches."""
+    standing, observations, maps, centerlines, routes = _standing(0)
+    measures = measure_batch(
+        standing, observations, maps, centerlines, routes, get_version("v1.1").evaluation
+    )
+    assert (measures.no_at_fault_collisions == 1.0).all() and (measures.collision_index == -1).all()
+    assert (measures.time_to_collision_within_bound == 1.0).all() and (measures.ttc_index == -1).all()

@@ -44,13 +44,28 @@ def no_at_fault_collisions(
     """Return NC (R,) and each row's first at-fault collision: time index and object (-1 if none), from the
     states (R, T, 11), their box points (R, T, 5, 2), bounds (R, T, 4) and ego areas (R, T, 3)."""
     num_rows, num_steps = states.shape[:2]
-    contacts = find_contacts(ego_corners(points), bounds, np.arange(num_steps), row_token, observations)
+    stopped = (
+        np.hypot(states[..., StateIndex.VELOCITY_X], states[..., StateIndex.VELOCITY_Y]) <= STOPPED_SPEED
+    )
+    # A stopped ego is never at fault, and a contact it makes ignores its object only for that row: the rows
+    # stopped throughout (stopped proposals) score 1 with no infraction whatever they touch, and are left out
+    # of the search, which finds each box's contacts on its own.
+    searched = np.flatnonzero(~stopped.all(axis=1))
+    if not len(searched):
+        return no_contacts(num_rows)
+    contacts = find_contacts(
+        ego_corners(points[searched]),
+        bounds[searched],
+        np.arange(num_steps),
+        row_token[searched],
+        observations,
+    )
     if not len(contacts.row):
         return no_contacts(num_rows)
-    row, step, obj = contacts.row, contacts.step, contacts.obj
+    row, step, obj = searched[contacts.row], contacts.step, contacts.obj
     state = states[row, step]
 
-    ego_stopped = np.hypot(state[:, StateIndex.VELOCITY_X], state[:, StateIndex.VELOCITY_Y]) <= STOPPED_SPEED
+    ego_stopped = stopped[row, step]
     # nuPlan's `is_track_stopped`: anything that is not an Agent counts as stopped.
     track_stopped = ~observations.is_agent[obj] | (observations.first_speed[obj] <= STOPPED_SPEED)
     # The devkit asks for the angle only when neither is stopped.

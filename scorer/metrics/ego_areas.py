@@ -12,7 +12,7 @@ import shapely
 
 from scorer.drivable_map import MapBatch
 from scorer.geometry import BoolArray, FloatArray, IntArray
-from scorer.metrics.ego_box import BoxPoint
+from scorer.metrics.ego_box import BoxPoint, repeated_from
 from scorer.metrics.pairs import boxes_touch, extents, points_inside, same_token_pairs
 
 CORNERS = int(BoxPoint.CENTER)  # points 0..3 are the corners
@@ -34,8 +34,12 @@ def ego_areas(points: FloatArray, bounds: FloatArray, row_token: IntArray, maps:
     used). NON_DRIVABLE_AREA: some corner is in no roadblock, intersection or car park (lane polygons
     are not drivable). ONCOMING_TRAFFIC: the centre is in no on-route lane, off the road included.
     Containment is strict: a point on a boundary is outside.
+
+    A box whose points repeat the step before's to the bit (a proposal standing still) takes that step's
+    flags, which read nothing else of the row: only the other boxes are tested.
     """
     num_rows, num_steps, num_points = points.shape[:3]
+    tested_step = repeated_from(points)
     rows, polygons = same_token_pairs(row_token, maps.start, maps.counts)
     near = boxes_touch(extents(bounds)[rows], maps.bounds[polygons])
     near &= (maps.is_lane | maps.is_drivable)[polygons]
@@ -43,7 +47,8 @@ def ego_areas(points: FloatArray, bounds: FloatArray, row_token: IntArray, maps:
     # Then per state (the centre lies within the box's bounds), then per point: only points of states whose
     # box touches the polygon's box, and of those only the points within the polygon's box (a point strictly
     # inside lies within it), go to GEOS.
-    pair, step = np.nonzero(boxes_touch(bounds[rows], maps.bounds[polygons][:, None]))
+    starts = tested_step == np.arange(num_steps)
+    pair, step = np.nonzero(boxes_touch(bounds[rows], maps.bounds[polygons][:, None]) & starts[rows])
     x, y = (points[rows[pair], step, :, axis] for axis in range(2))  # (pairs, 5) each
     box = maps.bounds[polygons[pair]]
     tested = (box[:, :1] <= x) & (x <= box[:, 2:3]) & (box[:, 1:2] <= y) & (y <= box[:, 3:])
@@ -79,7 +84,7 @@ def ego_areas(points: FloatArray, bounds: FloatArray, row_token: IntArray, maps:
     areas[..., EgoArea.MULTIPLE_LANES] = ((lanes_touched > 1) & ~within_one_lane).reshape(num_rows, num_steps)
     areas[..., EgoArea.NON_DRIVABLE_AREA] = ~on_drivable.all(axis=-1)
     areas[..., EgoArea.ONCOMING_TRAFFIC] = ~on_route
-    return areas
+    return areas[np.arange(num_rows)[:, None], tested_step]
 
 
 def in_intersection(x: FloatArray, y: FloatArray, token: IntArray, maps: MapBatch) -> BoolArray:

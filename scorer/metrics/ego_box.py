@@ -9,7 +9,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, FloatArray, box_corners, ego_center
+from scorer.geometry import EGO_HALF_LENGTH, EGO_HALF_WIDTH, FloatArray, IntArray, box_corners, ego_center
 from scorer.trajectory import StateIndex
 
 
@@ -34,3 +34,17 @@ def ego_box_points(states: FloatArray) -> FloatArray:
 def ego_corners(points: FloatArray) -> FloatArray:
     """Return the 4 corners (..., 4, 2) of box points (..., 5, 2): the devkit's polygon ring FL, RL, RR, FR."""
     return points[..., : BoxPoint.CENTER, :]
+
+
+def repeated_from(values: FloatArray) -> IntArray:
+    """Return, per row and step of `values` (R, T, ...), the first step of the run of steps whose values repeat
+    each other to the bit (the step itself where it starts one): a proposal standing still repeats its boxes.
+
+    A measure that reads a step's values alone takes a repeat's from that step (`measure[rows, repeated_from]`),
+    and needs only the steps that start a run.
+    """
+    num_rows, num_steps = values.shape[:2]
+    bits = np.ascontiguousarray(values).reshape(num_rows, num_steps, -1).view(np.uint64)
+    starts = np.ones((num_rows, num_steps), dtype=bool)
+    starts[:, 1:] = (bits[:, 1:] != bits[:, :-1]).any(axis=-1)
+    return np.maximum.accumulate(np.where(starts, np.arange(num_steps), 0), axis=1)

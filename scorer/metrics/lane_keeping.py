@@ -20,6 +20,7 @@ import numpy.typing as npt
 import shapely
 
 from scorer.geometry import BoolArray, FloatArray, IntArray
+from scorer.metrics.ego_box import repeated_from
 from scorer.metrics.pairs import same_token_pairs
 
 # A segment left out keeps clear of the row's centres by the limit plus this much of their coordinates' size
@@ -85,7 +86,12 @@ def lane_keeping(
     from box centres (R, T, 2), whether each is inside an intersection (R, T), and each token's centerline."""
     required = math.ceil(window_s / step_s)
     nearby = nearby_centerlines(centers, centerlines, row_token, deviation_limit)
-    deviation = shapely.distance(shapely.points(centers), nearby[:, None])
+    # A centre that repeats the step before's to the bit has its distance.
+    measured_step = repeated_from(centers)
+    rows, steps = np.nonzero(measured_step == np.arange(centers.shape[1]))
+    deviation = np.empty(centers.shape[:2])
+    deviation[rows, steps] = shapely.distance(shapely.points(centers[rows, steps]), nearby[rows])
+    deviation = deviation[np.arange(len(centers))[:, None], measured_step]
     beyond = (deviation > deviation_limit) & ~in_intersection
     counting = ~in_intersection
     run = np.zeros(len(centers), dtype=np.intp)

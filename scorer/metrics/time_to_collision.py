@@ -57,30 +57,37 @@ def time_to_collision(
     num_rows = states.shape[0]
     num_steps = min(max(evaluated_steps), states.shape[1])
     num_projections = len(PROJECTION_STEPS)
-    heading = states[..., StateIndex.HEADING]
     speed = np.hypot(states[..., StateIndex.VELOCITY_X], states[..., StateIndex.VELOCITY_Y])
+    # A contact of a state slower than the threshold is dropped below, unjudged, as the devkit skips the state.
+    # Each box's contacts are found on its own, so the rows slower throughout (stopped proposals) are left out
+    # of the search: the other rows' contacts, and their order, are the same.
+    searched = np.flatnonzero((speed[:, :num_steps] >= stopped_speed_threshold).any(axis=1))
+    if not len(searched):
+        return [no_contacts(num_rows) for _ in evaluated_steps]
+    heading = states[searched, :num_steps, StateIndex.HEADING]
+    searched_speed = speed[searched, :num_steps]
     # Along the heading with |v|: a reversing ego is projected forward, as in the devkit.
-    velocity = np.stack([np.cos(heading) * speed, np.sin(heading) * speed], axis=-1)[:, :num_steps]
+    velocity = np.stack([np.cos(heading) * searched_speed, np.sin(heading) * searched_speed], axis=-1)
     delta_t = PROJECTION_STEPS.astype(np.float64) * step_s
-    shift = velocity[:, :, None, :] * delta_t[:, None]  # (R, T, projection, 2)
+    shift = velocity[:, :, None, :] * delta_t[:, None]  # (searched rows, T, projection, 2)
     # Each box's 4 corners as 8 values (x, y, x, y, ...), each moved by the shift's x or y: numpy adds along a
     # last axis of 8 far faster than along one of 2.
-    corners = ego_corners(points[:, :num_steps]).reshape(num_rows, -1, 1, 8) + np.tile(shift, 4)
+    corners = ego_corners(points[searched, :num_steps]).reshape(len(searched), -1, 1, 8) + np.tile(shift, 4)
     # Every corner moves by the same shift and rounding is monotone, so the moved box's bounds are its bounds
     # moved, to the bit.
-    box_bounds = bounds[:, :num_steps, None] + np.tile(shift, 2)
+    box_bounds = bounds[searched, :num_steps, None] + np.tile(shift, 2)
     # Box s = k * 4 + projection: the devkit's visiting order, tested against map k + 0, 3, 6 or 9.
     map_index = (np.arange(num_steps)[:, None] + PROJECTION_STEPS).reshape(-1)
     contacts = find_contacts(
-        corners.reshape(num_rows, -1, 4, 2),
-        box_bounds.reshape(num_rows, -1, 4),
+        corners.reshape(len(searched), -1, 4, 2),
+        box_bounds.reshape(len(searched), -1, 4),
         map_index,
-        row_token,
+        row_token[searched],
         observations,
     )
     if not len(contacts.row):
         return [no_contacts(num_rows) for _ in evaluated_steps]
-    row, step = contacts.row, contacts.step // num_projections
+    row, step = searched[contacts.row], contacts.step // num_projections
     moving = speed[row, step] >= stopped_speed_threshold
     row, step, order, obj = row[moving], step[moving], contacts.step[moving], contacts.obj[moving]
     state = states[row, step]
