@@ -713,7 +713,7 @@ def _cache_of(
         past_states=arrays.get("past_states"),
         reference_states=arrays.get("reference_states"),
         starting_traffic=(
-            _traffic_of(json.loads(arrays["starting_traffic"].tobytes()))
+            _traffic_of(read_json(arrays["starting_traffic"].tobytes()))
             if "starting_traffic" in arrays
             else None
         ),

@@ -25,6 +25,7 @@ from scorer.reactive.occupancy import (
     bound_of,
     box_capsule,
     box_is_simplified,
+    capsules_meet,
     path_between_bound,
     path_to_go_bound,
 )
@@ -198,3 +199,35 @@ def test_the_clamped_projection_is_min_and_max() -> None:
         if abs(distance - reach) <= reach * 1e-9:
             distance = float(np.hypot(x - x0 - fraction * dx, y - y0 - fraction * dy))
         assert _end_within(x, y, x0, y0, dx, dy, squared, reach) == (distance <= reach)
+
+
+def test_the_capsule_test_meets_what_lies_within_the_reach() -> None:
+    """`capsules_meet` (its sides' test refusing a segment wholly beyond the reach on one side of the other's
+    line, then the crossing and end tests) says whether the segments lie within the two radii and the slack
+    of each other, as GEOS measures their distance: on pairs around the reach (near misses at any angle,
+    crossing and degenerate segments)."""
+    rng = np.random.default_rng(5)
+    x0, y0, length, angle, other_angle, along, radius, other_radius, offset = rng.random((9, 20000))
+    first = np.stack([x0, y0, x0 + 4 * length * np.cos(6 * angle), y0 + 4 * length * np.sin(6 * angle)], 1)
+    # The second segment starts from 0.99 to 1.01 reaches away from a point of the first, across it.
+    reach = radius + other_radius + BOUND_SLACK
+    start = first[:, :2] + along[:, None] * (first[:, 2:] - first[:, :2])
+    start += ((0.99 + 0.02 * offset) * reach)[:, None] * np.stack([np.sin(6 * angle), -np.cos(6 * angle)], 1)
+    other_length = 3 * length * (other_angle > 0.1)  # a tenth of them points
+    second = np.hstack(
+        [
+            start,
+            start + other_length[:, None] * np.stack([np.cos(6 * other_angle), np.sin(6 * other_angle)], 1),
+        ]
+    )
+    distance = shapely.distance(
+        shapely.linestrings(first.reshape(-1, 2, 2)), shapely.linestrings(second.reshape(-1, 2, 2))
+    )
+    met = [
+        capsules_meet((*a, first_radius), (*b, second_radius), 0.0, 0.0)
+        for a, b, first_radius, second_radius in zip(
+            first.tolist(), second.tolist(), radius.tolist(), other_radius.tolist(), strict=True
+        )
+    ]
+    assert met == (distance <= reach).tolist()
+    assert 1000 < sum(met) < 19000

@@ -76,9 +76,10 @@ def with_vehicles(base: Observation, vehicles: VehicleSteps) -> Observation:
         step = np.repeat(np.arange(1, len(vehicles.steps) + 1), [len(at) for at in vehicles.steps])
         tracks, *box_columns = zip(*seen, strict=True)
         column = np.array([column_of[track] for track in tracks])
-        box = np.column_stack(box_columns).astype(np.float64, copy=False)  # (n, 5), C order
+        # One array per column: `np.column_stack` of the tuples took three times as long (the same floats).
+        x, y, heading, length, width = (np.array(values, dtype=np.float64) for values in box_columns)
         present[step, column] = True
-        corners[step, column] = box_corners(box[:, 0], box[:, 1], box[:, 2], box[:, 3] / 2.0, box[:, 4] / 2.0)
+        corners[step, column] = box_corners(x, y, heading, length / 2.0, width / 2.0)
     return replace(base, present=present, boxes=corners[present])
 
 

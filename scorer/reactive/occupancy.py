@@ -148,7 +148,15 @@ def capsules_meet(first: Capsule, second: Capsule, origin_x: float, origin_y: fl
     """Return whether two capsules come within the slack of each other: the segments cross (strictly;
     touching and overlapping ones have an end on the other) or an end lies within the two radii of the other
     segment. Measured from a local origin (the first capsule's start of the search), so that the crossing
-    test's products stay well within float precision."""
+    test's products stay well within float precision.
+
+    Most pairs whose envelopes meet do not meet (six in seven on the benchmark's split), and nearly all of
+    those (97%) have one segment wholly on one side of the other's line, farther from it than the reach: the
+    crossing test's cross products, over the line's length, are those distances, so such a pair is refused
+    before the four end tests. Every point of that segment lies at least that far from the line, hence from
+    the other segment: the pair meets in no case the end tests would accept (the margin of a billionth of
+    the reach covers the products' rounding, about 1e-13 m, as in `_end_within`), and the bounds' argument,
+    which `BOUND_SLACK` carries, is unchanged."""
     ax0, ay0, ax1, ay1 = first[0] - origin_x, first[1] - origin_y, first[2] - origin_x, first[3] - origin_y
     bx0, by0, bx1, by1 = (
         second[0] - origin_x,
@@ -157,12 +165,19 @@ def capsules_meet(first: Capsule, second: Capsule, origin_x: float, origin_y: fl
         second[3] - origin_y,
     )
     adx, ady, bdx, bdy = ax1 - ax0, ay1 - ay0, bx1 - bx0, by1 - by0
-    a_side = (adx * (by0 - ay0) - ady * (bx0 - ax0)) * (adx * (by1 - ay0) - ady * (bx1 - ax0))
-    b_side = (bdx * (ay0 - by0) - bdy * (ax0 - bx0)) * (bdx * (ay1 - by0) - bdy * (ax1 - bx0))
-    if a_side < 0 and b_side < 0:
+    # Twice the signed areas of each segment's ends with the other segment: its ends' sides of that line.
+    b0_across, b1_across = adx * (by0 - ay0) - ady * (bx0 - ax0), adx * (by1 - ay0) - ady * (bx1 - ax0)
+    a0_across, a1_across = bdx * (ay0 - by0) - bdy * (ax0 - bx0), bdx * (ay1 - by0) - bdy * (ax1 - bx0)
+    b_sides, a_sides = b0_across * b1_across, a0_across * a1_across
+    if b_sides < 0 and a_sides < 0:
         return True
     reach = first[4] + second[4] + BOUND_SLACK
     a_squared, b_squared = adx * adx + ady * ady, bdx * bdx + bdy * bdy
+    beyond = reach * (1.0 + HYPOT_TIE)
+    if b_sides > 0 and min(abs(b0_across), abs(b1_across)) > beyond * math.sqrt(a_squared):
+        return False
+    if a_sides > 0 and min(abs(a0_across), abs(a1_across)) > beyond * math.sqrt(b_squared):
+        return False
     return (
         _end_within(bx0, by0, ax0, ay0, adx, ady, a_squared, reach)
         or _end_within(bx1, by1, ax0, ay0, adx, ady, a_squared, reach)
