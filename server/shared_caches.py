@@ -22,12 +22,6 @@ A machine keeps what it fetched, for its later chunks and runs: a whole pack as 
 in the cache directory (read again and checked as the store's), a single object as the engine's own cache
 file. Writing a pack's 64 members as files cost a chunk about as long as its GETs on a loaded host, and
 written on a thread beside the engine they waited for the interpreter's lock.
-
-A chunk's GETs are waiting (on the store), which its engine cannot overlap: the engine reads every cache of
-a chunk before it simulates. So while a chunk is scored, its process fetches the packs of a chunk still
-queued (`prefetch_packs`) into the cache directory, where whichever of the machine's processes takes that
-chunk reads them as it reads any copy it kept (each member checked again). Fetching ahead is best effort: a
-pack it could not fetch, or that is damaged, is left to the chunk's own fetch, which handles it as before.
 """
 
 from __future__ import annotations
@@ -36,7 +30,7 @@ import hashlib
 import json
 import logging
 import struct
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -132,74 +126,21 @@ def fetch_caches(
     and lacks at least half of them (this machine's copy of the pack, else the store's, then kept as one file
     in `cache_dir`), the others one object each from the store (each kept in `cache_dir` as the engine's
     own would be)."""
-    wanted = _unheld(cache_dir, hashes)
-    packed = _packs_to_read(hashes, blocks, wanted)
-    members = {key: _checked_members(_read(cache_dir / key), block) for key, block in packed.items()}
-    uncopied = {key: block for key, block in packed.items() if len(members[key]) < len(block)}
-    copied, unpacked = _copy_packs(store, cache_dir, uncopied)
-    members |= copied
-    caches = {}
-    for key, block in packed.items():
-        for token in block:
-            if token in wanted and token in members[key]:
-                caches[token] = members[key][token]
-                del wanted[token]
-    unbuilt = _fetch_singly(store, cache_dir, wanted, caches)
-    return FetchedCaches(caches, unbuilt, unpacked)
-
-
-def prefetch_packs(
-    store: ObjectStore,
-    cache_dir: Path,
-    scene_hash: Callable[[str], str],
-    chunks: Sequence[Sequence[Sequence[str]]],
-) -> None:
-    """Keep in `cache_dir` the packs the first of `chunks` (chunks to come, each as the blocks it holds whole;
-    `scene_hash` gives a token's scene hash) would read whose copy this machine lacks, one pack at a time (a
-    chunk's packs are in memory at most once more). Best effort: a pack the store lacks, a damaged one or a
-    store that does not answer is left to that chunk's own fetch (`fetch_caches`)."""
-    try:
-        for blocks in chunks:
-            hashes = {token: scene_hash(token) for block in blocks for token in block}
-            packed = _packs_to_read(hashes, blocks, _unheld(cache_dir, hashes))
-            uncopied = {key: block for key, block in packed.items() if not (cache_dir / key).exists()}
-            for key, block in uncopied.items():
-                _copy_packs(store, cache_dir, {key: block})
-            if uncopied:
-                return  # else copied by this machine already (or read singly): the next chunk's
-    except (StoreUnavailable, OSError) as error:
-        log.warning("metric cache packs not fetched ahead (the chunk fetches them): %s", error)
-
-
-def _unheld(cache_dir: Path, hashes: Mapping[str, str]) -> dict[str, str]:
-    """Return those of the scenes (token -> the scene file's sha256) without a valid cache in `cache_dir`."""
-    return {
+    wanted = {
         token: scene_hash
         for token, scene_hash in hashes.items()
         if not _holds(_local(cache_dir, token), scene_hash)
     }
-
-
-def _packs_to_read(
-    hashes: Mapping[str, str], blocks: Sequence[Sequence[str]], wanted: Mapping[str, str]
-) -> dict[str, dict[str, str]]:
-    """Return pack key -> its block (token -> scene hash) for the blocks whose every member is in `hashes`
-    and at least half of them `wanted`."""
     held = [
         {token: hashes[token] for token in block}
         for block in blocks
         if hashes.keys() >= {*block} and 2 * sum(token in wanted for token in block) >= len(block)
     ]
-    return {_pack_key(block): block for block in held}
-
-
-def _copy_packs(
-    store: ObjectStore, cache_dir: Path, packed: Mapping[str, Mapping[str, str]]
-) -> tuple[dict[str, dict[str, bytes]], list[tuple[str, ...]]]:
-    """Read the packs (key -> its block) from the store, keep each whole one in `cache_dir` as one file;
-    return pack key -> its checked members, and the blocks whose pack the store lacks (to publish)."""
-    members, unpacked = {}, []
-    for key, pack in get_many(store, packed).items():
+    packed = {_pack_key(block): block for block in held}
+    members = {key: _checked_members(_read(cache_dir / key), block) for key, block in packed.items()}
+    uncopied = [key for key, block in packed.items() if len(members[key]) < len(block)]
+    caches, unpacked = {}, []
+    for key, pack in get_many(store, uncopied).items():
         members[key] = _checked_members(pack or b"", packed[key])
         if pack is None:  # a damaged pack stays (the write is conditional): its blocks are read singly
             unpacked.append(tuple(packed[key]))
@@ -207,7 +148,13 @@ def _copy_packs(
             write_atomically(cache_dir / key, pack, durable=False)
         elif not members[key]:
             log.warning("metric cache pack %s/%s is damaged: read one by one", store.url, key)
-    return members, unpacked
+    for key, block in packed.items():
+        for token in block:
+            if token in wanted and token in members[key]:
+                caches[token] = members[key][token]
+                del wanted[token]
+    unbuilt = _fetch_singly(store, cache_dir, wanted, caches)
+    return FetchedCaches(caches, unbuilt, unpacked)
 
 
 def _checked_members(pack: bytes, block: Mapping[str, str]) -> dict[str, bytes]:

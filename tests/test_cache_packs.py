@@ -20,14 +20,13 @@ from scorer.cache import cache_path
 from scorer.scene import scene_paths, scene_start
 from server.db import transaction
 from server.models import ScoringChunk, Submission
-from server.object_store import LocalStore, ObjectStore, StoreUnavailable
+from server.object_store import LocalStore, ObjectStore
 from server.runs import _plan, chunk_inputs, split_blocks, start_chunk
 from server.services.splits import scene_starts
 from server.shared_caches import (
     _pack,
     _pack_key,
     fetch_caches,
-    prefetch_packs,
     publish_caches,
     publish_packs,
     scene_hashes,
@@ -43,14 +42,6 @@ class CountedStore(LocalStore):
     def get(self, key: str) -> bytes:
         self.reads.append(key)
         return super().get(key)
-
-
-@dataclass(frozen=True)
-class DownStore(LocalStore):
-    """A store that does not answer."""
-
-    def get(self, key: str) -> bytes:
-        raise StoreUnavailable(f"{self.url} does not answer")
 
 
 def _packs(store: LocalStore) -> list[Path]:
@@ -179,35 +170,6 @@ def test_a_foreign_member_is_read_alone_and_a_block_with_one_is_not_published(
     assert _same_caches(fetched.caches, built, block)
 
 
-def test_the_packs_of_a_chunk_to_come_are_kept_for_whichever_process_takes_it(
-    built: Built, tmp_path: Path
-) -> None:
-    store, (block, other) = built.store(tmp_path, singles=True, packs=2), built.blocks
-    machine = _cold(tmp_path, "machine")  # the cache directory the machine's processes share
-    prefetch_packs(store, machine, built.hashes.__getitem__, [[block], [other]])
-    assert len(store.reads) == 1 and "/packs/" in store.reads[0]  # the first chunk to come's pack only
-    prefetch_packs(store, machine, built.hashes.__getitem__, [[block], [other]])
-    assert len(store.reads) == 2 and "/packs/" in store.reads[1]  # the first's is kept: the next one's
-    store.reads.clear()
-    fetched = fetch_caches(store, machine, built.chunk(block, other), [block, other])
-    assert store.reads == [] and _same_caches(fetched.caches, built, [*block, *other])
-
-
-def test_a_pack_fetched_ahead_damaged_or_missing_is_left_to_its_chunk(
-    built: Built, tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
-    store, (block, other) = built.store(tmp_path, singles=True, packs=1), built.blocks
-    (pack,) = _packs(store)
-    pack.write_bytes(pack.read_bytes()[:-10])  # cut short; the other block has no pack
-    machine = _cold(tmp_path, "machine")
-    prefetch_packs(store, machine, built.hashes.__getitem__, [[block, other]])
-    assert not any(machine.rglob("*")) and len(store.reads) == 2  # nothing kept
-    fetched = fetch_caches(store, machine, built.chunk(block, other), [block, other])
-    assert fetched.unbuilt == [] and fetched.unpacked == [other]  # the chunk reads them one by one, as before
-    prefetch_packs(DownStore(store.root), _cold(tmp_path, "down"), built.hashes.__getitem__, [[block]])
-    assert "not fetched ahead" in caplog.text  # a store that does not answer fails no chunk
-
-
 def test_two_publishers_of_a_pack_store_it_once(built: Built, tmp_path: Path) -> None:
     store: ObjectStore = fresh_s3_store()
     with ThreadPoolExecutor(2) as pool:
@@ -241,6 +203,5 @@ def test_chunks_are_planned_of_whole_blocks_cut_from_the_whole_split(
         inputs = chunk_inputs(session, submission.id, 1, started, packs=True)
         assert inputs is not None
         assert inputs.packs == (blocks[1],)  # the first block's is not whole in the chunk
-        assert inputs.ahead == ((blocks[2],),)  # the queued chunk's, fetched while this one is scored
         without_store = chunk_inputs(session, submission.id, 1, started)
-        assert without_store is not None and (without_store.packs, without_store.ahead) == ((), ())
+        assert without_store is not None and without_store.packs == ()  # a local cache reads no pack

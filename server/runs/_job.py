@@ -14,11 +14,10 @@ import hashlib
 from dataclasses import dataclass
 from functools import lru_cache
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from scorer.geometry import FloatArray
-from server.models import ChunkState, FailureKind, ScoringChunk, SplitKind, Submission
+from server.models import FailureKind, SplitKind, Submission
 from server.object_store import ObjectStore
 from server.runs._chunks import ChunkStart
 from server.runs._plan import token_blocks
@@ -30,9 +29,6 @@ from server.storage import read_file, read_trajectories
 MAX_LISTED_PROBLEMS = 5
 # Parsed files a process keeps: the run it scores, and one more for the chunks of two runs interleaving.
 PARSED_FILES_KEPT = 2
-# Queued chunks whose metric cache packs a process may fetch while it scores a chunk: the first whose packs
-# this machine lacks (another of its processes may have fetched the next one's).
-AHEAD_CHUNKS = 2
 
 
 class Rejected(Exception):
@@ -76,8 +72,6 @@ class ChunkInputs:
     isolated: bool  # one token with a death on record: scored in a process of its own (worker.isolated)
     # The blocks of the split it holds whole (server.runs._plan): their metric caches are fetched as packs.
     packs: tuple[tuple[str, ...], ...] = ()
-    # The blocks the run's next queued chunks hold whole: their packs are fetched while this chunk is scored.
-    ahead: tuple[tuple[tuple[str, ...], ...], ...] = ()
     # How the isolated process scoring its one token died: the token is written as failed, not scored.
     process_death: str | None = None
 
@@ -107,8 +101,7 @@ def chunk_inputs(
     session: Session, submission_id: int, run: int, start: ChunkStart, packs: bool = False
 ) -> ChunkInputs | None:
     """Return what the chunk `start` took has left to score; None when the run is no longer wanted. With
-    `packs` (the metric caches come from an object store), the blocks it holds whole as well, and those the
-    run's next AHEAD_CHUNKS queued chunks hold."""
+    `packs` (the metric caches come from an object store), the blocks it holds whole as well."""
     done = completed_tokens(session, submission_id, run, among=start.tokens)
     if done is None:
         return None
@@ -121,24 +114,7 @@ def chunk_inputs(
         context=(*start.context, *(token for token in start.tokens if token in done)),
         isolated=start.isolated and bool(todo),
         packs=_whole_blocks(session, submission_id, {*start.tokens, *start.context}) if packs else (),
-        ahead=_blocks_ahead(session, submission_id, run) if packs else (),
     )
-
-
-def _blocks_ahead(session: Session, submission_id: int, run: int) -> tuple[tuple[tuple[str, ...], ...], ...]:
-    """Return the blocks each of the run's next AHEAD_CHUNKS queued chunks holds whole (in the order they
-    were sent: the broker's queue hands them out in that order)."""
-    queued = session.execute(
-        select(ScoringChunk.tokens, ScoringChunk.context)
-        .where(
-            ScoringChunk.submission_id == submission_id,
-            ScoringChunk.run == run,
-            ScoringChunk.state == ChunkState.queued,
-        )
-        .order_by(ScoringChunk.id)
-        .limit(AHEAD_CHUNKS)
-    )
-    return tuple(_whole_blocks(session, submission_id, {*tokens, *context}) for tokens, context in queued)
 
 
 def _whole_blocks(session: Session, submission_id: int, tokens: set[str]) -> tuple[tuple[str, ...], ...]:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
@@ -56,7 +55,7 @@ def score_chunk(
     # The engine is heavy: the API imports this package without it.
     from scorer.evaluate import SceneFiles, TokenResult, score_seeds
     from scorer.scene import scene_paths
-    from server.shared_caches import fetch_caches, keep_caches, prefetch_packs, publish_caches, publish_packs
+    from server.shared_caches import fetch_caches, keep_caches, publish_caches, publish_packs
 
     job = inputs.job
     if inputs.process_death is not None:
@@ -90,11 +89,7 @@ def score_chunk(
         else:  # a two-stage part reads every cache from cache_dir
             keep_caches(cache_dir, fetched.caches)
     started = perf_counter()
-    # The scenes of the caches to build are fetched as the engine needs them; the next chunks' packs, beside.
-    with ThreadPoolExecutor(1) as beside, _split_read():
-        ahead: Future[None] | None = None
-        if cache_store is not None and stages is None and inputs.ahead:
-            ahead = beside.submit(prefetch_packs, cache_store, cache_dir, scenes.file_hash, inputs.ahead)
+    with _split_read():  # the scenes of the caches to build are fetched as the engine needs them
         if stages is not None:
             rows = {
                 version: _two_stage_rows(split_dir, stages, cache_dir, seeds, version, inputs)
@@ -104,8 +99,6 @@ def score_chunk(
             rows = score_seeds(
                 split_dir, cache_dir, seeds, job.versions, inputs.todo, context=inputs.context, scenes=scenes
             )
-        if ahead is not None:
-            ahead.result()
     if cache_store is not None:
         publish_caches(cache_store, cache_dir, {token: hashes[token] for token in fetched.unbuilt})
         publish_packs(cache_store, cache_dir, hashes, fetched.unpacked)
